@@ -1,0 +1,3 @@
+from operator_site.cli import run
+
+run()

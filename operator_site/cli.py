@@ -1,0 +1,162 @@
+"""``operator-site``: the operator's web page, connected to a work site over zenoh.
+
+operator-site serve [--connect ENDPOINT] [--port 8080]   # the page, for a running work site
+operator-site demo                                       # both sites on this machine
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from models.errors import ModelError
+from models.scene import DEFAULT_SCENE, load_scene
+from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError, make_config
+from protocol.keys import check_site_id
+
+WORK_SITE_STOP_TIMEOUT_S = 10.0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="operator-site",
+        description="The operator site: a web page with the work-site model, its live camera "
+        "and the robot, connected to a work site over zenoh.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    serve = sub.add_parser(
+        "serve",
+        help="serve the page for a running work site (default)",
+        description="Serve the operator page, connected to a work site.",
+    )
+    demo = sub.add_parser(
+        "demo",
+        help="start a work site on this machine and serve the page",
+        description="The loopback demo: starts `work-site serve` on "
+        "this machine and serves the operator page connected to it. Ctrl-C "
+        "stops both.",
+    )
+    for p in (serve, demo):
+        p.add_argument(
+            "--scene",
+            type=Path,
+            default=DEFAULT_SCENE,
+            help="scene JSON the page shows (default: the puzzle scene)",
+        )
+        p.add_argument(
+            "--site-id", default=DEFAULT_SITE_ID, help="the work site's id (default: %(default)s)"
+        )
+        p.add_argument(
+            "--host",
+            default="127.0.0.1",
+            help="address the web page listens on (default: %(default)s; "
+            "0.0.0.0 for every interface)",
+        )
+        p.add_argument(
+            "--port", type=int, default=8080, help="port of the web page (default: %(default)s)"
+        )
+        p.add_argument(
+            "--connect",
+            default=DEFAULT_WORK_SITE_ENDPOINT,
+            metavar="ENDPOINT",
+            help="zenoh endpoint of the work site or a router (default: %(default)s)",
+        )
+        p.add_argument("-v", "--verbose", action="store_true", help="log more")
+    return parser
+
+
+def _install_stop_signals(stop: threading.Event) -> None:
+    def on_signal(signum: int, _frame: object) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+
+
+def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+    """Serve the page until SIGINT/SIGTERM (or ``stop``); returns the exit code."""
+    from operator_site.link import WorkSiteLink  # heavy imports after parsing
+    from operator_site.ui import OperatorPage
+
+    try:
+        check_site_id(args.site_id)
+        scene = load_scene(args.scene)
+        config = make_config(connect=[args.connect])
+        if not 1 <= args.port <= 65535:
+            raise ValueError(f"--port must be in 1..65535, got {args.port}")
+    except (ModelError, ProtocolError, ValueError) as e:
+        print(f"operator-site: {e}", file=sys.stderr)
+        return 2
+    if stop is None:
+        stop = threading.Event()
+        _install_stop_signals(stop)
+    link = WorkSiteLink(config, args.site_id)
+    try:
+        page = OperatorPage(scene, link, host=args.host, port=args.port)
+        try:
+            print(
+                f"operator-site: open {page.url} in a web browser (work site "
+                f"{args.site_id!r} at {args.connect}; Ctrl-C to stop)",
+                flush=True,
+            )
+            page.run(stop)
+        finally:
+            page.close()
+    finally:
+        link.close()
+    return 0
+
+
+def demo(args: argparse.Namespace) -> int:
+    """Start a work site as a child process, serve the page, stop both on Ctrl-C."""
+    stop = threading.Event()
+    _install_stop_signals(stop)
+    cmd = [
+        sys.executable,
+        "-m",
+        "work_site",
+        "serve",
+        "--scene",
+        str(args.scene),
+        "--site-id",
+        args.site_id,
+        "--listen",
+        args.connect,
+    ]
+    print(f"operator-site: starting the work site: {' '.join(cmd)}", flush=True)
+    # Its own process group: Ctrl-C reaches it through us, once, in order.
+    work_site = subprocess.Popen(cmd, start_new_session=True)
+    try:
+        return serve(args, stop)
+    finally:
+        if work_site.poll() is None:
+            work_site.send_signal(signal.SIGINT)
+            try:
+                work_site.wait(WORK_SITE_STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                work_site.kill()
+                work_site.wait()
+        print(f"operator-site: work site stopped (exit code {work_site.returncode})", flush=True)
+
+
+def main(argv: list[str]) -> int:
+    """Parse ``argv`` (without the program name) and run the chosen command."""
+    parser = build_parser()
+    if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help")):
+        argv = ["serve", *argv]
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(name)s %(levelname)s: %(message)s",
+    )
+    return demo(args) if args.command == "demo" else serve(args)
+
+
+def run() -> None:
+    """Console-script entry point."""
+    sys.exit(main(sys.argv[1:]))

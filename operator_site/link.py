@@ -1,0 +1,154 @@
+"""The operator site's link to one work site over zenoh: latest state, latest frame, liveliness.
+
+zenoh delivers into bounded rings (the newest samples win, so nothing goes stale behind a slow
+reader); :meth:`WorkSiteLink.poll` drains them on the caller's thread and decodes there. A payload
+that fails validation is counted and logged once per kind, never raised.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import time
+from dataclasses import dataclass, field
+
+import zenoh
+
+from protocol import (
+    CameraFrame,
+    ExecutionReport,
+    Heartbeat,
+    MotionProgram,
+    ProtocolError,
+    RobotState,
+    Stop,
+    alive_key,
+    decode,
+    encode,
+    key,
+)
+
+log = logging.getLogger("operator-site")
+
+RATE_WINDOW_S = 2.0
+"""Messages are counted over this trailing window to report rates (Hz)."""
+STALE_AFTER_S = 1.0
+"""A link whose work site is alive but has sent no robot state for this long is 'stale'."""
+
+
+class RateMeter:
+    """Messages per second over the last :data:`RATE_WINDOW_S` seconds."""
+
+    def __init__(self) -> None:
+        self._stamps: collections.deque[float] = collections.deque()
+
+    def tick(self, now_s: float) -> None:
+        self._stamps.append(now_s)
+
+    def rate_hz(self, now_s: float) -> float:
+        while self._stamps and self._stamps[0] < now_s - RATE_WINDOW_S:
+            self._stamps.popleft()
+        return len(self._stamps) / RATE_WINDOW_S
+
+
+@dataclass
+class LinkStatus:
+    """What the operator is shown about the link: up/down, rates (Hz), ages (s), counts."""
+
+    work_site_alive: bool = False
+    state_rate_hz: float = 0.0
+    frame_rate_hz: float = 0.0
+    last_state_age_s: float | None = None
+    last_frame_age_s: float | None = None
+    rejected: int = 0
+    reports: list[ExecutionReport] = field(default_factory=list)
+
+    @property
+    def label(self) -> str:
+        """``connected``, ``stale`` (alive but silent) or ``not connected``."""
+        if not self.work_site_alive:
+            return "not connected"
+        if self.last_state_age_s is None or self.last_state_age_s > STALE_AFTER_S:
+            return "stale"
+        return "connected"
+
+
+class WorkSiteLink:
+    """Subscribes to one work site's topics; open with a zenoh config, close when done."""
+
+    def __init__(self, zenoh_config: zenoh.Config, site_id: str) -> None:
+        self.site_id = site_id
+        self.session = zenoh.open(zenoh_config)
+        ring = zenoh.handlers.RingChannel
+        self._sub_state = self.session.declare_subscriber(key(site_id, "robot_state"), ring(4))
+        self._sub_camera = self.session.declare_subscriber(key(site_id, "camera"), ring(1))
+        self._sub_report = self.session.declare_subscriber(key(site_id, "report"), ring(256))
+        self._sub_heartbeat = self.session.declare_subscriber(key(site_id, "heartbeat"), ring(4))
+        self._sub_alive = self.session.liveliness().declare_subscriber(
+            alive_key(site_id, "work_site"), ring(16), history=True
+        )
+        self._pub_program = self.session.declare_publisher(
+            key(site_id, "program"), priority=zenoh.Priority.INTERACTIVE_HIGH
+        )
+        self._pub_stop = self.session.declare_publisher(
+            key(site_id, "stop"), priority=zenoh.Priority.REAL_TIME
+        )
+        self.status = LinkStatus()
+        self.robot_state: RobotState | None = None
+        self.camera_frame: CameraFrame | None = None
+        self._state_rate, self._frame_rate = RateMeter(), RateMeter()
+        self._last_state_s: float | None = None
+        self._last_frame_s: float | None = None
+        self._warned: set[str] = set()
+
+    def _decode(self, sample: zenoh.Sample, expected: type, what: str):
+        try:
+            return decode(sample.payload.to_bytes(), expected=expected)
+        except ProtocolError as e:
+            self.status.rejected += 1
+            if what not in self._warned:  # once per kind: a bad stream must not flood the log
+                self._warned.add(what)
+                log.warning("rejected a %s message from %s: %s", what, sample.key_expr, e)
+            return None
+
+    def poll(self) -> tuple[bool, bool]:
+        """Drain the rings; returns (new robot state?, new camera frame?). Never blocks."""
+        now = time.monotonic()
+        new_state = new_frame = False
+        while (sample := self._sub_alive.try_recv()) is not None:
+            self.status.work_site_alive = sample.kind == zenoh.SampleKind.PUT
+        while (sample := self._sub_state.try_recv()) is not None:
+            if (msg := self._decode(sample, RobotState, "robot state")) is not None:
+                self.robot_state, new_state = msg, True
+                self._state_rate.tick(now)
+                self._last_state_s = now
+        while (sample := self._sub_camera.try_recv()) is not None:
+            if (msg := self._decode(sample, CameraFrame, "camera frame")) is not None:
+                self.camera_frame, new_frame = msg, True
+                self._frame_rate.tick(now)
+                self._last_frame_s = now
+        while (sample := self._sub_report.try_recv()) is not None:
+            if (msg := self._decode(sample, ExecutionReport, "execution report")) is not None:
+                self.status.reports.append(msg)
+                del self.status.reports[:-100]
+        while (sample := self._sub_heartbeat.try_recv()) is not None:
+            self._decode(sample, Heartbeat, "heartbeat")
+        s = self.status
+        s.state_rate_hz = self._state_rate.rate_hz(now)
+        s.frame_rate_hz = self._frame_rate.rate_hz(now)
+        s.last_state_age_s = None if self._last_state_s is None else now - self._last_state_s
+        s.last_frame_age_s = None if self._last_frame_s is None else now - self._last_frame_s
+        return new_state, new_frame
+
+    def send_program(self, program: MotionProgram) -> None:
+        """Publish a motion program to the work site."""
+        self._pub_program.put(encode(program))
+
+    def send_stop(self, reason: str) -> None:
+        """Publish a stop to the work site."""
+        self._pub_stop.put(encode(Stop(reason=reason, stamp_s=time.time())))
+
+    def close(self) -> None:
+        """Undeclare everything and close the session (idempotent)."""
+        if not self.session.is_closed():
+            self.session.close()

@@ -1,0 +1,180 @@
+"""The operator's web page (viser): the 3D work-site model, the live camera image, link status.
+
+Only this module calls viser. Poses go to viser as position + ``wxyz`` quaternion, converted by
+``models.transforms`` (viser's own convention), never inline.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import cv2
+import numpy as np
+import viser
+
+from models.robot import RobotModel, load_robot
+from models.scene import Scene
+from models.transforms import R_to_quat_wxyz
+from operator_site.link import LinkStatus, WorkSiteLink
+
+log = logging.getLogger("operator-site")
+
+UI_PERIOD_S = 0.05
+"""The page is refreshed from the link at most this often (20 Hz)."""
+STATUS_PERIOD_S = 0.5
+INITIAL_EYE_W = (1.05, -0.85, 0.75)
+INITIAL_LOOK_AT_W = (0.40, 0.0, 0.05)
+
+
+def _rgb255(rgba) -> tuple[int, int, int]:
+    return tuple(round(255 * c) for c in rgba[:3])
+
+
+def _set_pose(handle, X_WL: np.ndarray) -> None:
+    handle.position = X_WL[:3, 3]
+    handle.wxyz = R_to_quat_wxyz(X_WL[:3, :3])
+
+
+def waiting_image(width: int, height: int, text: str) -> np.ndarray:
+    """A dark grey placeholder with ``text`` centred, (h, w, 3) uint8."""
+    img = np.full((height, width, 3), 40, dtype=np.uint8)
+    scale = width / 640
+    (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 2)
+    cv2.putText(
+        img,
+        text,
+        ((width - tw) // 2, (height + th) // 2),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        scale,
+        (200, 200, 200),
+        2,
+        cv2.LINE_AA,
+    )
+    return img
+
+
+def status_markdown(site_id: str, status: LinkStatus) -> str:
+    """The status panel's text for the link state ``status``."""
+    label = status.label
+    icon = {"connected": "🟢", "stale": "🟠", "not connected": "🔴"}[label]
+    lines = [f"{icon} **work site: {label}** (`{site_id}`)"]
+    if status.work_site_alive:
+        lines.append(
+            f"robot state {status.state_rate_hz:.0f} Hz · camera {status.frame_rate_hz:.1f} Hz"
+        )
+    if status.last_frame_age_s is not None:
+        lines.append(f"last camera frame {status.last_frame_age_s:.1f} s ago")
+    if status.rejected:
+        lines.append(f"⚠ {status.rejected} invalid messages rejected")
+    if status.reports:
+        r = status.reports[-1]
+        lines.append(f"last report: program `{r.program_id}` {r.status}: {r.message}")
+    return "  \n".join(lines)
+
+
+class OperatorPage:
+    """Builds the page for ``scene`` and keeps it in step with ``link`` while running."""
+
+    def __init__(
+        self, scene: Scene, link: WorkSiteLink, host: str = "127.0.0.1", port: int = 8080
+    ) -> None:
+        self.scene, self.link = scene, link
+        self.robot: RobotModel = load_robot(scene.robot.urdf_path)
+        self.server = viser.ViserServer(
+            host=host, port=port, label="Telerobot operator site", verbose=False
+        )
+        self.url = f"http://{'localhost' if host in ('0.0.0.0', '127.0.0.1') else host}:{port}"
+        self.server.scene.set_up_direction("+z")
+        self.server.initial_camera.position = INITIAL_EYE_W
+        self.server.initial_camera.look_at = INITIAL_LOOK_AT_W
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        self._build_gui()
+        self._build_scene()
+        self.frames_shown = 0
+        self.states_shown = 0
+
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        gui.configure_theme(control_width="large")
+        gui.add_markdown("### Telerobot — operator site")
+        self.status_md = gui.add_markdown(status_markdown(self.link.site_id, self.link.status))
+        cam = self.scene.camera
+        self.camera_image = gui.add_image(
+            waiting_image(cam.width, cam.height, "waiting for the work site's camera"),
+            label="work-site camera",
+            format="jpeg",
+            jpeg_quality=85,
+        )
+
+    def _build_scene(self) -> None:
+        scene = self.server.scene
+        for obj in self.scene.objects:
+            frame = scene.add_frame(f"/world/{obj.name}", show_axes=False)
+            _set_pose(frame, obj.X_WO)
+            for k, part in enumerate(obj.model.parts):
+                scene.add_mesh_simple(
+                    f"/world/{obj.name}/part_{k}",
+                    part.vertices_O,
+                    part.triangles(),
+                    color=_rgb255(obj.model.rgba),
+                    flat_shading=True,
+                )
+        cam = self.scene.camera
+        fov_y = 2 * np.arctan2(cam.height / 2, cam.K[1, 1])
+        frustum = scene.add_camera_frustum(
+            "/world/camera",
+            fov=float(fov_y),
+            aspect=cam.width / cam.height,
+            scale=0.08,
+            thickness=0.002,
+            color=(60, 60, 60),
+        )
+        _set_pose(frustum, cam.X_WC)
+        self.link_frames = {}
+        for link in self.robot.links.values():
+            frame = scene.add_frame(f"/robot/{link.name}", show_axes=False)
+            self.link_frames[link.name] = frame
+            for k, v in enumerate(link.visuals):
+                name = f"/robot/{link.name}/visual_{k}"
+                color = _rgb255(v.rgba)
+                if v.kind == "box":
+                    h = scene.add_box(name, color=color, dimensions=tuple(v.size))
+                elif v.kind == "cylinder":
+                    h = scene.add_cylinder(name, radius=v.size[0], height=v.size[1], color=color)
+                else:
+                    h = scene.add_icosphere(name, radius=v.size[0], color=color)
+                _set_pose(h, v.X_LV)
+        self._show_robot(self.scene.robot.q_home_rad, 0.04)
+
+    def _show_robot(self, q: np.ndarray, opening_m: float) -> None:
+        poses = self.robot.link_poses_W(q, opening_m, self.scene.robot.X_WB)
+        with self.server.atomic():
+            for name, X_WL in poses.items():
+                _set_pose(self.link_frames[name], X_WL)
+
+    def update(self) -> None:
+        """Poll the link once and show what changed."""
+        new_state, new_frame = self.link.poll()
+        if new_state and self.link.robot_state is not None:
+            s = self.link.robot_state
+            self._show_robot(s.q, s.gripper_opening_m)
+            self.states_shown += 1
+        if new_frame and self.link.camera_frame is not None:
+            self.camera_image.image = self.link.camera_frame.image
+            self.frames_shown += 1
+
+    def run(self, stop: threading.Event) -> None:
+        """Refresh the page until ``stop`` is set."""
+        next_status = 0.0
+        while not stop.is_set():
+            t = time.monotonic()
+            self.update()
+            if t >= next_status:
+                self.status_md.content = status_markdown(self.link.site_id, self.link.status)
+                next_status = t + STATUS_PERIOD_S
+            stop.wait(max(0.0, UI_PERIOD_S - (time.monotonic() - t)))
+
+    def close(self) -> None:
+        self.server.stop()

@@ -1,0 +1,324 @@
+"""Declarative field specifications and the one validator used by constructors and the decoder.
+
+Each record class (message or nested value) carries ``_SPEC``: an ordered mapping from field name
+to one of the field kinds below. ``validate_fields`` checks and normalises a dict of field values
+against it; the codec derives the wire format from the same table.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import reprlib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar
+
+import numpy as np
+
+from .errors import ProtocolError
+
+HOMOGENEOUS_ROW_TOL = 1e-9
+"""Largest deviation of a pose's last row from ``[0, 0, 0, 1]`` (dimensionless)."""
+
+ROTATION_ORTHONORMAL_TOL = 1e-6
+"""Largest ``|RᵀR − I|`` entry accepted for a pose's rotation block (dimensionless)."""
+
+UNIT_NORMAL_TOL = 1e-6
+"""Largest ``| |n| − 1 |`` accepted for a unit normal vector (dimensionless)."""
+
+_repr = reprlib.Repr()
+_repr.maxstring = 40
+_repr.maxother = 40
+_repr.maxlist = 6
+
+
+def short_repr(value: object) -> str:
+    """A bounded-length repr for error messages (never echoes a whole payload)."""
+    return _repr.repr(value)
+
+
+def type_name(value: object) -> str:
+    """The value's type name for error messages."""
+    return type(value).__name__
+
+
+# ----------------------------------------------------------------------------------- field kinds
+
+
+@dataclass(frozen=True)
+class IntField:
+    """An ``int`` (never ``bool``) in ``[lo, hi)``."""
+
+    lo: int
+    hi: int
+
+
+@dataclass(frozen=True)
+class FloatField:
+    """A finite ``float`` (``int`` accepted and converted), optionally ``>= lo``."""
+
+    lo: float | None = None
+
+
+@dataclass(frozen=True)
+class StrField:
+    """A ``str`` of at most ``max_len`` characters, optionally matching ``pattern`` (whole string)
+    or one of ``choices``."""
+
+    max_len: int
+    pattern: str | None = None
+    choices: tuple[str, ...] | None = None
+
+    def __post_init__(self) -> None:
+        compiled = re.compile(self.pattern) if self.pattern is not None else None
+        object.__setattr__(self, "_compiled", compiled)
+
+
+@dataclass(frozen=True)
+class ArrayField:
+    """A numpy array of ``dtype`` whose shape matches ``shape``: one ``(lo, hi)`` range per axis.
+
+    ``check`` (optional) validates the converted array and returns an error text or ``None``.
+    """
+
+    shape: tuple[tuple[int, int], ...]
+    dtype: np.dtype
+    check: Callable[[np.ndarray], str | None] | None = None
+
+    def shape_text(self) -> str:
+        """The expected shape as text, e.g. ``(6,)`` or ``(1..16, 3)``."""
+        parts = [str(lo) if lo == hi else f"{lo}..{hi}" for lo, hi in self.shape]
+        return "(" + ", ".join(parts) + ("," if len(parts) == 1 else "") + ")"
+
+    def shape_ok(self, shape: tuple[int, ...]) -> bool:
+        """Whether ``shape`` matches this field's shape ranges."""
+        return len(shape) == len(self.shape) and all(
+            lo <= n <= hi for n, (lo, hi) in zip(shape, self.shape, strict=True)
+        )
+
+
+@dataclass(frozen=True)
+class NestedField:
+    """One nested record of class ``cls``."""
+
+    cls: type
+
+
+@dataclass(frozen=True)
+class TupleField:
+    """A tuple of ``min_len..max_len`` nested records of class ``cls``."""
+
+    cls: type
+    min_len: int
+    max_len: int
+
+
+Field = IntField | FloatField | StrField | ArrayField | NestedField | TupleField
+
+FLOAT64 = np.dtype("<f8")
+UINT8 = np.dtype("u1")
+
+# ------------------------------------------------------------------------------- array checks
+
+
+def check_pose(X: np.ndarray) -> str | None:
+    """Error text if ``X`` (4, 4) is not a rigid transform, else ``None``."""
+    row_err = float(np.max(np.abs(X[3] - (0.0, 0.0, 0.0, 1.0))))
+    if row_err > HOMOGENEOUS_ROW_TOL:
+        return (
+            f"last row must be [0, 0, 0, 1] (within {HOMOGENEOUS_ROW_TOL:g}), got {X[3].tolist()}"
+        )
+    R = X[:3, :3]
+    R_max = float(np.max(np.abs(R)))
+    if R_max > 1.0 + ROTATION_ORTHONORMAL_TOL:  # also keeps RᵀR from overflowing
+        return f"rotation block is not orthonormal: max |R_ij| = {R_max:.3g} > 1"
+    orth_err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if orth_err > ROTATION_ORTHONORMAL_TOL:
+        return (
+            f"rotation block is not orthonormal: max |RᵀR − I| = {orth_err:.3g} "
+            f"> {ROTATION_ORTHONORMAL_TOL:g}"
+        )
+    det = float(np.linalg.det(R))
+    if det <= 0.0:
+        return f"rotation block has determinant {det:.6g}, expected +1 (a reflection)"
+    return None
+
+
+def check_unit_rows(n: np.ndarray) -> str | None:
+    """Error text if some row of ``n`` (k, 3) is not a unit vector, else ``None``."""
+    big = np.max(np.abs(n), axis=1) > 1.0 + UNIT_NORMAL_TOL  # also keeps the norm from overflowing
+    if big.any():
+        i = int(np.argmax(big))
+        return f"row {i} is not a unit vector (an entry exceeds 1 in magnitude)"
+    err = np.abs(np.linalg.norm(n, axis=1) - 1.0)
+    if err.size and float(np.max(err)) > UNIT_NORMAL_TOL:
+        i = int(np.argmax(err))
+        return f"row {i} is not a unit vector (| |n| − 1 | = {err[i]:.3g} > {UNIT_NORMAL_TOL:g})"
+    return None
+
+
+def check_camera_matrix(K: np.ndarray) -> str | None:
+    """Error text if ``K`` (3, 3) is not ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``, fx, fy > 0."""
+    if K[1, 0] != 0.0 or K[2, 0] != 0.0 or K[2, 1] != 0.0 or K[2, 2] != 1.0:
+        return f"expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}"
+    if not (K[0, 0] > 0.0 and K[1, 1] > 0.0):
+        return f"focal lengths fx, fy must be > 0, got {K[0, 0]!r}, {K[1, 1]!r}"
+    return None
+
+
+# --------------------------------------------------------------------------------- validation
+
+
+def _fail(where: str, text: str) -> ProtocolError:
+    return ProtocolError(f"{where}: {text}")
+
+
+def _check_int(spec: IntField, value: Any, where: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise _fail(where, f"expected int, got {type_name(value)}")
+    value = int(value)
+    if not spec.lo <= value < spec.hi:
+        hi = "2**63" if spec.hi == 2**63 else str(spec.hi)
+        raise _fail(where, f"must be in [{spec.lo}, {hi}), got {value}")
+    return value
+
+
+def _check_float(spec: FloatField, value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, float | int | np.floating | np.integer):
+        raise _fail(where, f"expected float, got {type_name(value)}")
+    try:
+        value = float(value)
+    except OverflowError:  # an int too large for a float
+        raise _fail(where, f"must be finite, got {short_repr(value)}") from None
+    if not math.isfinite(value):
+        raise _fail(where, f"must be finite, got {value!r}")
+    if spec.lo is not None and not value >= spec.lo:
+        raise _fail(where, f"must be >= {spec.lo!r}, got {value!r}")
+    return value
+
+
+def _check_str(spec: StrField, value: Any, where: str) -> str:
+    if not isinstance(value, str):
+        raise _fail(where, f"expected str, got {type_name(value)}")
+    if len(value) > spec.max_len:
+        raise _fail(where, f"must be at most {spec.max_len} characters, got {len(value)}")
+    if spec.choices is not None and value not in spec.choices:
+        raise _fail(where, f"must be one of {list(spec.choices)}, got {short_repr(value)}")
+    compiled: re.Pattern[str] | None = spec._compiled  # type: ignore[attr-defined]
+    if compiled is not None and compiled.fullmatch(value) is None:
+        raise _fail(where, f"must match {spec.pattern}, got {short_repr(value)}")
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:
+        raise _fail(where, "is not encodable as UTF-8 (lone surrogate)") from None
+    return value
+
+
+def _check_array(spec: ArrayField, value: Any, where: str, owned: bool) -> np.ndarray:
+    if isinstance(value, np.ndarray):
+        arr = value
+    elif isinstance(value, list | tuple):
+        try:
+            arr = np.asarray(value)
+        except (ValueError, TypeError, OverflowError):
+            raise _fail(where, "expected a rectangular array of numbers") from None
+    else:
+        raise _fail(where, f"expected array, got {type_name(value)}")
+    if not spec.shape_ok(arr.shape):
+        raise _fail(where, f"expected shape {spec.shape_text()}, got {tuple(arr.shape)}")
+    kind = arr.dtype.kind
+    if spec.dtype == UINT8:
+        if arr.dtype != UINT8:
+            if kind not in "iu":
+                raise _fail(where, f"expected uint8 array, got dtype {arr.dtype}")
+            if arr.size and (arr.min() < 0 or arr.max() > 255):
+                raise _fail(where, "integer values must be in [0, 255] for a uint8 array")
+    elif kind not in "fiu":
+        raise _fail(where, f"expected float64 array, got dtype {arr.dtype}")
+    native = spec.dtype.newbyteorder("=")
+    if not owned or arr.dtype != native or not arr.flags.c_contiguous:
+        arr = np.array(arr, dtype=native, order="C", copy=True)
+    if native.kind == "f" and not np.isfinite(arr).all():
+        raise _fail(where, "all elements must be finite (no NaN or inf)")
+    if spec.check is not None:
+        text = spec.check(arr)
+        if text is not None:
+            raise _fail(where, text)
+    arr.setflags(write=False)
+    return arr
+
+
+def _check_nested(cls: type, value: Any, where: str) -> Any:
+    if not isinstance(value, cls):
+        raise _fail(where, f"expected {cls.__name__}, got {type_name(value)}")
+    return value
+
+
+def _check_tuple(spec: TupleField, value: Any, where: str) -> tuple[Any, ...]:
+    if not isinstance(value, tuple | list):
+        raise _fail(where, f"expected tuple of {spec.cls.__name__}, got {type_name(value)}")
+    if not spec.min_len <= len(value) <= spec.max_len:
+        raise _fail(where, f"must have {spec.min_len}..{spec.max_len} items, got {len(value)}")
+    for i, item in enumerate(value):
+        _check_nested(spec.cls, item, f"{where}[{i}]")
+    return tuple(value)
+
+
+def check_field(spec: Field, value: Any, where: str, owned: bool = False) -> Any:
+    """Validate one field value and return its normalised form (read-only arrays, tuples).
+
+    ``owned``: the array is ours (fresh from the decoder), so it need not be copied.
+    """
+    if isinstance(spec, IntField):
+        return _check_int(spec, value, where)
+    if isinstance(spec, FloatField):
+        return _check_float(spec, value, where)
+    if isinstance(spec, StrField):
+        return _check_str(spec, value, where)
+    if isinstance(spec, ArrayField):
+        return _check_array(spec, value, where, owned)
+    if isinstance(spec, NestedField):
+        return _check_nested(spec.cls, value, where)
+    if isinstance(spec, TupleField):
+        return _check_tuple(spec, value, where)
+    raise TypeError(f"unknown field kind {spec!r}")  # a bug in a spec table, not bad input
+
+
+def validate_fields(
+    cls: type, values: Mapping[str, Any], where: str, owned: bool = False
+) -> dict[str, Any]:
+    """Validate every field of ``cls`` in ``values``; errors name ``where.field``."""
+    spec: Mapping[str, Field] = cls._SPEC  # type: ignore[attr-defined]
+    return {
+        name: check_field(field, values[name], f"{where}.{name}", owned)
+        for name, field in spec.items()
+    }
+
+
+class Record:
+    """Base of all wire records: validates and normalises its fields after construction."""
+
+    _SPEC: ClassVar[Mapping[str, Field]]
+
+    def __post_init__(self) -> None:
+        cls = type(self)
+        values = {name: getattr(self, name) for name in cls._SPEC}
+        for name, value in validate_fields(cls, values, cls.__name__).items():
+            object.__setattr__(self, name, value)
+
+    @classmethod
+    def _from_validated(cls, values: Mapping[str, Any]) -> Any:
+        """Build an instance from already validated values (used by the decoder)."""
+        obj = object.__new__(cls)
+        for name, value in values.items():
+            object.__setattr__(obj, name, value)
+        return obj
+
+
+def check_spec_matches_fields(cls: type) -> None:
+    """Assert at import time that a record's spec names exactly its dataclass fields, in order."""
+    names = tuple(f.name for f in fields(cls))
+    spec_names = tuple(cls._SPEC)  # type: ignore[attr-defined]
+    if names != spec_names:
+        raise TypeError(f"{cls.__name__}: spec fields {spec_names} != dataclass fields {names}")

@@ -1,0 +1,83 @@
+"""Shared fixtures: free loopback ports and a real work-site process."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_until(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.05) -> bool:
+    """Poll ``predicate`` until it is true or ``timeout_s`` passes; returns its last value."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(poll_s)
+    return predicate()
+
+
+@dataclass
+class WorkSiteProcess:
+    proc: subprocess.Popen
+    endpoint: str
+    site_id: str
+    log_path: Path
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+
+@pytest.fixture
+def work_site(tmp_path: Path) -> Iterator[Callable[..., WorkSiteProcess]]:
+    """Start ``python -m work_site serve`` on a free port; killed at the end of the test."""
+    started: list[WorkSiteProcess] = []
+
+    def start(*extra: str, site_id: str = "test") -> WorkSiteProcess:
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        log_path = tmp_path / f"work_site_{len(started)}.log"
+        with log_path.open("w") as log:
+            proc = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "work_site",
+                    "serve",
+                    "--listen",
+                    endpoint,
+                    "--site-id",
+                    site_id,
+                    *extra,
+                ],
+                cwd=REPO,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            )
+        ws = WorkSiteProcess(proc, endpoint, site_id, log_path)
+        started.append(ws)
+        return ws
+
+    yield start
+    for ws in started:
+        if ws.proc.poll() is None:
+            os.killpg(ws.proc.pid, signal.SIGKILL)
+            ws.proc.wait()

@@ -1,0 +1,103 @@
+"""The command lines: help that helps, clear refusals of bad input, and `make demo` as written."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from operator_site.link import WorkSiteLink
+from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, make_config
+from tests.conftest import REPO, free_port, wait_until
+
+
+def run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", *args], cwd=REPO, capture_output=True, text=True, timeout=timeout
+    )
+
+
+@pytest.mark.parametrize("module", ["work_site", "operator_site"])
+def test_help(module: str) -> None:
+    result = run(module, "--help")
+    assert result.returncode == 0
+    assert "serve" in result.stdout
+    result = run(module, "serve", "--help")
+    assert result.returncode == 0 and "--site-id" in result.stdout
+
+
+@pytest.mark.parametrize("module", ["work_site", "operator_site"])
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--scene", "/nonexistent/scene.json"], "scene.json: scene file does not exist"),
+        (["--site-id", "a/b"], "site_id: must match"),
+    ],
+)
+def test_bad_arguments_are_refused_clearly(module: str, args: list[str], message: str) -> None:
+    result = run(module, "serve", *args)
+    assert result.returncode == 2
+    assert message in result.stderr
+
+
+def test_operator_site_refuses_a_bad_port() -> None:
+    result = run("operator_site", "serve", "--port", "70000")
+    assert result.returncode == 2 and "--port must be in 1..65535" in result.stderr
+
+
+def _port_in_use(port: int) -> bool:
+    import socket
+
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def test_make_demo_serves_the_page_and_ctrl_c_stops_both(tmp_path: Path) -> None:
+    """The README's first command, as written (its default ports must be free)."""
+    if _port_in_use(8080) or _port_in_use(7447):
+        pytest.skip("ports 8080/7447 are in use on this machine; `make demo` needs them")
+    log_path = tmp_path / "demo.log"
+    with log_path.open("w") as log:
+        proc = subprocess.Popen(
+            ["make", "-s", "demo"],
+            cwd=REPO,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+    link = None
+    try:
+        assert wait_until(lambda: "open http://localhost:8080" in log_path.read_text(), 120), (
+            log_path.read_text()
+        )
+        with urllib.request.urlopen("http://localhost:8080/", timeout=10) as response:
+            assert response.status == 200
+        link = WorkSiteLink(make_config(connect=[DEFAULT_WORK_SITE_ENDPOINT]), DEFAULT_SITE_ID)
+        assert wait_until(
+            lambda: (
+                link.poll(),
+                link.status.label == "connected" and link.camera_frame is not None,
+            )[1],
+            30,
+        ), log_path.read_text()
+    finally:
+        if link is not None:
+            link.close()
+        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in the terminal does
+        try:
+            proc.wait(timeout=30)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+    text = log_path.read_text()
+    assert "work site stopped (exit code 0)" in text, text
+    time.sleep(0.5)
+    assert not _port_in_use(8080) and not _port_in_use(7447)
+    assert free_port()  # the loopback stack is still usable

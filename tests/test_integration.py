@@ -1,0 +1,165 @@
+"""Two real OS processes over zenoh on loopback: the work-site server and an operator client."""
+
+from __future__ import annotations
+
+import os
+import signal
+import urllib.request
+
+import numpy as np
+import pytest
+import zenoh
+
+from models.scene import load_scene
+from operator_site.link import WorkSiteLink
+from operator_site.ui import OperatorPage
+from protocol import MotionCommand, MotionProgram, key, make_config
+from tests.conftest import free_port, wait_until
+
+pytestmark = pytest.mark.integration
+
+STARTUP_TIMEOUT_S = 20.0  # the issue's bound for ≥ 50 states and ≥ 1 frame
+LIVELINESS_TIMEOUT_S = 5.0
+
+
+@pytest.fixture
+def link_to(request):
+    links: list[WorkSiteLink] = []
+
+    def connect(ws) -> WorkSiteLink:
+        link = WorkSiteLink(make_config(connect=[ws.endpoint]), ws.site_id)
+        links.append(link)
+        return link
+
+    yield connect
+    for link in links:
+        link.close()
+
+
+def test_client_receives_state_and_frames_then_sees_the_server_die(work_site, link_to) -> None:
+    ws = work_site()
+    link = link_to(ws)
+    states: list = []
+    frames: list = []
+
+    def collect() -> bool:
+        new_state, new_frame = link.poll()
+        if new_state:
+            states.append(link.robot_state)
+        if new_frame:
+            frames.append(link.camera_frame)
+        return len(states) >= 50 and len(frames) >= 1 and link.status.work_site_alive
+
+    assert wait_until(collect, STARTUP_TIMEOUT_S), (
+        f"got {len(states)} states, {len(frames)} frames, alive={link.status.work_site_alive}; "
+        f"work-site log:\n{ws.log()}"
+    )
+    assert link.status.label == "connected"
+    assert link.status.rejected == 0
+    seqs = [s.seq for s in states]
+    assert seqs == sorted(seqs)
+    q_home = load_scene().robot.q_home_rad
+    np.testing.assert_allclose(states[-1].q, q_home, atol=1e-3)
+    frame = frames[-1]
+    assert frame.image.shape == (480, 640) and frame.image.dtype == np.uint8
+    assert frame.image.std() > 10
+    np.testing.assert_allclose(frame.X_WC, load_scene().camera.X_WC)
+
+    os.killpg(ws.proc.pid, signal.SIGKILL)
+    ws.proc.wait()
+    assert wait_until(
+        lambda: (link.poll(), not link.status.work_site_alive)[1], LIVELINESS_TIMEOUT_S
+    ), "liveliness did not go down after SIGKILL"
+    assert link.status.label == "not connected"
+
+
+def test_bad_payloads_are_refused_and_the_server_keeps_running(work_site, link_to) -> None:
+    ws = work_site("--no-camera")
+    link = link_to(ws)
+    assert wait_until(
+        lambda: (link.poll(), link.status.label == "connected")[1], STARTUP_TIMEOUT_S
+    ), ws.log()
+    garbage = [b"", b"\xc1", b"\x93\x01\x02", b"{not msgpack", os.urandom(1000)]
+    for payload in garbage:
+        link.session.put(key(ws.site_id, "program"), payload)
+        link.session.put(key(ws.site_id, "stop"), payload)
+    program = MotionProgram(
+        program_id="p1",
+        X_GP=np.eye(4),
+        commands=(
+            MotionCommand(
+                kind="move", X_WP=np.eye(4), speed_mps=0.05, force_limit_n=10.0, contacts=()
+            ),
+        ),
+    )
+    link.send_program(program)
+    link.send_stop("test")
+
+    def reports_arrived() -> bool:
+        link.poll()
+        return len(link.status.reports) >= len(garbage) + 1
+
+    assert wait_until(reports_arrived, 10.0), (link.status.reports, ws.log())
+    reports = link.status.reports
+    assert all(r.status == "refused" for r in reports)
+    assert sum(r.program_id == "invalid" for r in reports) == len(garbage)
+    assert any(r.program_id == "p1" and "does not execute" in r.message for r in reports)
+    # Still alive and publishing after all that.
+    assert ws.proc.poll() is None
+    before = link.robot_state.seq
+    assert wait_until(lambda: (link.poll(), link.robot_state.seq > before + 10)[1], 5.0)
+    assert "refused a program" in ws.log()
+
+
+def test_sigterm_stops_the_server_cleanly(work_site, link_to) -> None:
+    ws = work_site()
+    link = link_to(ws)
+    assert wait_until(
+        lambda: (link.poll(), link.status.label == "connected")[1], STARTUP_TIMEOUT_S
+    ), ws.log()
+    ws.proc.send_signal(signal.SIGTERM)
+    assert ws.proc.wait(timeout=15) == 0
+    assert "stopped" in ws.log()
+    assert wait_until(lambda: (link.poll(), not link.status.work_site_alive)[1], 2.0)
+
+
+def test_operator_page_shows_the_live_work_site(work_site, link_to) -> None:
+    ws = work_site()
+    link = link_to(ws)
+    port = free_port()
+    page = OperatorPage(load_scene(), link, port=port)
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as response:
+            assert response.status == 200
+            assert b"<html" in response.read().lower()
+
+        def shown() -> bool:
+            page.update()
+            return page.frames_shown >= 1 and page.states_shown >= 10
+
+        assert wait_until(shown, STARTUP_TIMEOUT_S), ws.log()
+        assert link.status.label == "connected"
+        np.testing.assert_array_equal(page.camera_image.image, link.camera_frame.image)
+    finally:
+        page.close()
+
+
+def test_page_stays_up_while_the_work_site_is_absent_and_comes_back(work_site, link_to) -> None:
+    ws = work_site()
+    os.killpg(ws.proc.pid, signal.SIGKILL)
+    ws.proc.wait()
+    link = link_to(ws)  # connects to an endpoint nobody serves: retried in the background
+    page = OperatorPage(load_scene(), link, port=free_port())
+    try:
+        for _ in range(10):
+            page.update()
+        assert link.status.label == "not connected"
+        # A work site appears on the same endpoint: the link comes up without a restart.
+        conf = make_config(listen=[ws.endpoint])
+        with zenoh.open(conf) as session:
+            token = session.liveliness().declare_token(f"telerobot/{ws.site_id}/alive/work_site")
+            assert wait_until(lambda: (page.update(), link.status.work_site_alive)[1], 15.0)
+            token.undeclare()
+        assert wait_until(lambda: (page.update(), not link.status.work_site_alive)[1], 5.0)
+    finally:
+        page.close()

@@ -1,0 +1,256 @@
+"""Object models, the scene and the camera: dimensions from DESIGN.md, checks, clear errors."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import models
+from models.errors import ModelError
+from models.generate import generate
+from models.geometry import make_convex_part, write_obj
+from models.scene import DEFAULT_SCENE, load_camera, load_object, load_scene
+
+DIMENSION_TOL_M = 1e-4  # the issue's 0.1 mm
+MODELS_DIR = Path(models.__file__).parent
+HEX_CIRCUMRADIUS_M = 0.025 / np.cos(np.pi / 6)
+
+# name: (volume m³, bounding-box size m (x, y, z), feature edges)
+EXPECTED = {
+    "cube": (0.05**3, (0.05, 0.05, 0.05), 12),
+    "tall_block": (0.05 * 0.05 * 0.10, (0.05, 0.05, 0.10), 12),
+    "plank": (0.10 * 0.05 * 0.025, (0.10, 0.05, 0.025), 12),
+    "wedge": (0.5 * 0.05 * 0.05 * 0.05, (0.05, 0.05, 0.05), 9),
+    "l_block": (0.10 * 0.05 * 0.05 + 0.05**3, (0.10, 0.05, 0.10), 18),
+    "hex_prism": (
+        1.5 * np.sqrt(3) * HEX_CIRCUMRADIUS_M**2 * 0.05,
+        (2 * HEX_CIRCUMRADIUS_M, 0.05, 0.05),
+        18,
+    ),
+    # Four bars 0.02 wide and 0.03 tall round a 0.20 m square opening.
+    "frame": (0.03 * (0.24**2 - 0.20**2), (0.24, 0.24, 0.03), 24),
+}
+
+
+@pytest.fixture(scope="module")
+def scene() -> models.Scene:
+    return load_scene()
+
+
+def test_exported_names_exist() -> None:
+    assert sorted(models.__all__) == sorted(set(models.__all__))
+    for name in models.__all__:
+        assert hasattr(models, name), name
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+def test_object_dimensions_match_design(scene: models.Scene, name: str) -> None:
+    volume, size, n_edges = EXPECTED[name]
+    model = scene.object(name).model
+    assert model.volume_m3 == pytest.approx(volume, rel=1e-9)
+    np.testing.assert_allclose(model.bbox_O[1] - model.bbox_O[0], size, atol=DIMENSION_TOL_M)
+    assert len(model.feature_edges_O) == n_edges
+    assert model.mass_kg > 0
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+def test_parts_are_closed_and_convex(scene: models.Scene, name: str) -> None:
+    for part in scene.object(name).model.parts:
+        V = part.vertices_O
+        # Every vertex on or inside every face plane: convex.
+        assert np.max(V @ part.normals_O.T - part.offsets_m) < 1e-9
+        # Each undirected edge used by exactly two faces, once in each direction: closed.
+        directed = [(a, b) for f in part.faces for a, b in zip(f, f[1:] + f[:1], strict=True)]
+        assert len(set(directed)) == len(directed)
+        assert all((b, a) in set(directed) for a, b in directed)
+        # Euler's formula for a genus-0 polyhedron.
+        assert len(V) - len(directed) // 2 + len(part.faces) == 2
+
+
+def test_feature_edges_of_cube_are_its_twelve_edges(scene: models.Scene) -> None:
+    edges = scene.object("cube").model.feature_edges_O
+    lengths = np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1)
+    np.testing.assert_allclose(lengths, 0.05, atol=1e-12)
+    np.testing.assert_allclose(
+        np.abs(edges), 0.025 * np.ones_like(edges) * (np.abs(edges) > 0), atol=1e-12
+    )
+
+
+def test_l_block_concave_crease_and_merged_outer_edges(scene: models.Scene) -> None:
+    edges = scene.object("l_block").model.feature_edges_O
+    lengths = np.sort(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1))
+    # 6 extrusion edges (0.05), profile edges on both sides: 0.10 ×2 (bottom, outer side merged
+    # across the two parts), 0.05 ×4 per side.
+    assert np.sum(np.isclose(lengths, 0.10)) == 4
+    assert np.sum(np.isclose(lengths, 0.05)) == 14
+    # The inner corner of the L (x = 0, z = 0, along y) is a (concave) feature edge.
+    mid = edges.mean(axis=1)
+    assert np.any(np.all(np.isclose(mid, [0.0, 0.0, 0.0], atol=1e-12), axis=1))
+
+
+def test_scene_layout(scene: models.Scene) -> None:
+    assert [o.name for o in scene.objects if o.fixed] == ["table", "frame"]
+    assert sorted(o.name for o in scene.movable) == sorted(
+        ["cube", "tall_block", "plank", "wedge", "l_block", "hex_prism"]
+    )
+    table = scene.object("table")
+    assert table.X_WO[2, 3] + table.model.bbox_O[1, 2] == pytest.approx(0.0, abs=1e-12)
+    np.testing.assert_allclose(scene.object("frame").X_WO[:3, 3], [0.45, 0.0, 0.015])
+    inner_half = 0.10
+    for obj in scene.movable:
+        # Resting on the table and entirely outside the frame's outer square.
+        corners_W = (
+            np.vstack([p.vertices_O for p in obj.model.parts]) @ obj.X_WO[:3, :3].T
+            + obj.X_WO[:3, 3]
+        )
+        assert corners_W[:, 2].min() == pytest.approx(0.0, abs=1e-12)
+        outside = np.abs(corners_W[:, 1]).min() > inner_half + 0.02
+        assert outside, obj.name
+    with pytest.raises(KeyError, match="known: table"):
+        scene.object("teapot")
+
+
+def test_camera_matches_design(scene: models.Scene) -> None:
+    cam = scene.camera
+    assert (cam.width, cam.height) == (640, 480)
+    np.testing.assert_allclose(cam.X_WC[:3, 3], [0.45, -0.55, 0.65])
+    # The optical axis (z of C) points at the frame's centre.
+    target = np.array([0.45, 0.0, 0.0]) - cam.X_WC[:3, 3]
+    np.testing.assert_allclose(cam.X_WC[:3, 2], target / np.linalg.norm(target), atol=1e-12)
+    assert cam.to_json()["K"] == cam.K.tolist()
+
+
+def test_generated_files_are_up_to_date(tmp_path: Path) -> None:
+    generate(tmp_path)
+    for path in sorted(tmp_path.rglob("*")):
+        if path.is_file():
+            committed = MODELS_DIR / path.relative_to(tmp_path)
+            assert committed.read_text() == path.read_text(), (
+                f"{committed} differs from what models/generate.py writes: run "
+                "`python -m models.generate`"
+            )
+
+
+# ----------------------------------------------------------------------------- bad input
+
+CUBE_V = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
+CUBE_F = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+
+
+def test_a_unit_cube_part_is_accepted() -> None:
+    part = make_convex_part(CUBE_V, CUBE_F, "cube")
+    assert len(part.faces) == 6
+
+
+@pytest.mark.parametrize(
+    ("vertices", "faces", "problem"),
+    [
+        (CUBE_V, CUBE_F[:-1], "not closed"),
+        (np.where(np.arange(24).reshape(8, 3) == 5, np.nan, CUBE_V), CUBE_F, "NaN"),
+        (CUBE_V, [f[::-1] for f in CUBE_F], "inwards"),
+        (CUBE_V, [CUBE_F[0][::-1], *CUBE_F[1:]], "same direction"),
+        (CUBE_V + np.array([[0, 0, 0]] * 7 + [[0.3, 0, 0]]), CUBE_F, "not planar"),
+        (CUBE_V, [[0, 1, 1, 2], *CUBE_F[1:]], "degenerate"),
+    ],
+)
+def test_malformed_parts_are_refused(vertices, faces, problem: str) -> None:
+    with pytest.raises(ModelError, match=problem) as e:
+        make_convex_part(vertices, faces, "bad.obj")
+    assert "bad.obj" in str(e.value)
+
+
+def test_non_convex_part_is_refused() -> None:
+    # A tetrahedron whose slanted face is pushed in to an interior point: closed, not convex.
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.2, 0.2, 0.2]], dtype=float)
+    F = [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 4], [2, 3, 4], [3, 1, 4]]
+    with pytest.raises(ModelError, match=r"dent\.obj: part is not convex"):
+        make_convex_part(V, F, "dent.obj")
+
+
+def _copy_objects(tmp_path: Path) -> Path:
+    shutil.copytree(MODELS_DIR / "objects", tmp_path / "objects")
+    return tmp_path / "objects"
+
+
+def test_missing_mesh_file_names_the_file(tmp_path: Path) -> None:
+    objects = _copy_objects(tmp_path)
+    (objects / "meshes" / "cube_0.obj").unlink()
+    with pytest.raises(ModelError, match=r"cube_0\.obj does not exist"):
+        load_object(objects / "cube.urdf")
+    with pytest.raises(ModelError, match=r"nothing\.urdf: object model file does not exist"):
+        load_object(objects / "nothing.urdf")
+
+
+def test_nan_in_mesh_names_the_file(tmp_path: Path) -> None:
+    objects = _copy_objects(tmp_path)
+    mesh = objects / "meshes" / "wedge_0.obj"
+    mesh.write_text(mesh.read_text().replace("v -0.025", "v nan", 1))
+    with pytest.raises(ModelError, match=r"wedge_0\.obj: vertex coordinates contain NaN"):
+        load_object(objects / "wedge.urdf")
+
+
+def test_open_mesh_names_the_file(tmp_path: Path) -> None:
+    objects = _copy_objects(tmp_path)
+    mesh = objects / "meshes" / "hex_prism_0.obj"
+    lines = mesh.read_text().splitlines()
+    mesh.write_text("\n".join(lines[:-1]) + "\n")  # drop one face
+    with pytest.raises(ModelError, match=r"hex_prism_0\.obj: mesh is not closed"):
+        load_object(objects / "hex_prism.urdf")
+
+
+def test_interpenetrating_parts_are_refused(tmp_path: Path) -> None:
+    objects = _copy_objects(tmp_path)
+    V = CUBE_V * 0.05
+    write_obj(objects / "meshes" / "a.obj", V, CUBE_F, "a")
+    write_obj(objects / "meshes" / "b.obj", V + 0.02, CUBE_F, "b")
+    (objects / "two.urdf").write_text(
+        '<robot name="two"><link name="base">'
+        '<collision><geometry><mesh filename="meshes/a.obj"/></geometry></collision>'
+        '<collision><geometry><mesh filename="meshes/b.obj"/></geometry></collision>'
+        "</link></robot>"
+    )
+    with pytest.raises(ModelError, match=r"two\.urdf: convex parts 0 and 1 interpenetrate"):
+        load_object(objects / "two.urdf")
+
+
+def test_bad_scene_and_camera_files_name_the_problem(tmp_path: Path) -> None:
+    scene = json.loads(DEFAULT_SCENE.read_text())
+    bad = tmp_path / "scenes"
+    shutil.copytree(MODELS_DIR / "scenes", bad)
+    shutil.copytree(MODELS_DIR / "objects", tmp_path / "objects")
+    shutil.copytree(MODELS_DIR / "cameras", tmp_path / "cameras")
+    shutil.copytree(MODELS_DIR / "robots", tmp_path / "robots")
+    path = bad / "puzzle.json"
+    assert load_scene(path).name == "puzzle"
+
+    scene["objects"][2]["X_WO"][0][0] = float("nan")
+    path.write_text(json.dumps(scene))
+    with pytest.raises(ModelError, match=r"puzzle\.json: objects\[2\]: NaN"):
+        load_scene(path)
+
+    scene["objects"][2]["X_WO"][0][0] = 2.0
+    path.write_text(json.dumps(scene))
+    with pytest.raises(ModelError, match=r"objects\[2\]: not a rigid transform"):
+        load_scene(path)
+
+    path.write_text("{ not json")
+    with pytest.raises(ModelError, match=r"puzzle\.json: not valid JSON"):
+        load_scene(path)
+    with pytest.raises(ModelError, match="scene file does not exist"):
+        load_scene(tmp_path / "none.json")
+
+    cam = json.loads((MODELS_DIR / "cameras" / "default.json").read_text())
+    cam["K"][0][0] = 0.0
+    cam_path = tmp_path / "cam.json"
+    cam_path.write_text(json.dumps(cam))
+    with pytest.raises(ModelError, match=r"cam\.json: K must be"):
+        load_camera(cam_path)
+    cam["K"][0][0] = 580.0
+    cam["width"] = 0
+    cam_path.write_text(json.dumps(cam))
+    with pytest.raises(ModelError, match=r"cam\.json: width must be"):
+        load_camera(cam_path)

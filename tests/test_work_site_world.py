@@ -1,0 +1,96 @@
+"""The work site's pybullet world: blocks rest where the scene puts them, the arm holds, the
+camera sees what the camera model says it sees."""
+
+from __future__ import annotations
+
+import numpy as np
+import pybullet as p
+import pytest
+
+from models.robot import load_robot
+from models.scene import load_scene
+from work_site.camera import opengl_matrices, render_grey
+from work_site.world import World
+
+REST_TOL_M = 5e-5  # blocks settle within 0.05 mm of their modelled resting pose
+REST_TOL_RAD = np.deg2rad(0.05)
+
+
+@pytest.fixture(scope="module")
+def world():
+    w = World(load_scene())
+    yield w
+    w.close()
+
+
+def test_poses_round_trip_through_pybullet(world: World) -> None:
+    for obj in world.scene.objects:
+        np.testing.assert_allclose(world.object_pose(obj.name), obj.X_WO, atol=1e-12)
+
+
+def test_every_block_rests_in_place_for_one_second(world: World) -> None:
+    world.step(1000)
+    for obj in world.scene.movable:
+        X = world.object_pose(obj.name)
+        assert np.all(np.isfinite(X))
+        assert np.linalg.norm(X[:3, 3] - obj.X_WO[:3, 3]) < REST_TOL_M, obj.name
+        cos = (np.trace(obj.X_WO[:3, :3].T @ X[:3, :3]) - 1) / 2
+        assert np.arccos(min(1.0, cos)) < REST_TOL_RAD, obj.name
+
+
+def test_arm_holds_home_and_reports_its_flange(world: World) -> None:
+    world.step(200)
+    snap = world.robot_snapshot()
+    q_home = world.scene.robot.q_home_rad
+    np.testing.assert_allclose(snap.q, q_home, atol=1e-4)
+    X_WF = load_robot(world.scene.robot.urdf_path).flange_pose_W(snap.q, world.scene.robot.X_WB)
+    np.testing.assert_allclose(snap.X_WF, X_WF, atol=1e-5)  # pybullet link frames are float32
+    # Only gravity acts on what hangs below the sensor: a downward force, about no axis a moment.
+    assert snap.wrench_S[2] < -5.0
+    assert np.all(np.isfinite(snap.wrench_S))
+    assert 0.0 <= snap.gripper_opening_m <= 0.08
+
+
+def test_camera_projection_agrees_with_the_rendering(world: World) -> None:
+    cam = world.scene.camera
+    view, proj = opengl_matrices(cam)
+    _, _, _, _, seg = p.getCameraImage(
+        cam.width, cam.height, view, proj, renderer=p.ER_TINY_RENDERER, physicsClientId=world.cid
+    )
+    seg = np.asarray(seg).reshape(cam.height, cam.width)
+    X_CW = np.linalg.inv(cam.X_WC)
+    for obj in world.scene.movable:
+        model = obj.model
+        corners_O = np.array(
+            [
+                [x, y, z]
+                for x in model.bbox_O[:, 0]
+                for y in model.bbox_O[:, 1]
+                for z in model.bbox_O[:, 2]
+            ]
+        )
+        body = world.bodies[obj.name]
+        X_WO = world.object_pose(obj.name)
+        # Points just inside each part's centroid project onto pixels showing this body.
+        for part in model.parts:
+            p_O = part.vertices_O.mean(axis=0)
+            p_C = X_CW[:3, :3] @ (X_WO[:3, :3] @ p_O + X_WO[:3, 3]) + X_CW[:3, 3]
+            u, v = (cam.K @ (p_C / p_C[2]))[:2]
+            assert 0 <= u < cam.width and 0 <= v < cam.height, obj.name
+            assert seg[round(v), round(u)] == body, obj.name
+        # The body's silhouette lies inside the projection of its bounding box, ±1 px.
+        pts = (X_CW[:3, :3] @ (corners_O @ X_WO[:3, :3].T + X_WO[:3, 3]).T).T + X_CW[:3, 3]
+        uv = (pts @ cam.K.T)[:, :2] / pts[:, 2:]
+        vs, us = np.nonzero(seg == body)
+        assert us.min() >= uv[:, 0].min() - 1 and us.max() <= uv[:, 0].max() + 1, obj.name
+        assert vs.min() >= uv[:, 1].min() - 1 and vs.max() <= uv[:, 1].max() + 1, obj.name
+
+
+def test_grey_render_has_the_camera_shape_and_content(world: World) -> None:
+    image = render_grey(world.cid, world.scene.camera)
+    assert image.shape == (480, 640) and image.dtype == np.uint8
+    assert image.std() > 10  # not blank: table, frame and blocks differ in brightness
+    small = render_grey(world.cid, world.scene.camera, supersample=2)
+    assert small.shape == image.shape
+    with pytest.raises(ValueError, match="supersample"):
+        render_grey(world.cid, world.scene.camera, supersample=0)

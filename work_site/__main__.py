@@ -1,0 +1,3 @@
+from work_site.cli import run
+
+run()

@@ -1,0 +1,157 @@
+"""The work site's grey camera: renders the pybullet world as the camera model sees it.
+
+Rendering takes ≈ 90 ms at 640×480 with pybullet's software renderer, far longer than a 1 ms
+physics step, so :class:`CameraProcess` renders in a separate process holding a mirror of the
+world; the physics loop only sends poses and collects finished images, and never waits.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pybullet as p
+
+from models.scene import CameraModel, load_scene
+from models.transforms import invert_pose
+
+CAMERA_NEAR_M = 0.05
+CAMERA_FAR_M = 5.0
+LIGHT_DIRECTION_W = (0.4, -0.6, 1.0)
+# OpenCV camera (x right, y down, z forward) to OpenGL camera (x right, y up, z backward).
+_X_CV_GL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def opengl_matrices(
+    camera: CameraModel, near_m: float = CAMERA_NEAR_M, far_m: float = CAMERA_FAR_M
+) -> tuple[list[float], list[float]]:
+    """pybullet view and projection matrices (column-major lists) for a pinhole camera.
+
+    The projection reproduces OpenCV's ``u = fx x/z + cx`` with pixel centres at integer
+    coordinates, including an off-centre principal point (lens distortion is not rendered).
+    """
+    w, h = camera.width, camera.height
+    fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
+    view = invert_pose(camera.X_WC @ _X_CV_GL)
+    proj = np.array(
+        [
+            [2 * fx / w, 0.0, 1.0 - 2 * (cx + 0.5) / w, 0.0],
+            [0.0, 2 * fy / h, 2 * (cy + 0.5) / h - 1.0, 0.0],
+            [
+                0.0,
+                0.0,
+                -(far_m + near_m) / (far_m - near_m),
+                -2 * far_m * near_m / (far_m - near_m),
+            ],
+            [0.0, 0.0, -1.0, 0.0],
+        ]
+    )
+    return view.T.flatten().tolist(), proj.T.flatten().tolist()
+
+
+def render_grey(cid: int, camera: CameraModel, supersample: int = 1) -> np.ndarray:
+    """Render physics client ``cid`` through ``camera`` as an 8-bit grey image (h, w).
+
+    ``supersample`` > 1 renders that many times larger and averages down (``INTER_AREA``), for
+    sub-pixel edges closer to a real camera's, at about ``supersample²`` times the cost.
+    """
+    if supersample < 1:
+        raise ValueError(f"supersample must be ≥ 1, got {supersample}")
+    view, proj = opengl_matrices(camera)
+    w, h = camera.width * supersample, camera.height * supersample
+    _, _, rgba, _, _ = p.getCameraImage(
+        w,
+        h,
+        view,
+        proj,
+        lightDirection=LIGHT_DIRECTION_W,
+        shadow=0,
+        renderer=p.ER_TINY_RENDERER,
+        physicsClientId=cid,
+    )
+    rgba = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)
+    grey = cv2.cvtColor(rgba, cv2.COLOR_RGBA2GRAY)
+    if supersample > 1:
+        grey = cv2.resize(grey, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
+    return grey
+
+
+@dataclass(frozen=True)
+class RenderRequest:
+    """A snapshot of the world to render: object poses ``X_WO`` and the robot's joints."""
+
+    seq: int
+    stamp_s: float
+    X_WO: dict[str, np.ndarray]
+    q: np.ndarray
+    fingers_m: np.ndarray
+
+
+def _render_worker(scene_path: str, supersample: int, conn: Connection) -> None:
+    from work_site.world import World  # imported in the child: it owns its own client
+
+    world = World(load_scene(Path(scene_path)))
+    try:
+        while True:
+            request = conn.recv()
+            if request is None:
+                return
+            for name, X_WO in request.X_WO.items():
+                world.set_object_pose(name, X_WO)
+            world.set_robot_joint_positions(request.q, request.fingers_m)
+            image = render_grey(world.cid, world.scene.camera, supersample)
+            conn.send((request.seq, request.stamp_s, image))
+    except (EOFError, KeyboardInterrupt):
+        return
+    finally:
+        world.close()
+
+
+class CameraProcess:
+    """Renders in a child process; at most one request is in flight at a time."""
+
+    def __init__(self, scene_path: Path, supersample: int = 1) -> None:
+        ctx = mp.get_context("spawn")  # never fork a process that runs zenoh threads
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(
+            target=_render_worker,
+            args=(str(scene_path), supersample, child),
+            name="camera-renderer",
+            daemon=True,
+        )
+        self._proc.start()
+        child.close()
+        self.busy = False
+
+    def request(self, req: RenderRequest) -> bool:
+        """Start rendering ``req`` unless a render is already running; True if started."""
+        if self.busy:
+            return False
+        self._conn.send(req)
+        self.busy = True
+        return True
+
+    def poll(self) -> tuple[int, float, np.ndarray] | None:
+        """A finished ``(seq, stamp_s, image)`` if one is ready, without waiting."""
+        if self.busy and self._conn.poll():
+            self.busy = False
+            return self._conn.recv()
+        if not self._proc.is_alive():
+            raise RuntimeError(f"camera renderer died (exit code {self._proc.exitcode})")
+        return None
+
+    def close(self) -> None:
+        """Stop the renderer process."""
+        try:
+            self._conn.send(None)
+        except (BrokenPipeError, OSError):
+            pass
+        self._proc.join(timeout=5)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(timeout=5)
+        self._conn.close()

@@ -1,0 +1,144 @@
+"""``work-site``: the work-site server and its tools.
+
+work-site serve [--scene FILE] [--site-id ID] [--listen ENDPOINT] [--connect ENDPOINT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from models.errors import ModelError
+from models.scene import DEFAULT_SCENE, load_scene
+from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError, make_config
+from protocol.keys import check_site_id
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="work-site",
+        description="The work site: a simulated Puma-type arm, gripper, wrist force sensor, camera "
+        "and wooden blocks (pybullet), served to operator sites over zenoh.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    serve = sub.add_parser(
+        "serve",
+        help="run the work-site server (the default command)",
+        description="Run the work-site server until Ctrl-C or SIGTERM.",
+    )
+    add_serve_arguments(serve)
+    return parser
+
+
+def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--scene",
+        type=Path,
+        default=DEFAULT_SCENE,
+        help="scene JSON (default: the puzzle scene, %(default)s)",
+    )
+    parser.add_argument(
+        "--site-id",
+        default=DEFAULT_SITE_ID,
+        help="this work site's id in key expressions (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--listen",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help=f"zenoh endpoint to listen on; repeatable (default: {DEFAULT_WORK_SITE_ENDPOINT})",
+    )
+    parser.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint (router or peer) to connect to; repeatable",
+    )
+    parser.add_argument(
+        "--no-camera", action="store_true", help="do not render or publish camera frames"
+    )
+    parser.add_argument(
+        "--camera-supersample",
+        type=int,
+        default=1,
+        metavar="N",
+        help="render N× larger and average down, for realistic edges (cost ≈ N²)",
+    )
+    parser.add_argument(
+        "--physics-rate",
+        type=float,
+        default=1000.0,
+        metavar="HZ",
+        help="physics steps per second of real time (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--state-rate",
+        type=float,
+        default=100.0,
+        metavar="HZ",
+        help="robot-state messages per second (default: %(default)s)",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log more")
+
+
+def serve(args: argparse.Namespace) -> int:
+    """Run the server with parsed ``args`` until SIGINT/SIGTERM; returns the exit code."""
+    from work_site.server import ServerOptions, WorkSiteServer  # heavy imports after parsing
+
+    try:
+        check_site_id(args.site_id)
+        scene = load_scene(args.scene)
+        options = ServerOptions(
+            site_id=args.site_id,
+            physics_rate_hz=args.physics_rate,
+            state_rate_hz=args.state_rate,
+            camera=not args.no_camera,
+            camera_supersample=args.camera_supersample,
+        )
+        listen = args.listen if args.listen is not None else [DEFAULT_WORK_SITE_ENDPOINT]
+        config = make_config(listen=listen, connect=args.connect)
+    except (ModelError, ProtocolError, ValueError) as e:
+        print(f"work-site: {e}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        logging.getLogger("work-site").info("%s received, stopping", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    print(
+        f"work-site: serving site {args.site_id!r} on {', '.join(listen) or 'no listener'}"
+        + (f", connecting to {', '.join(args.connect)}" if args.connect else ""),
+        flush=True,
+    )
+    WorkSiteServer(scene, config, options).run(stop)
+    return 0
+
+
+def main(argv: list[str]) -> int:
+    """Parse ``argv`` (without the program name) and run the chosen command."""
+    parser = build_parser()
+    if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help")):
+        argv = ["serve", *argv]
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO,
+        format="%(asctime)s %(name)s %(levelname)s: %(message)s",
+    )
+    if args.command == "serve":
+        return serve(args)
+    parser.print_help()
+    return 2
+
+
+def run() -> None:
+    """Console-script entry point."""
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,253 @@
+"""The work site's reality: a pybullet world with the arm, gripper, wrist sensor and blocks.
+
+This stands in for the real robot and blocks. Everything outside this module talks to it in our
+frames (poses ``X_WO`` of URDF link frames); pybullet's inertial-frame poses and ``xyzw``
+quaternions are converted here and nowhere else.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pybullet as p
+
+from models.geometry import ConvexPart, mass_properties, write_obj
+from models.scene import Scene, SceneObject
+from models.transforms import (
+    R_to_quat_wxyz,
+    invert_pose,
+    make_pose,
+    quat_wxyz_to_R,
+    quat_wxyz_to_xyzw,
+    quat_xyzw_to_wxyz,
+)
+
+GRAVITY_W = (0.0, 0.0, -9.81)
+ARM_JOINTS = ("joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6")
+FINGER_JOINTS = ("finger_left", "finger_right")
+FT_SENSOR_JOINT = "ft_sensor_joint"
+FLANGE_LINK = "flange"
+ARM_MAX_FORCE_N = 300.0
+FINGER_MAX_FORCE_N = 40.0
+PYBULLET_CONVEX_MARGIN_M = 1e-3
+"""pybullet's collision margin around convex meshes (measured: blocks rest 1 mm high without
+compensation)."""
+
+
+def _shrink(part: ConvexPart, margin_m: float) -> np.ndarray:
+    """Vertices of ``part`` with every face plane moved inwards by ``margin_m``.
+
+    Each vertex becomes the least-squares meet of its faces' moved planes (exact where three
+    faces meet, as at every vertex of our prisms).
+    """
+    out = np.empty_like(part.vertices_O)
+    for i in range(len(part.vertices_O)):
+        faces = [k for k, f in enumerate(part.faces) if i in f]
+        N, d = part.normals_O[faces], part.offsets_m[faces] - margin_m
+        out[i] = np.linalg.lstsq(N, d, rcond=None)[0]
+    return out
+
+
+def pose_from_pybullet(position, quat_xyzw) -> np.ndarray:
+    """A 4×4 pose from pybullet's position and ``xyzw`` quaternion."""
+    return make_pose(quat_wxyz_to_R(quat_xyzw_to_wxyz(quat_xyzw)), position)
+
+
+def pose_to_pybullet(X: np.ndarray) -> tuple[list[float], list[float]]:
+    """pybullet's (position, ``xyzw`` quaternion) from a 4×4 pose."""
+    return X[:3, 3].tolist(), quat_wxyz_to_xyzw(R_to_quat_wxyz(X[:3, :3])).tolist()
+
+
+@dataclass(frozen=True)
+class RobotSnapshot:
+    """What the arm reports: joint angles (rad), flange pose, finger opening (m), sensor wrench."""
+
+    q: np.ndarray
+    X_WF: np.ndarray
+    gripper_opening_m: float
+    wrench_S: np.ndarray
+
+
+class World:
+    """A pybullet simulation of a scene, stepped explicitly (no real-time mode).
+
+    Uses its own physics client (``DIRECT`` unless ``gui``); every pybullet call names it.
+    """
+
+    def __init__(self, scene: Scene, *, time_step_s: float = 1e-3, gui: bool = False) -> None:
+        if not 0 < time_step_s <= 0.01:
+            raise ValueError(f"time_step_s must be in (0, 0.01] s, got {time_step_s}")
+        self.scene = scene
+        self.time_step_s = time_step_s
+        self.time_s = 0.0
+        self.cid = p.connect(p.GUI if gui else p.DIRECT)
+        p.setGravity(*GRAVITY_W, physicsClientId=self.cid)
+        p.setTimeStep(time_step_s, physicsClientId=self.cid)
+        self.bodies: dict[str, int] = {}
+        self._X_OI: dict[str, np.ndarray] = {}  # inertial frame in the object frame
+        with tempfile.TemporaryDirectory(prefix="telerobot-meshes-") as tmp:
+            for obj in scene.objects:
+                body = self._create_body(obj, Path(tmp))
+                self.bodies[obj.name] = body
+                info = p.getDynamicsInfo(body, -1, physicsClientId=self.cid)
+                self._X_OI[obj.name] = pose_from_pybullet(info[3], info[4])
+                self.set_object_pose(obj.name, obj.X_WO)
+        self.robot = self._load_robot()
+
+    def _create_body(self, obj: SceneObject, tmp: Path) -> int:
+        """A pybullet body whose collision shape matches the model's faces exactly.
+
+        pybullet grows every convex mesh by its collision margin, which would float blocks
+        ``PYBULLET_CONVEX_MARGIN_M`` above whatever they rest on; we hand it the parts shrunk by
+        that margin, so that the grown shapes are the model's (up to rounded edges).
+        """
+        model = obj.model
+        collision_files, visual_files = [], []
+        for k, part in enumerate(model.parts):
+            for files, V, kind in (
+                (collision_files, _shrink(part, PYBULLET_CONVEX_MARGIN_M), "c"),
+                (visual_files, part.vertices_O, "v"),
+            ):
+                path = tmp / f"{obj.name}_{k}_{kind}.obj"
+                write_obj(path, V, [list(f) for f in part.faces], f"{obj.name} part {k}")
+                files.append(str(path))
+        n = len(model.parts)
+        collision = p.createCollisionShapeArray(
+            [p.GEOM_MESH] * n, fileNames=collision_files, physicsClientId=self.cid
+        )
+        visual = p.createVisualShapeArray(
+            [p.GEOM_MESH] * n, fileNames=visual_files, physicsClientId=self.cid
+        )
+        _, com_O, inertia_per_density = mass_properties(list(model.parts))
+        density = model.mass_kg / model.volume_m3
+        moments, R_OI = np.linalg.eigh(density * inertia_per_density)
+        if np.linalg.det(R_OI) < 0:
+            R_OI[:, 2] *= -1
+        _, quat_OI = pose_to_pybullet(make_pose(R_OI))
+        body = p.createMultiBody(
+            baseMass=0.0 if obj.fixed else model.mass_kg,
+            baseCollisionShapeIndex=collision,
+            baseVisualShapeIndex=visual,
+            baseInertialFramePosition=com_O.tolist(),
+            baseInertialFrameOrientation=quat_OI,
+            physicsClientId=self.cid,
+        )
+        if not obj.fixed:
+            p.changeDynamics(
+                body, -1, localInertiaDiagonal=moments.tolist(), physicsClientId=self.cid
+            )
+        p.changeVisualShape(body, -1, rgbaColor=list(model.rgba), physicsClientId=self.cid)
+        return body
+
+    def _load_robot(self) -> int:
+        placement = self.scene.robot
+        position, quat = pose_to_pybullet(placement.X_WB)
+        robot = p.loadURDF(
+            str(placement.urdf_path),
+            position,
+            quat,
+            useFixedBase=True,
+            flags=p.URDF_USE_INERTIA_FROM_FILE,
+            physicsClientId=self.cid,
+        )
+        joints, links = {}, {}
+        for j in range(p.getNumJoints(robot, physicsClientId=self.cid)):
+            info = p.getJointInfo(robot, j, physicsClientId=self.cid)
+            joints[info[1].decode()] = j
+            links[info[12].decode()] = j
+        missing = [n for n in (*ARM_JOINTS, *FINGER_JOINTS, FT_SENSOR_JOINT) if n not in joints]
+        if missing or FLANGE_LINK not in links:
+            raise ValueError(
+                f"{placement.urdf_path}: robot lacks joints {missing} or link {FLANGE_LINK!r}"
+            )
+        self.arm_joints = [joints[n] for n in ARM_JOINTS]
+        self.finger_joints = [joints[n] for n in FINGER_JOINTS]
+        self.ft_joint = joints[FT_SENSOR_JOINT]
+        self.flange_link = links[FLANGE_LINK]
+        p.enableJointForceTorqueSensor(robot, self.ft_joint, True, physicsClientId=self.cid)
+        for j, q in zip(self.arm_joints, placement.q_home_rad, strict=True):
+            p.resetJointState(robot, j, float(q), physicsClientId=self.cid)
+        self.q_target = np.array(placement.q_home_rad, dtype=np.float64)
+        self.finger_target_m = 0.02
+        for j in self.finger_joints:
+            p.resetJointState(robot, j, self.finger_target_m, physicsClientId=self.cid)
+        return robot
+
+    def set_object_pose(self, name: str, X_WO: np.ndarray) -> None:
+        """Place object ``name`` so that its URDF link frame is at ``X_WO``; zero its velocity."""
+        position, quat = pose_to_pybullet(X_WO @ self._X_OI[name])
+        body = self.bodies[name]
+        p.resetBasePositionAndOrientation(body, position, quat, physicsClientId=self.cid)
+        p.resetBaseVelocity(body, [0, 0, 0], [0, 0, 0], physicsClientId=self.cid)
+
+    def object_pose(self, name: str) -> np.ndarray:
+        """``X_WO``: the pose of object ``name``'s URDF link frame in W."""
+        position, quat = p.getBasePositionAndOrientation(
+            self.bodies[name], physicsClientId=self.cid
+        )
+        return pose_from_pybullet(position, quat) @ invert_pose(self._X_OI[name])
+
+    def object_poses(self) -> dict[str, np.ndarray]:
+        """``X_WO`` of every object, by name."""
+        return {name: self.object_pose(name) for name in self.bodies}
+
+    def step(self, n: int = 1) -> None:
+        """Advance the simulation by ``n`` time steps, servoing the joints to their targets."""
+        p.setJointMotorControlArray(
+            self.robot,
+            self.arm_joints,
+            p.POSITION_CONTROL,
+            targetPositions=self.q_target.tolist(),
+            forces=[ARM_MAX_FORCE_N] * 6,
+            physicsClientId=self.cid,
+        )
+        p.setJointMotorControlArray(
+            self.robot,
+            self.finger_joints,
+            p.POSITION_CONTROL,
+            targetPositions=[self.finger_target_m] * 2,
+            forces=[FINGER_MAX_FORCE_N] * 2,
+            physicsClientId=self.cid,
+        )
+        for _ in range(n):
+            p.stepSimulation(physicsClientId=self.cid)
+        self.time_s += n * self.time_step_s
+
+    def robot_snapshot(self) -> RobotSnapshot:
+        """The arm's joint angles, flange pose, gripper opening and wrist wrench right now.
+
+        ``wrench_S`` is pybullet's joint reaction at the sensor joint, ``[fx, fy, fz, tx, ty, tz]``
+        in N and N·m in the sensor frame S (the ft_sensor joint frame).
+        """
+        arm = p.getJointStates(self.robot, self.arm_joints, physicsClientId=self.cid)
+        fingers = p.getJointStates(self.robot, self.finger_joints, physicsClientId=self.cid)
+        sensor = p.getJointState(self.robot, self.ft_joint, physicsClientId=self.cid)
+        flange = p.getLinkState(
+            self.robot, self.flange_link, computeForwardKinematics=True, physicsClientId=self.cid
+        )
+        return RobotSnapshot(
+            q=np.array([s[0] for s in arm]),
+            X_WF=pose_from_pybullet(flange[4], flange[5]),
+            gripper_opening_m=float(sum(s[0] for s in fingers)),
+            wrench_S=np.array(sensor[2], dtype=np.float64),
+        )
+
+    def robot_joint_positions(self) -> tuple[np.ndarray, np.ndarray]:
+        """Arm joint angles (6,) rad and finger positions (2,) m, for rendering elsewhere."""
+        arm = p.getJointStates(self.robot, self.arm_joints, physicsClientId=self.cid)
+        fingers = p.getJointStates(self.robot, self.finger_joints, physicsClientId=self.cid)
+        return np.array([s[0] for s in arm]), np.array([s[0] for s in fingers])
+
+    def set_robot_joint_positions(self, q: np.ndarray, fingers_m: np.ndarray) -> None:
+        """Teleport the arm (6,) rad and fingers (2,) m, as a renderer mirroring another world."""
+        for j, v in zip(self.arm_joints + self.finger_joints, [*q, *fingers_m], strict=True):
+            p.resetJointState(self.robot, j, float(v), physicsClientId=self.cid)
+
+    def close(self) -> None:
+        """Disconnect the physics client (idempotent)."""
+        if self.cid >= 0 and p.isConnected(physicsClientId=self.cid):
+            p.disconnect(physicsClientId=self.cid)
+        self.cid = -1
