@@ -5,7 +5,9 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench install clean
+CHROMIUM := /usr/bin/chromium
+
+.PHONY: demo test lint bench install clean browser
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -18,7 +20,18 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/operator-site demo
 
-test: $(STAMP)
+# The browser test needs Debian's chromium: installed here when we are root, else the test
+# is skipped and says why.
+browser:
+	@if [ ! -x $(CHROMIUM) ]; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "make: installing Debian's chromium for the browser test"; \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium \
+	      >/dev/null) || echo "make: could not install chromium: the browser test will skip"; \
+	  else echo "make: no $(CHROMIUM) and not root: the browser test will skip"; fi; \
+	fi
+
+test: $(STAMP) browser
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest
 

@@ -21,7 +21,7 @@ from models.transforms import look_at, make_pose, rpy_to_R
 MODELS_DIR = Path(__file__).resolve().parent
 WOOD_DENSITY_KG_M3 = 600.0
 RGBA_BLOCK = (0.86, 0.70, 0.46, 1.0)
-RGBA_FRAME = (0.50, 0.32, 0.18, 1.0)
+RGBA_FRAME = (0.62, 0.42, 0.25, 1.0)
 RGBA_TABLE = (0.30, 0.30, 0.33, 1.0)
 
 # Puzzle frame (DESIGN.md): inner opening 0.20 m square, bars 0.02 m wide, 0.03 m tall.

@@ -57,9 +57,7 @@ def waiting_image(width: int, height: int, text: str) -> np.ndarray:
 
 def status_markdown(site_id: str, status: LinkStatus) -> str:
     """The status panel's text for the link state ``status``."""
-    label = status.label
-    icon = {"connected": "🟢", "stale": "🟠", "not connected": "🔴"}[label]
-    lines = [f"{icon} **work site: {label}** (`{site_id}`)"]
+    lines = [f"**work site: {status.label}** (`{site_id}`)"]
     if status.work_site_alive:
         lines.append(
             f"robot state {status.state_rate_hz:.0f} Hz · camera {status.frame_rate_hz:.1f} Hz"
@@ -102,7 +100,8 @@ class OperatorPage:
         self.status_md = gui.add_markdown(status_markdown(self.link.site_id, self.link.status))
         cam = self.scene.camera
         self.camera_image = gui.add_image(
-            waiting_image(cam.width, cam.height, "waiting for the work site's camera"),
+            # Half size: cheap to send, and never mistaken for a frame from the work site.
+            waiting_image(cam.width // 2, cam.height // 2, "waiting for the work site's camera"),
             label="work-site camera",
             format="jpeg",
             jpeg_quality=85,
@@ -127,7 +126,7 @@ class OperatorPage:
             "/world/camera",
             fov=float(fov_y),
             aspect=cam.width / cam.height,
-            scale=0.08,
+            scale=0.05,
             thickness=0.002,
             color=(60, 60, 60),
         )

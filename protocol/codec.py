@@ -12,7 +12,7 @@ schema); nested records as maps; tuples of records as lists of maps.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, TypeVar, overload
 
 import msgpack
 import numpy as np
@@ -80,7 +80,7 @@ def encode(msg: Message) -> bytes:
     exceed :data:`MAX_PAYLOAD_BYTES`.
     """
     cls = type(msg)
-    if MESSAGE_TYPES.get(getattr(cls, "TYPE", None)) is not cls:  # type: ignore[arg-type]
+    if not isinstance(msg, Message) or MESSAGE_TYPES.get(cls.TYPE) is not cls:
         raise ProtocolError(f"encode: expected a protocol message, got {type_name(msg)}")
     payload = msgpack.packb(
         {"t": cls.TYPE, "v": SCHEMA_VERSION, "b": _to_wire(msg)}, use_bin_type=True
@@ -162,6 +162,15 @@ def _expected_types(expected: type | tuple[type, ...] | None) -> tuple[type, ...
         if not (isinstance(t, type) and MESSAGE_TYPES.get(getattr(t, "TYPE", None)) is t):
             raise TypeError(f"decode: expected must be protocol message classes, got {t!r}")
     return types
+
+
+M = TypeVar("M", bound=Message)
+
+
+@overload
+def decode(payload: bytes, expected: type[M]) -> M: ...
+@overload
+def decode(payload: bytes, expected: tuple[type[Message], ...] | None = None) -> Message: ...
 
 
 def decode(payload: bytes, expected: type | tuple[type, ...] | None = None) -> Any:

@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
-from hypothesis.extra import numpy as hnp
 
 from protocol import (
     MAX_PAYLOAD_BYTES,
@@ -58,7 +57,10 @@ texts = st.text(max_size=40) | st.builds(
 
 
 def float_arrays(shape: tuple[int, ...]) -> st.SearchStrategy[np.ndarray]:
-    return hnp.arrays(np.float64, shape, elements=finite)
+    n = int(np.prod(shape))
+    return st.lists(finite, min_size=n, max_size=n).map(
+        lambda v: np.array(v, dtype=np.float64).reshape(shape)
+    )
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
