@@ -19,9 +19,16 @@ pytestmark = [pytest.mark.browser, pytest.mark.integration]
 CHROMIUM = "/usr/bin/chromium"
 # No sandbox as root; no background networking (this machine has no network to reach).
 CHROMIUM_FLAGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    "--use-gl=swiftshader", "--enable-unsafe-swiftshader",
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--use-gl=swiftshader",
+    "--enable-unsafe-swiftshader",
 ]
 SCREENSHOT_DIR = REPO / "out" / "screenshots"
 
@@ -34,10 +41,24 @@ def test_page_shows_scene_camera_and_connected_status(tmp_path: Path) -> None:
     log_path = tmp_path / "demo.log"
     with log_path.open("w") as log:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "operator_site", "demo", "--port", str(http_port),
-             "--connect", f"tcp/127.0.0.1:{zenoh_port}", "--site-id", "browser"],
-            cwd=REPO, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            [
+                sys.executable,
+                "-m",
+                "operator_site",
+                "demo",
+                "--port",
+                str(http_port),
+                "--connect",
+                f"tcp/127.0.0.1:{zenoh_port}",
+                "--site-id",
+                "browser",
+            ],
+            cwd=REPO,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
     try:
         assert wait_until(lambda: "open http://" in log_path.read_text(), 60), log_path.read_text()
         with playwright.sync_playwright() as pw:
