@@ -9,11 +9,17 @@ CHROMIUM := /usr/bin/chromium
 
 .PHONY: demo test lint bench install clean browser
 
+BENCH_STAMP := $(VENV)/.installed-bench
+
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check --upgrade pip
 	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test]'
 	@touch $(STAMP)
+
+$(BENCH_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet --disable-pip-version-check -e '.[test,bench]'
+	@touch $(BENCH_STAMP)
 
 install: $(STAMP)
 
@@ -39,8 +45,9 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-bench: $(STAMP)
-	@echo "no benchmarks yet"
+# Every benchmark; figures land in docs/bench/ (CSV, PNG) and docs/benchmarks.md shows them.
+bench: $(BENCH_STAMP)
+	$(VENV)/bin/operator-site bench sim --out docs/bench
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

@@ -1,0 +1,263 @@
+"""``operator-site bench sim``: the task simulator's speed and accuracy on the scenes of issue 3.
+
+Prints a JSON list (one object per scene) and writes ``sim.csv``, ``sim_sweeps.csv`` and PNG
+plots into the output directory. Wall times are per step, on this machine, one core.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from models.scene import Scene, SceneObject, load_scene
+from models.transforms import make_pose, rpy_to_R
+from operator_site.simulator.params import SimParams
+from operator_site.simulator.stepper import Simulator, so3_log
+
+CUBE_HALF_M = 0.025
+CORNER_W = np.array([0.35, -0.10])  # the frame's inside corner at its smallest x and y
+OUTER_CORNER_W = np.array([0.57, 0.12])  # the frame's outside corner at its largest x and y
+FAR_BLOCKS = 1000
+
+
+def _pose(x: float, y: float, z: float, yaw_deg: float = 0.0) -> np.ndarray:
+    return make_pose(rpy_to_R(np.array([0.0, 0.0, np.deg2rad(yaw_deg)])), (x, y, z))
+
+
+def _far_blocks(scene: Scene, n: int) -> Scene:
+    """``scene`` plus n fixed 5 cm cubes in a grid far (≥ 2 m) from the work area."""
+    cube = scene.object("cube").model
+    side = math.ceil(math.sqrt(n))
+    extra = [SceneObject(f"far_{i}", cube, _pose(3.0 + 0.1 * (i % side), 0.1 * (i // side),
+                                                  CUBE_HALF_M), True) for i in range(n)]
+    return dataclasses.replace(scene, objects=(*scene.objects, *extra))
+
+
+def _run(sim: Simulator, targets: Callable[[int], np.ndarray | None], steps: int) -> dict:
+    times, queries, moving = [], [], []
+    min_sep = math.inf
+    for k in range(steps):
+        target = targets(k)
+        if target is not None:
+            sim.set_target(target)
+        t0 = time.perf_counter()
+        r = sim.step()
+        times.append(time.perf_counter() - t0)
+        queries.append(r.queries)
+        moving.append(r.s_fraction > 0)
+        min_sep = min(min_sep, r.min_distance_m)
+    t = np.array(times) * 1e3
+    t_moving = t[np.array(moving)] if any(moving) else t
+    return {
+        "steps": steps,
+        "step_ms_median": float(np.median(t)),
+        "step_ms_p99": float(np.percentile(t, 99)),
+        "moving_step_ms_median": float(np.median(t_moving)),
+        "moving_step_ms_p99": float(np.percentile(t_moving, 99)),
+        "queries_per_step": float(np.mean(queries)),
+        "min_separation_m": min_sep,
+    }
+
+
+def corner_rest_pose(params: SimParams) -> np.ndarray:
+    """The analytic resting pose of the cube in the inside corner: square with the frame, ε_b
+    from both walls and the table (the barrier's zero, where the simulation settles)."""
+    gap = params.eps_barrier_m
+    return _pose(CORNER_W[0] + CUBE_HALF_M + gap, CORNER_W[1] + CUBE_HALF_M + gap,
+                 CUBE_HALF_M + gap)
+
+
+def pose_error(X: np.ndarray, X_ref: np.ndarray) -> tuple[float, float]:
+    """Position error (mm) and rotation error (deg) of ``X`` against ``X_ref``."""
+    return (float(np.linalg.norm(X[:3, 3] - X_ref[:3, 3]) * 1e3),
+            float(np.rad2deg(np.linalg.norm(so3_log(X_ref[:3, :3].T @ X[:3, :3])))))
+
+
+def corner_scene(scene: Scene, params: SimParams, steps: int = 200) -> dict:
+    sim = Simulator(scene, "cube", params, X_WO={"cube": _pose(0.45, 0.0, CUBE_HALF_M + 2e-4, 5)})
+    target = _pose(*(CORNER_W + 0.02), CUBE_HALF_M - 0.005)
+    out = _run(sim, lambda k: target if k == 0 else None, steps)
+    err_mm, err_deg = pose_error(sim.X_WO, corner_rest_pose(params))
+    contact = _pose(*(CORNER_W + CUBE_HALF_M), CUBE_HALF_M)
+    return out | {"final_error_mm": err_mm, "final_error_deg": err_deg,
+                  "final_gap_to_contact_mm": pose_error(sim.X_WO, contact)[0],
+                  "final_contacts": sorted(c.object for c in sim.state.contacts)}
+
+
+def scenes(params: SimParams) -> list[dict]:
+    """The four scenes of issue 3, plus the far-objects comparison."""
+    scene = load_scene()
+    results = []
+    sim = Simulator(scene, "cube", params, X_WO={"cube": _pose(0.3, 0.3, 0.2)})
+    results.append({"scene": "free"} | _run(
+        sim, lambda k: _pose(0.3 + 0.1 * (k // 50 % 2), 0.3, 0.2, 30 * (k // 50 % 2)), 200))
+    sim = Simulator(scene, "cube", params, X_WO={"cube": _pose(0.2, 0.3, CUBE_HALF_M + 2e-4)})
+    results.append({"scene": "slide"} | _run(
+        sim, lambda k: _pose(0.2 - 0.1 * (k // 50 % 2), 0.3, CUBE_HALF_M - 0.005), 200))
+    results.append({"scene": "corner"} | corner_scene(scene, params))
+    far = corner_scene(_far_blocks(scene, FAR_BLOCKS), params)
+    results.append({"scene": f"corner+{FAR_BLOCKS}_far"} | far | {
+        "far_objects_cost_ratio": far["moving_step_ms_median"]
+        / results[-1]["moving_step_ms_median"]})
+    results.append({"scene": "around_corner"} | around_corner(scene, params))
+    try:
+        results.append(mujoco_corner(params))
+    except ImportError:
+        results.append({"scene": "corner_mujoco_mocap_weld",
+                        "skipped": "mujoco is not installed (pip install mujoco)"})
+    return results
+
+
+def around_corner(scene: Scene, params: SimParams) -> dict:
+    """Drag the cube along the frame's outside, around its outer corner, frame and table
+    captured (Fig. 2): the target runs along a square path a little inside the frame."""
+    cx, cy = OUTER_CORNER_W
+    start = _pose(cx - 0.08, cy + CUBE_HALF_M + 2e-4, CUBE_HALF_M + 2e-4)
+    sim = Simulator(scene, "cube", params, X_WO={"cube": start})
+    sim.capture("frame")
+    sim.capture("table")
+    # Along the top face 1 cm inside it, past the corner, then down the side face 1 cm inside.
+    waypoints = [(cx - 0.08, cy + 0.015), (cx + 0.035, cy + 0.015), (cx + 0.015, cy - 0.08)]
+    steps_per_leg = 100
+
+    def target(k: int) -> np.ndarray:
+        leg = min(k // steps_per_leg, len(waypoints) - 2)
+        f = min(1.0, (k - leg * steps_per_leg) / (0.8 * steps_per_leg))
+        (x0, y0), (x1, y1) = waypoints[leg], waypoints[leg + 1]
+        return _pose(x0 + f * (x1 - x0), y0 + f * (y1 - y0), CUBE_HALF_M - 0.003)
+
+    out = _run(sim, target, 2 * steps_per_leg)
+    X = sim.X_WO
+    frame_d = [min((c.distance_m for c in r.contacts if c.object == "frame"), default=math.inf)
+               for r in sim.history]
+    return out | {"final_xy_m": X[:2, 3].tolist(), "max_frame_distance_m": max(frame_d),
+                  "went_around": bool(X[1, 3] < cy - 0.03 and X[0, 3] > cx)}
+
+
+MUJOCO_CORNER_XML = """
+<mujoco>
+  <option timestep="{timestep}"/>
+  <worldbody>
+    <geom type="box" size="0.7 0.7 0.02" pos="0.35 0 -0.02"/>
+    <geom type="box" size="0.12 0.01 0.015" pos="0.45 -0.11 0.015"/>
+    <geom type="box" size="0.12 0.01 0.015" pos="0.45 0.11 0.015"/>
+    <geom type="box" size="0.01 0.10 0.015" pos="0.34 0 0.015"/>
+    <geom type="box" size="0.01 0.10 0.015" pos="0.56 0 0.015"/>
+    <body name="cube" pos="0.45 0 0.0252" euler="0 0 5" >
+      <freejoint/>
+      <geom type="box" size="0.025 0.025 0.025" mass="0.075"/>
+    </body>
+    <body name="target" mocap="true" pos="{tx} {ty} {tz}"/>
+  </worldbody>
+  <equality>
+    <weld body1="target" body2="cube" relpose="0 0 0 1 0 0 0" solref="0.05 1"/>
+  </equality>
+</mujoco>"""
+
+
+def mujoco_corner(params: SimParams, seconds: float = 10.0, timestep_s: float = 0.002) -> dict:
+    """The corner scene as people drive it in MuJoCo today: a mocap body pulling the block
+    through a soft weld. Costs are per Δt of simulated time, to compare with our steps."""
+    import mujoco
+
+    tx, ty = CORNER_W + 0.02
+    model = mujoco.MjModel.from_xml_string(MUJOCO_CORNER_XML.format(
+        timestep=timestep_s, tx=tx, ty=ty, tz=CUBE_HALF_M - 0.005))
+    data = mujoco.MjData(model)
+    per_dt = round(params.dt_s / timestep_s)
+    times, pen = [], 0.0
+    for _ in range(round(seconds / params.dt_s)):
+        t0 = time.perf_counter()
+        for _ in range(per_dt):
+            mujoco.mj_step(model, data)
+        times.append(time.perf_counter() - t0)
+        pen = max(pen, max((-c.dist for c in data.contact[:data.ncon]), default=0.0))
+    X = make_pose(data.xmat[1].reshape(3, 3), data.xpos[1])
+    contact = _pose(*(CORNER_W + CUBE_HALF_M), CUBE_HALF_M)
+    err_mm, err_deg = pose_error(X, contact)
+    t = np.array(times) * 1e3
+    return {"scene": "corner_mujoco_mocap_weld", "mujoco_version": mujoco.__version__,
+            "timestep_s": timestep_s, "step_ms_median": float(np.median(t)),
+            "step_ms_p99": float(np.percentile(t, 99)),
+            "final_error_contact_mm": err_mm, "final_error_deg": err_deg,
+            "max_penetration_m": float(pen)}
+
+
+SWEEPS: dict[str, list] = {
+    "dt_s": [0.005, 0.01, 0.02, 0.05, 0.1],
+    "golden_rel_tol": [1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-8],
+    "eps_barrier_m": [1e-5, 3e-5, 1e-4, 2e-4, 4e-4],
+    "tunnel_fraction": [0.125, 0.25, 0.5, 1.0],
+}
+
+
+def sweeps(base: SimParams) -> list[dict]:
+    """The corner scene with one knob varied at a time (the speed/accuracy trade)."""
+    scene = load_scene()
+    rows = []
+    for knob, values in SWEEPS.items():
+        for value in values:
+            params = dataclasses.replace(base, **{knob: value})
+            steps = round(10.0 / params.dt_s)  # ten seconds of simulated time
+            r = corner_scene(scene, params, steps)
+            rows.append({"knob": knob, "value": value,
+                         "default": value == getattr(SimParams(), knob)} | {
+                k: r[k] for k in ("moving_step_ms_median", "step_ms_p99", "queries_per_step",
+                                  "final_error_mm", "final_error_deg", "min_separation_m",
+                                  "final_gap_to_contact_mm")})
+    return rows
+
+
+def _plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(SWEEPS), figsize=(4.2 * len(SWEEPS), 3.6))
+    for ax, knob in zip(axes, SWEEPS, strict=True):
+        sub = [r for r in rows if r["knob"] == knob]
+        x = [r["moving_step_ms_median"] for r in sub]
+        y = [max(r["final_error_mm"], 1e-6) for r in sub]
+        ax.loglog(x, y, "o-")
+        for r in sub:
+            ax.annotate(f"{r['value']:g}" + (" (default)" if r["default"] else ""),
+                        (r["moving_step_ms_median"], max(r["final_error_mm"], 1e-6)),
+                        fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set_title(knob)
+        ax.set_xlabel("median ms per moving step")
+        ax.set_ylabel("corner final error (mm)")
+        ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _write_csv(rows: list[dict], path: Path) -> None:
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: json.dumps(v) if isinstance(v, list) else v for k, v in r.items()})
+
+
+def main(out_dir: Path, quick: bool = False) -> list[dict]:
+    """Run the scenes (and, unless ``quick``, the sweeps); write CSV + PNG; return the JSON."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    params = SimParams()
+    results = scenes(params)
+    _write_csv(results, out_dir / "sim.csv")
+    if not quick:
+        rows = sweeps(params)
+        _write_csv(rows, out_dir / "sim_sweeps.csv")
+        _plot(rows, out_dir / "sim_sweeps.png")
+    return results
+

@@ -1,0 +1,338 @@
+"""The task simulator (§V): a workpiece dragged by a virtual spring bumps, slides and settles.
+
+One step: contact points from the last pose → contact forces from the LCP of §V-A → spatial
+velocity from first-order dynamics (equation 1) → a move along X(s) for s ∈ [0, Δt] chosen by
+minimising the barrier potential U(s) (§V-B) with golden-section search, after collision samples
+close enough together that nothing can be tunnelled through (§VII-B).
+
+Frames: W world; O the workpiece's object frame; the workpiece turns about its centre of mass c.
+Velocities and forces are in W; ω turns the workpiece about c.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from models.scene import Scene
+from operator_site.simulator.barrier import barrier, capture_barrier
+from operator_site.simulator.contacts import contact_manifold
+from operator_site.simulator.lcp import solve_lcp
+from operator_site.simulator.params import SimParams
+from operator_site.simulator.world import PairDistance, SimWorld
+
+GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+REST_DISPLACEMENT_M = 1e-12
+"""A step that would move no point of the workpiece further than this is no step: the pose and
+contacts stay as they are and no query is made (a settled block costs next to nothing)."""
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``w`` (rad), by Rodrigues' formula."""
+    theta = float(np.linalg.norm(w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if theta < 1e-8:  # second-order series: exact to rounding at this size
+        return np.eye(3) + K + 0.5 * K @ K
+    return np.eye(3) + (math.sin(theta) / theta) * K + ((1 - math.cos(theta)) / theta**2) * K @ K
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (rad) of rotation matrix ``R``, robust near 0 and π."""
+    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = math.acos(cos)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-6:
+        return 0.5 * v
+    if theta > math.pi - 1e-6:
+        # Near π: the axis is the column of R + I with the largest norm.
+        M = R + np.eye(3)
+        axis = M[:, np.argmax(np.linalg.norm(M, axis=0))]
+        axis /= np.linalg.norm(axis)
+        return theta * axis
+    return theta / (2.0 * math.sin(theta)) * v
+
+
+def orthonormalize(R: np.ndarray) -> np.ndarray:
+    """One Newton step towards the nearest rotation: keeps ``RᵀR = I`` to rounding forever."""
+    return R @ (1.5 * np.eye(3) - 0.5 * R.T @ R)
+
+
+@dataclass(frozen=True, eq=False)
+class Contact:
+    """The contact between the workpiece and one obstacle object.
+
+    ``points_W`` (k, 3): contact points; ``normals_W`` (k, 3): unit normals pointing into the
+    workpiece (the direction the obstacle pushes it); ``gaps_m`` (k,): the separation at each
+    point; ``distance_m``: the smallest distance.
+    """
+
+    object: str
+    points_W: np.ndarray
+    normals_W: np.ndarray
+    gaps_m: np.ndarray
+    distance_m: float
+    captured: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class StepResult:
+    """What one step did: the new pose, the contacts there, and its costs."""
+
+    time_s: float
+    X_WO: np.ndarray
+    contacts: tuple[Contact, ...]
+    s_fraction: float
+    """How much of the nominal step Δt was taken (1: unobstructed)."""
+    queries: int
+    """Narrow-phase distance queries this step."""
+    min_distance_m: float
+    """Smallest distance to any nearby obstacle after the step (inf when none is near)."""
+    speed_limited: bool
+    lcp_ok: bool = True
+
+
+@dataclass
+class SimState:
+    """What changes: pose, target, captures, time and history (the model is :class:`SimWorld`)."""
+
+    X_WO: np.ndarray
+    X_WD: np.ndarray
+    time_s: float = 0.0
+    capturable: set[str] = field(default_factory=set)
+    held: set[str] = field(default_factory=set)
+    contacts: tuple[Contact, ...] = ()
+    history: list[StepResult] = field(default_factory=list)
+    resting: bool = False
+    """The last step did not move and no input has changed since: the next will not either."""
+
+
+class Simulator:
+    """First-order contact simulation of one workpiece among fixed obstacles."""
+
+    def __init__(self, scene: Scene, workpiece: str, params: SimParams | None = None,
+                 X_WO: dict[str, np.ndarray] | None = None) -> None:
+        self.params = params or SimParams()
+        self.scene = scene
+        poses = {o.name: o.X_WO for o in scene.objects} | (X_WO or {})
+        self.world = SimWorld(scene, workpiece, poses)
+        model = scene.object(workpiece).model
+        self.c_O = model.com_O.copy()
+        self.r_max_m = float(np.max(np.linalg.norm(self.world.wp_vertices_O - self.c_O, axis=1)))
+        X0 = np.array(poses[workpiece], dtype=np.float64)
+        self.state = SimState(X_WO=X0, X_WD=X0.copy())
+        self.state.contacts = self._contacts(X0, self._near(X0, 0.0))
+
+    # ------------------------------------------------------------------------------ inputs
+
+    @property
+    def X_WO(self) -> np.ndarray:
+        """The workpiece's current pose."""
+        return self.state.X_WO.copy()
+
+    @property
+    def history(self) -> list[StepResult]:
+        return self.state.history
+
+    def set_target(self, X_WD: np.ndarray) -> None:
+        """Where the dragger wants the workpiece's frame O to be (the spring's other end)."""
+        X_WD = np.asarray(X_WD, dtype=np.float64)
+        if X_WD.shape != (4, 4) or not np.all(np.isfinite(X_WD)):
+            raise ValueError("target must be a finite 4×4 pose")
+        self.state.X_WD = X_WD.copy()
+        self.state.resting = False
+
+    def capture(self, name: str) -> None:
+        """Hold contact with ``name`` once the workpiece touches it (now, if it already does)."""
+        self.scene.object(name)
+        self.state.capturable.add(name)
+        self.state.resting = False
+        X = self.state.X_WO
+        self.state.contacts = self._contacts(X, self._near(X, 0.0))
+
+    def release(self, name: str) -> None:
+        """Stop holding contact with ``name``."""
+        self.state.capturable.discard(name)
+        self.state.held.discard(name)
+        self.state.resting = False
+
+    # ------------------------------------------------------------------------------ forces
+
+    def _spring(self, X_WO: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = self.params
+        R, R_D = X_WO[:3, :3], self.state.X_WD[:3, :3]
+        c = X_WO[:3, :3] @ self.c_O + X_WO[:3, 3]
+        c_D = R_D @ self.c_O + self.state.X_WD[:3, 3]
+        return p.k_t * (c_D - c), p.k_r * so3_log(R_D @ R.T)
+
+    def _velocity(self, X_WO: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """v, ω (W, about the centre of mass) after contact forces; False if the LCP failed."""
+        p = self.params
+        f_a, m_a = self._spring(X_WO)
+        ok = True
+        if self.state.contacts:
+            c = X_WO[:3, :3] @ self.c_O + X_WO[:3, 3]
+            P = np.vstack([k.points_W for k in self.state.contacts]) - c
+            N = np.vstack([k.normals_W for k in self.state.contacts])
+            T = np.cross(P, N)  # moment arm of a unit force along each normal
+            A = p.d_t * N @ N.T + p.d_r * T @ T.T
+            # A point with room to spare may approach by that room within the step (less ε_b),
+            # so that a face within ε_c but not quite flush can still turn flush.
+            room = np.concatenate([k.gaps_m for k in self.state.contacts]) - p.eps_barrier_m
+            b = p.d_t * N @ f_a + p.d_r * T @ m_a + np.maximum(room, 0.0) / p.dt_s
+            result = solve_lcp(A, b)
+            ok = result.ok
+            f_a = f_a + N.T @ result.c
+            m_a = m_a + T.T @ result.c
+        return p.d_t * f_a, p.d_r * m_a, ok
+
+    # ------------------------------------------------------------------------------ motion
+
+    def _pose_at(self, X0: np.ndarray, v: np.ndarray, w: np.ndarray, s: float) -> np.ndarray:
+        R = so3_exp(w * s) @ X0[:3, :3]
+        c = X0[:3, :3] @ self.c_O + X0[:3, 3] + v * s
+        X = np.eye(4)
+        X[:3, :3] = R
+        X[:3, 3] = c - R @ self.c_O
+        return X
+
+    def _near(self, X_WO: np.ndarray, sweep_m: float) -> np.ndarray:
+        lo, hi = self.world.workpiece_box(X_WO, sweep_m + self.params.eps_capture_m)
+        return self.world.candidates(lo, hi)
+
+    def _object_distances(self, pairs: list[PairDistance]) -> dict[str, float]:
+        d: dict[str, float] = {}
+        for pair in pairs:
+            name = self.world.obstacle_object[pair.obstacle]
+            d[name] = min(d.get(name, math.inf), pair.distance_m)
+        return d
+
+    def _potential(self, pairs: list[PairDistance], gain: float) -> float:
+        """Σ U_i over obstacle objects (excluding U_v); ``inf`` closer than the hard floor."""
+        p, total = self.params, 0.0
+        floor = p.min_separation_fraction * p.eps_barrier_m
+        for name, d in self._object_distances(pairs).items():
+            if d <= floor:
+                return math.inf
+            if name in self.state.held:
+                total += capture_barrier(d, p.eps_barrier_m, p.eps_capture_m, gain)
+            else:
+                total += barrier(d, p.eps_barrier_m, gain)
+            if total == math.inf:
+                return total
+        return total
+
+    def _contacts(self, X_WO: np.ndarray, near: np.ndarray) -> tuple[Contact, ...]:
+        p = self.params
+        pairs = self.world.distances(X_WO, near) if len(near) else []
+        R, t = X_WO[:3, :3], X_WO[:3, 3]
+        V_wp = [part.vertices_O @ R.T + t for part in self.world.wp_parts]
+        N_wp = [part.normals_O @ R.T for part in self.world.wp_parts]
+        by_object: dict[str, list] = {}
+        dist = self._object_distances(pairs)
+        for name, d in dist.items():
+            if name in self.state.capturable and d < p.eps_contact_m:
+                self.state.held.add(name)
+        for pair in pairs:
+            name = self.world.obstacle_object[pair.obstacle]
+            reach = p.eps_capture_m if name in self.state.held else p.eps_contact_m
+            if pair.distance_m >= reach or pair.distance_m <= 0:
+                continue
+            points, n, gaps = contact_manifold(V_wp[pair.wp_part],
+                                         self.world.obstacle_vertices_W[pair.obstacle],
+                                         pair.p_wp, pair.p_obstacle, p.eps_contact_m,
+                                         p.max_points_per_pair, N_wp[pair.wp_part],
+                                         self.world.obstacle_normals_W[pair.obstacle])
+            by_object.setdefault(name, []).append((points, -n, gaps, pair.distance_m))
+        return tuple(
+            Contact(name, np.vstack([x[0] for x in items]),
+                    np.vstack([np.tile(x[1], (len(x[0]), 1)) for x in items]),
+                    np.concatenate([x[2] for x in items]), min(x[3] for x in items),
+                    name in self.state.held)
+            for name, items in by_object.items())
+
+    def step(self) -> StepResult:
+        """Advance one time step Δt and return what happened."""
+        p, st = self.params, self.state
+        if st.resting and st.history:
+            st.time_s += p.dt_s
+            result = dataclasses.replace(st.history[-1], time_s=st.time_s, queries=0)
+            st.history.append(result)
+            return result
+        X0 = st.X_WO
+        queries0 = self.world.queries
+        v, w, lcp_ok = self._velocity(X0)
+        speed = float(np.linalg.norm(v) + np.linalg.norm(w) * self.r_max_m)
+        limited = speed > p.max_speed_mps
+        if limited:
+            v, w = v * (p.max_speed_mps / speed), w * (p.max_speed_mps / speed)
+            speed = p.max_speed_mps
+        # Repel from anything closer than ε_b (§V-B) along the barrier's gradient, fast enough
+        # to restore ε_b in one step. (The paper scales the gradient by K; K is tied to how hard
+        # the workpiece is pushed, which is zero exactly when it is blocked and most needs it.)
+        for contact in st.contacts:
+            if contact.distance_m < p.eps_barrier_m:
+                n = contact.normals_W.mean(axis=0)
+                v = v + (p.eps_barrier_m - contact.distance_m) / p.dt_s * n / np.linalg.norm(n)
+        speed = float(np.linalg.norm(v) + np.linalg.norm(w) * self.r_max_m)
+        work_rate = v @ v / p.d_t + w @ w / p.d_r  # −dU_v/ds (J/s)
+        gain = p.barrier_gain * work_rate * p.dt_s
+        sweep = speed * p.dt_s
+        st.time_s += p.dt_s
+        if sweep < REST_DISPLACEMENT_M:
+            s_best, X1 = 0.0, X0
+            st.resting = True
+        else:
+            near = self._near(X0, sweep)
+            s_best = self._line_search(X0, v, w, near, sweep, work_rate, gain) if len(near) \
+                else p.dt_s
+            X1 = self._pose_at(X0, v, w, s_best)
+            X1[:3, :3] = orthonormalize(X1[:3, :3])
+            st.X_WO = X1
+            st.contacts = self._contacts(X1, self._near(X1, 0.0))
+        d_min = min((c.distance_m for c in st.contacts), default=math.inf)
+        result = StepResult(time_s=st.time_s, X_WO=X1.copy(), contacts=st.contacts,
+                            s_fraction=s_best / p.dt_s, queries=self.world.queries - queries0,
+                            min_distance_m=d_min, speed_limited=limited, lcp_ok=lcp_ok)
+        st.history.append(result)
+        return result
+
+    def _line_search(self, X0: np.ndarray, v: np.ndarray, w: np.ndarray, near: np.ndarray,
+                     sweep_m: float, work_rate: float, gain: float) -> float:
+        """argmin over s ∈ [0, Δt] of U(s) = −work_rate·s + Σ U_i(d_i(s)) (§V-B)."""
+        p = self.params
+        cache: dict[float, float] = {}
+
+        def U(s: float) -> float:
+            if s not in cache:
+                pairs = self.world.distances(self._pose_at(X0, v, w, s), near)
+                cache[s] = self._potential(pairs, gain) - work_rate * s
+            return cache[s]
+
+        # Collision samples no further apart than a fraction of the thinnest obstacle.
+        n = max(1, math.ceil(sweep_m / (p.tunnel_fraction * self.world.thinnest_obstacle_m)))
+        hi = p.dt_s
+        for k in range(1, n + 1):
+            s = p.dt_s * k / n
+            if U(s) == math.inf:
+                hi = s
+                break
+        else:
+            if U(p.dt_s) == -work_rate * p.dt_s:
+                return p.dt_s  # no barrier active at the end: U_v alone is least there
+        lo = 0.0
+        a, b = hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo)
+        tol = p.golden_rel_tol * p.dt_s
+        while hi - lo > tol:
+            if U(a) < U(b):
+                hi, b = b, a
+                a = hi - GOLDEN * (hi - lo)
+            else:
+                lo, a = a, b
+                b = lo + GOLDEN * (hi - lo)
+        # The best point evaluated; s = 0 (stay) is always admissible.
+        candidates = [(u, s) for s, u in cache.items() if u < math.inf]
+        best_u, best_s = min(candidates, default=(math.inf, 0.0))
+        return best_s if best_u <= U(0.0) else 0.0

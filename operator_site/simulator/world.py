@@ -1,0 +1,102 @@
+"""The simulator's geometry: the workpiece and the fixed obstacles as python-fcl convex parts, with
+a broad phase so that a step only queries obstacles the workpiece can reach."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import fcl
+import numpy as np
+
+from models.geometry import ConvexPart
+from models.scene import Scene
+
+
+def fcl_convex(part: ConvexPart) -> fcl.Convex:
+    """A python-fcl convex geometry for ``part`` (faces flattened as ``[k, i0, …, ik-1, …]``)."""
+    flat: list[int] = []
+    for face in part.faces:
+        flat += [len(face), *face]
+    return fcl.Convex(part.vertices_O, len(part.faces), np.array(flat, dtype=np.int64))
+
+
+def thickness_m(vertices: np.ndarray, normals: np.ndarray) -> float:
+    """The thinnest extent of a convex part across its own face normals (m)."""
+    extent = vertices @ normals.T
+    return float(np.min(extent.max(axis=0) - extent.min(axis=0)))
+
+
+@dataclass(frozen=True)
+class PairDistance:
+    """Distance (m) between workpiece part ``wp_part`` and obstacle part ``obstacle``, with the
+    nearest points in W (``p_wp``, ``p_obstacle``); distance ≤ 0 means they collide."""
+
+    distance_m: float
+    obstacle: int
+    wp_part: int
+    p_wp: np.ndarray
+    p_obstacle: np.ndarray
+
+
+class SimWorld:
+    """Fixed obstacles (every object but the workpiece) and the workpiece's parts in fcl."""
+
+    def __init__(self, scene: Scene, workpiece: str, X_WO: dict[str, np.ndarray] | None = None):
+        X_WO = X_WO or {}
+        wp = scene.object(workpiece)
+        self.workpiece = wp.name
+        self.wp_parts = wp.model.parts
+        self.wp_vertices_O = np.vstack([p.vertices_O for p in self.wp_parts])
+        self._wp_objects = [fcl.CollisionObject(fcl_convex(p), fcl.Transform())
+                            for p in self.wp_parts]
+        self.obstacle_names: list[str] = []
+        self.obstacle_object: list[str] = []
+        self.obstacle_vertices_W: list[np.ndarray] = []
+        self.obstacle_normals_W: list[np.ndarray] = []
+        self._obstacles: list[fcl.CollisionObject] = []
+        thinnest = np.inf
+        lo, hi = [], []
+        for obj in scene.objects:
+            if obj.name == self.workpiece:
+                continue
+            X = X_WO.get(obj.name, obj.X_WO)
+            R, t = X[:3, :3], X[:3, 3]
+            for part in obj.model.parts:
+                V_W = part.vertices_O @ R.T + t
+                self._obstacles.append(fcl.CollisionObject(fcl_convex(part), fcl.Transform(R, t)))
+                self.obstacle_object.append(obj.name)
+                self.obstacle_vertices_W.append(V_W)
+                self.obstacle_normals_W.append(part.normals_O @ R.T)
+                lo.append(V_W.min(axis=0))
+                hi.append(V_W.max(axis=0))
+                thinnest = min(thinnest, thickness_m(part.vertices_O, part.normals_O))
+        self.lo_W = np.array(lo).reshape(-1, 3)
+        self.hi_W = np.array(hi).reshape(-1, 3)
+        self.thinnest_obstacle_m = float(thinnest)
+        self._request = fcl.DistanceRequest(enable_nearest_points=True)
+        self.queries = 0
+        """Narrow-phase distance queries made so far (one per pair of convex parts)."""
+
+    def candidates(self, lo_W: np.ndarray, hi_W: np.ndarray) -> np.ndarray:
+        """Indices of obstacle parts whose bounding boxes overlap the box [lo_W, hi_W]."""
+        overlap = np.all((self.lo_W <= hi_W) & (self.hi_W >= lo_W), axis=1)
+        return np.flatnonzero(overlap)
+
+    def workpiece_box(self, X_WO: np.ndarray, grow_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned box of the workpiece at ``X_WO``, grown by ``grow_m`` on every side."""
+        V = self.wp_vertices_O @ X_WO[:3, :3].T + X_WO[:3, 3]
+        return V.min(axis=0) - grow_m, V.max(axis=0) + grow_m
+
+    def distances(self, X_WO: np.ndarray, obstacles: np.ndarray) -> list[PairDistance]:
+        """Distances from every workpiece part at ``X_WO`` to each listed obstacle part."""
+        tf = fcl.Transform(X_WO[:3, :3], X_WO[:3, 3])
+        out = []
+        for k, wp in enumerate(self._wp_objects):
+            wp.setTransform(tf)
+            for i in obstacles:
+                result = fcl.DistanceResult()
+                d = fcl.distance(wp, self._obstacles[i], self._request, result)
+                out.append(PairDistance(float(d), int(i), k, np.array(result.nearest_points[0]),
+                                        np.array(result.nearest_points[1])))
+        self.queries += len(self._wp_objects) * len(obstacles)
+        return out

@@ -1,0 +1,233 @@
+"""The task simulator on hand-worked cases with exact answers (§V)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from models.geometry import make_convex_part, mass_properties
+from models.scene import ObjectModel, Scene, SceneObject, load_scene
+from models.transforms import make_pose, rpy_to_R
+from operator_site.simulator.contacts import contact_manifold
+from operator_site.simulator.params import SimParams
+from operator_site.simulator.stepper import Simulator, so3_exp, so3_log
+
+P = SimParams()
+CUBE_HALF = 0.025
+# The frame's inner corner at its smallest x and y (DESIGN.md: opening 0.20 m centred at 0.45).
+CORNER_XY = np.array([0.35, -0.10])
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    return load_scene()
+
+
+def at(x: float, y: float, z: float, yaw_deg: float = 0.0) -> np.ndarray:
+    return make_pose(rpy_to_R(np.array([0.0, 0.0, np.deg2rad(yaw_deg)])), (x, y, z))
+
+
+def box_object(name: str, size: tuple[float, float, float], X_WO: np.ndarray) -> SceneObject:
+    """A fixed box obstacle made on the spot (for scenes the puzzle does not have)."""
+    hx, hy, hz = (s / 2 for s in size)
+    V = np.array([[x, y, z] for x in (-hx, hx) for y in (-hy, hy) for z in (-hz, hz)])
+    F = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+    part = make_convex_part(V, F, name)
+    volume, com, _ = mass_properties([part])
+    model = ObjectModel(name, None, (part,), np.zeros((0, 2, 3)), volume, 1.0, com,
+                        np.array([V.min(0), V.max(0)]), (0.5, 0.5, 0.5, 1.0))
+    return SceneObject(name, model, X_WO, True)
+
+
+def run(sim: Simulator, steps: int):
+    return [sim.step() for _ in range(steps)]
+
+
+def test_so3_exp_and_log_are_inverse() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        w = rng.normal(size=3)
+        w *= rng.uniform(0, np.pi - 1e-3) / np.linalg.norm(w)
+        np.testing.assert_allclose(so3_log(so3_exp(w)), w, atol=1e-9)
+
+
+def test_manifold_face_on_face_is_the_four_corners() -> None:
+    cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * CUBE_HALF
+    table = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-0.04, 0)])
+    A = cube + np.array([0, 0, CUBE_HALF + 1e-4])
+    points, n, gaps = contact_manifold(A, table, np.array([0, 0, 1e-4]), np.zeros(3),
+                                       P.eps_contact_m)
+    np.testing.assert_allclose(n, [0, 0, -1])
+    assert len(points) == 4
+    np.testing.assert_allclose(np.sort(np.abs(points[:, :2]), axis=0), CUBE_HALF)
+    np.testing.assert_allclose(points[:, 2], 5e-5)
+    np.testing.assert_allclose(gaps, 1e-4)
+    # Tilted by 0.2 mm over its width: still four points, each with its own gap.
+    tilt = 2e-4 / (2 * CUBE_HALF)
+    R = so3_exp(np.array([0.0, tilt, 0.0]))
+    A = cube @ R.T
+    A += [0, 0, 1e-4 - A[:, 2].min()]
+    low = A[np.argmin(A[:, 2])]
+    points, n, gaps = contact_manifold(A, table, low, low * [1, 1, 0], P.eps_contact_m)
+    assert len(points) == 4
+    np.testing.assert_allclose(np.sort(gaps), [1e-4, 1e-4, 3e-4, 3e-4], atol=1e-9)
+
+
+def test_free_motion_converges_on_the_target_without_queries(scene: Scene) -> None:
+    start = at(0.3, 0.3, 0.2)
+    sim = Simulator(scene, "cube", X_WO={"cube": start})
+    target = at(0.32, 0.31, 0.2, yaw_deg=20)
+    sim.set_target(target)
+    results = run(sim, 80)
+    np.testing.assert_allclose(sim.X_WO, target, atol=1e-6)
+    assert sum(r.queries for r in results) == 0  # nothing near: the broad phase skips it all
+
+
+def test_block_resting_on_the_table_stays_and_the_reaction_balances_the_push(scene) -> None:
+    start = at(0.2, 0.3, CUBE_HALF + 0.3 * P.eps_contact_m)
+    sim = Simulator(scene, "cube", X_WO={"cube": start})
+    sim.set_target(at(0.2, 0.3, CUBE_HALF - 0.01))  # pushed 1 cm into the table
+    results = run(sim, 20)
+    last = results[-1]
+    (table,) = [c for c in last.contacts if c.object == "table"]
+    assert len(table.points_W) == 4
+    np.testing.assert_allclose(table.normals_W, np.tile([0, 0, 1.0], (4, 1)), atol=1e-12)
+    z = sim.X_WO[2, 3] - CUBE_HALF
+    assert P.eps_barrier_m / 2 <= z < P.eps_contact_m
+    np.testing.assert_allclose(sim.X_WO[:2, 3], [0.2, 0.3], atol=1e-9)
+    np.testing.assert_allclose(sim.X_WO[:3, :3], np.eye(3), atol=1e-9)
+
+
+def test_block_slides_along_the_table(scene: Scene) -> None:
+    start = at(0.2, 0.3, CUBE_HALF + 0.3 * P.eps_contact_m)
+    sim = Simulator(scene, "cube", X_WO={"cube": start})
+    sim.set_target(at(0.1, 0.3, CUBE_HALF - 0.005))
+    results = run(sim, 60)
+    assert sim.X_WO[0, 3] == pytest.approx(0.1, abs=1e-4)
+    gaps = [r.X_WO[2, 3] - CUBE_HALF for r in results]
+    assert min(gaps) >= P.eps_barrier_m / 2 and max(gaps) < P.eps_contact_m
+    np.testing.assert_allclose(sim.X_WO[:3, :3], np.eye(3), atol=1e-9)
+
+
+def test_block_pushed_into_the_inside_corner_settles_against_two_walls(scene) -> None:
+    sim = Simulator(scene, "cube", X_WO={"cube": at(0.45, 0.0, CUBE_HALF + 2e-4, yaw_deg=5)})
+    # Drag towards the corner, past the walls and slightly down, square with the frame.
+    sim.set_target(at(*(CORNER_XY + 0.02), CUBE_HALF - 0.005))
+    results = run(sim, 200)
+    last = results[-1]
+    assert {c.object for c in last.contacts} == {"table", "frame"}
+    frame = next(c for c in last.contacts if c.object == "frame")
+    normals = {tuple(np.round(n, 6)) for n in frame.normals_W}
+    assert normals == {(1.0, 0.0, 0.0), (0.0, 1.0, 0.0)}
+    gaps = sim.X_WO[:3, 3] - [*(CORNER_XY + CUBE_HALF), CUBE_HALF]
+    assert np.all(gaps >= P.eps_barrier_m / 2) and np.all(gaps < P.eps_contact_m), gaps
+    assert abs(np.rad2deg(np.linalg.norm(so3_log(sim.X_WO[:3, :3])))) < 0.05
+
+
+def test_rotation_stays_orthonormal(scene: Scene) -> None:
+    sim = Simulator(scene, "cube", X_WO={"cube": at(0.3, 0.3, 0.2)})
+    sim.set_target(at(0.3, 0.3, 0.2, yaw_deg=179))
+    for k in range(2000):
+        if k % 50 == 0:
+            sim.set_target(at(0.3, 0.3, 0.2, yaw_deg=(k * 37) % 360))
+        sim.step()
+    R = sim.X_WO[:3, :3]
+    assert np.max(np.abs(R.T @ R - np.eye(3))) < 1e-12
+
+
+def test_no_tunnelling_through_a_thin_plate_at_full_speed(scene: Scene) -> None:
+    plate = box_object("plate", (0.005, 0.3, 0.3), at(0.25, 0.3, 0.2))
+    scene2 = dataclasses.replace(scene, objects=(*scene.objects, plate))
+    sim = Simulator(scene2, "cube", X_WO={"cube": at(0.15, 0.3, 0.2)})
+    sim.set_target(at(0.6, 0.3, 0.2))  # far beyond the plate: the spring saturates the speed
+    results = run(sim, 60)
+    assert any(r.speed_limited for r in results)
+    xs = [r.X_WO[0, 3] for r in results]
+    assert max(xs) < 0.25 - 0.0025 - CUBE_HALF  # never past the plate's near face
+    assert results[-1].min_distance_m >= P.eps_barrier_m / 2
+
+
+def test_captured_block_stays_near_the_capture_object_and_leaves_when_released(scene) -> None:
+    sim = Simulator(scene, "cube", X_WO={"cube": at(0.2, 0.3, CUBE_HALF + 0.3e-3)})
+    sim.capture("table")
+    sim.set_target(at(0.2, 0.3, 0.1))  # pull straight up
+    run(sim, 40)
+    d = sim.X_WO[2, 3] - CUBE_HALF
+    assert 0 < d <= P.eps_capture_m
+    sim.release("table")
+    run(sim, 80)
+    assert sim.X_WO[2, 3] == pytest.approx(0.1, abs=1e-4)
+
+
+# ------------------------------------------------------------------- properties at the extremes
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+def _log(lo: float, hi: float):
+    return st.floats(np.log10(lo), np.log10(hi)).map(lambda e: float(10.0**e))
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    eps_b=_log(1e-7, 1e-3),
+    d_t=_log(1e-6, 1e6),
+    d_ratio=_log(1e-3, 1e3),
+    force=_log(1e-9, 1e6),
+    direction=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 0.2)),
+    turn=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)),
+    start_gap=st.floats(0.5, 3.0),
+)
+def test_random_pushes_never_break_the_invariants(scene: Scene, eps_b, d_t, d_ratio, force,
+                                                   direction, turn, start_gap) -> None:
+    params = SimParams(eps_barrier_m=eps_b, eps_contact_m=max(5 * eps_b, 0.5e-3),
+                       eps_capture_m=max(20 * eps_b, 2e-3), d_t=d_t,
+                       char_length_m=0.025 * d_ratio, k_t=1.0)
+    u = np.array(direction, dtype=float)
+    u = u / np.linalg.norm(u) if np.linalg.norm(u) > 1e-6 else np.array([0.0, 0.0, -1.0])
+    start = at(0.2, 0.3, CUBE_HALF + start_gap * eps_b)
+    sim = Simulator(scene, "cube", params, X_WO={"cube": start})
+    # Spring force f = k_t·offset: an offset of `force` newtons' worth at k_t = 1 N/m.
+    target = start.copy()
+    target[:3, 3] += u * force
+    target[:3, :3] = so3_exp(np.array(turn)) @ start[:3, :3]
+    sim.set_target(target)
+    for _ in range(15):
+        r = sim.step()
+        assert np.all(np.isfinite(r.X_WO))
+        R = r.X_WO[:3, :3]
+        assert np.max(np.abs(R.T @ R - np.eye(3))) < 1e-12
+        assert r.min_distance_m >= eps_b / 2
+        assert r.X_WO[2, 3] - CUBE_HALF > 0  # never through the table
+
+
+def test_faces_parallel_to_1e9_rad_at_1e9_m(scene: Scene) -> None:
+    params = SimParams(eps_barrier_m=1e-9 * 0.5, eps_contact_m=1e-8, eps_capture_m=1e-7)
+    R = so3_exp(np.array([1e-9, 0.0, 0.0]))
+    start = make_pose(R, (0.2, 0.3, CUBE_HALF + 1e-9))
+    sim = Simulator(scene, "cube", params, X_WO={"cube": start})
+    sim.set_target(at(0.21, 0.3, CUBE_HALF - 0.01))
+    for _ in range(20):
+        r = sim.step()
+        assert np.all(np.isfinite(r.X_WO)) and r.min_distance_m > 0
+        assert r.lcp_ok
+
+
+def test_many_redundant_contact_points(scene: Scene) -> None:
+    # A hexagonal prism lying on a box: 100 coincident contact rows from repeated manifolds.
+    params = SimParams(max_points_per_pair=100)
+    sim = Simulator(scene, "hex_prism", params,
+                    X_WO={"hex_prism": at(0.2, 0.3, CUBE_HALF + 2e-4)})
+    sim.set_target(at(0.2, 0.3, 0.0))
+    contact = sim.state.contacts[0]
+    n = len(contact.points_W)
+    reps = -(-100 // n)
+    sim.state.contacts = (dataclasses.replace(
+        contact, points_W=np.tile(contact.points_W, (reps, 1)),
+        normals_W=np.tile(contact.normals_W, (reps, 1)), gaps_m=np.tile(contact.gaps_m, reps)),)
+    r = sim.step()
+    assert r.lcp_ok and np.all(np.isfinite(r.X_WO))
+    assert r.X_WO[2, 3] - CUBE_HALF >= P.eps_barrier_m / 2
