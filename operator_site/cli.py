@@ -41,13 +41,24 @@ def build_parser() -> argparse.ArgumentParser:
         "this machine and serves the operator page connected to it. Ctrl-C "
         "stops both.",
     )
-    bench = sub.add_parser("bench", help="run a benchmark and print its JSON summary",
-                           description="Benchmarks print a JSON summary on the last line and "
-                           "write CSV files and PNG plots into --out.")
-    bench.add_argument("name", choices=["sim"], help="sim: the task simulator (issue 3 scenes, "
-                       "MuJoCo comparison if installed, knob sweeps)")
-    bench.add_argument("--out", type=Path, default=Path("docs/bench"),
-                       help="directory for CSV and PNG files (default: %(default)s)")
+    bench = sub.add_parser(
+        "bench",
+        help="run a benchmark and print its JSON summary",
+        description="Benchmarks print a JSON summary on the last line and "
+        "write CSV files and PNG plots into --out.",
+    )
+    bench.add_argument(
+        "name",
+        choices=["sim"],
+        help="sim: the task simulator (issue 3 scenes, "
+        "MuJoCo comparison if installed, knob sweeps)",
+    )
+    bench.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/bench"),
+        help="directory for CSV and PNG files (default: %(default)s)",
+    )
     bench.add_argument("--quick", action="store_true", help="skip the sweeps")
     bench.add_argument("-v", "--verbose", action="store_true", help="log more")
     for p in (serve, demo):

@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from models.geometry import make_convex_part, mass_properties
 from models.scene import ObjectModel, Scene, SceneObject, load_scene
@@ -36,8 +41,17 @@ def box_object(name: str, size: tuple[float, float, float], X_WO: np.ndarray) ->
     F = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
     part = make_convex_part(V, F, name)
     volume, com, _ = mass_properties([part])
-    model = ObjectModel(name, None, (part,), np.zeros((0, 2, 3)), volume, 1.0, com,
-                        np.array([V.min(0), V.max(0)]), (0.5, 0.5, 0.5, 1.0))
+    model = ObjectModel(
+        name,
+        None,
+        (part,),
+        np.zeros((0, 2, 3)),
+        volume,
+        1.0,
+        com,
+        np.array([V.min(0), V.max(0)]),
+        (0.5, 0.5, 0.5, 1.0),
+    )
     return SceneObject(name, model, X_WO, True)
 
 
@@ -57,8 +71,9 @@ def test_manifold_face_on_face_is_the_four_corners() -> None:
     cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * CUBE_HALF
     table = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-0.04, 0)])
     A = cube + np.array([0, 0, CUBE_HALF + 1e-4])
-    points, n, gaps = contact_manifold(A, table, np.array([0, 0, 1e-4]), np.zeros(3),
-                                       P.eps_contact_m)
+    points, n, gaps = contact_manifold(
+        A, table, np.array([0, 0, 1e-4]), np.zeros(3), P.eps_contact_m
+    )
     np.testing.assert_allclose(n, [0, 0, -1])
     assert len(points) == 4
     np.testing.assert_allclose(np.sort(np.abs(points[:, :2]), axis=0), CUBE_HALF)
@@ -163,9 +178,6 @@ def test_captured_block_stays_near_the_capture_object_and_leaves_when_released(s
 
 # ------------------------------------------------------------------- properties at the extremes
 
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
-
 
 def _log(lo: float, hi: float):
     return st.floats(np.log10(lo), np.log10(hi)).map(lambda e: float(10.0**e))
@@ -181,11 +193,17 @@ def _log(lo: float, hi: float):
     turn=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)),
     start_gap=st.floats(0.5, 3.0),
 )
-def test_random_pushes_never_break_the_invariants(scene: Scene, eps_b, d_t, d_ratio, force,
-                                                   direction, turn, start_gap) -> None:
-    params = SimParams(eps_barrier_m=eps_b, eps_contact_m=max(5 * eps_b, 0.5e-3),
-                       eps_capture_m=max(20 * eps_b, 2e-3), d_t=d_t,
-                       char_length_m=0.025 * d_ratio, k_t=1.0)
+def test_random_pushes_never_break_the_invariants(
+    scene: Scene, eps_b, d_t, d_ratio, force, direction, turn, start_gap
+) -> None:
+    params = SimParams(
+        eps_barrier_m=eps_b,
+        eps_contact_m=max(5 * eps_b, 0.5e-3),
+        eps_capture_m=max(20 * eps_b, 2e-3),
+        d_t=d_t,
+        char_length_m=0.025 * d_ratio,
+        k_t=1.0,
+    )
     u = np.array(direction, dtype=float)
     u = u / np.linalg.norm(u) if np.linalg.norm(u) > 1e-6 else np.array([0.0, 0.0, -1.0])
     start = at(0.2, 0.3, CUBE_HALF + start_gap * eps_b)
@@ -219,15 +237,80 @@ def test_faces_parallel_to_1e9_rad_at_1e9_m(scene: Scene) -> None:
 def test_many_redundant_contact_points(scene: Scene) -> None:
     # A hexagonal prism lying on a box: 100 coincident contact rows from repeated manifolds.
     params = SimParams(max_points_per_pair=100)
-    sim = Simulator(scene, "hex_prism", params,
-                    X_WO={"hex_prism": at(0.2, 0.3, CUBE_HALF + 2e-4)})
+    sim = Simulator(scene, "hex_prism", params, X_WO={"hex_prism": at(0.2, 0.3, CUBE_HALF + 2e-4)})
     sim.set_target(at(0.2, 0.3, 0.0))
     contact = sim.state.contacts[0]
     n = len(contact.points_W)
     reps = -(-100 // n)
-    sim.state.contacts = (dataclasses.replace(
-        contact, points_W=np.tile(contact.points_W, (reps, 1)),
-        normals_W=np.tile(contact.normals_W, (reps, 1)), gaps_m=np.tile(contact.gaps_m, reps)),)
+    sim.state.contacts = (
+        dataclasses.replace(
+            contact,
+            points_W=np.tile(contact.points_W, (reps, 1)),
+            normals_W=np.tile(contact.normals_W, (reps, 1)),
+            gaps_m=np.tile(contact.gaps_m, reps),
+        ),
+    )
     r = sim.step()
     assert r.lcp_ok and np.all(np.isfinite(r.X_WO))
     assert r.X_WO[2, 3] - CUBE_HALF >= P.eps_barrier_m / 2
+
+
+def test_manifold_edge_on_face_is_two_points_and_vertex_on_face_one() -> None:
+    cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * CUBE_HALF
+    table = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-0.04, 0)])
+    # Turned 45° about x: the bottom is the edge along x.
+    A = cube @ so3_exp(np.array([np.pi / 4, 0.0, 0.0])).T
+    A += np.array([0.0, 0.0, 1e-4 - A[:, 2].min()])
+    points, n, gaps = contact_manifold(
+        A, table, np.array([0, 0, 1e-4]), np.zeros(3), P.eps_contact_m
+    )
+    np.testing.assert_allclose(np.sort(points[:, 0]), [-CUBE_HALF, CUBE_HALF], atol=1e-12)
+    np.testing.assert_allclose(points[:, 1:], [[0, 5e-5]] * 2, atol=1e-12)
+    np.testing.assert_allclose(gaps, 1e-4, atol=1e-12)
+    # Then 35.26° about y as well: a single corner at the bottom.
+    A = (
+        cube
+        @ (
+            so3_exp(np.array([0.0, np.arctan(1 / np.sqrt(2)), 0.0]))
+            @ so3_exp(np.array([np.pi / 4, 0.0, 0.0]))
+        ).T
+    )
+    low = A[np.argmin(A[:, 2])]
+    A += np.array([0.0, 0.0, 1e-4 - low[2]])
+    low = A[np.argmin(A[:, 2])]
+    points, n, _ = contact_manifold(A, table, low, low * [1, 1, 0], P.eps_contact_m)
+    assert len(points) == 1
+    np.testing.assert_allclose(points[0], low - [0, 0, 5e-5], atol=1e-12)
+    np.testing.assert_allclose(n, [0, 0, -1], atol=1e-12)
+
+
+def test_manifold_crossing_edges_is_their_crossing_point() -> None:
+    cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * CUBE_HALF
+    below = cube @ so3_exp(np.array([np.pi / 4, 0.0, 0.0])).T  # top edge along x
+    below -= np.array([0.0, 0.0, below[:, 2].max()])
+    above = cube @ so3_exp(np.array([0.0, np.pi / 4, 0.0])).T  # bottom edge along y
+    above += np.array([0.0, 0.0, 1e-4 - above[:, 2].min()])
+    points, n, _ = contact_manifold(
+        above, below, np.array([0, 0, 1e-4]), np.zeros(3), P.eps_contact_m
+    )
+    np.testing.assert_allclose(points, [[0.0, 0.0, 5e-5]], atol=1e-12)
+    np.testing.assert_allclose(n, [0, 0, -1], atol=1e-12)
+
+
+def test_benchmark_command_runs_and_reports_the_issue_keys(tmp_path) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "operator_site", "bench", "sim", "--quick", "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    )
+    scenes = {r["scene"]: r for r in json.loads(result.stdout.strip().splitlines()[-1])}
+    for name in ("free", "slide", "corner", "around_corner"):
+        for key in ("step_ms_median", "step_ms_p99", "queries_per_step", "min_separation_m"):
+            assert key in scenes[name], (name, key)
+    assert scenes["corner"]["final_error_mm"] < 0.05
+    assert scenes["corner"]["final_error_deg"] < 0.05
+    assert scenes["around_corner"]["went_around"]
+    assert "far_objects_cost_ratio" in scenes["corner+1000_far"]
+    assert (tmp_path / "sim.csv").is_file()

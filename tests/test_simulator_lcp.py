@@ -10,8 +10,14 @@ import pytest
 from operator_site.simulator.lcp import solve_lcp
 
 
-def contact_problem(rng: np.random.Generator, n: int, *, coplanar: bool = False,
-                    duplicate: bool = False, near_parallel: bool = False):
+def contact_problem(
+    rng: np.random.Generator,
+    n: int,
+    *,
+    coplanar: bool = False,
+    duplicate: bool = False,
+    near_parallel: bool = False,
+):
     """A and b as the simulator builds them: points in a 5 cm box, unit normals, log-uniform
     damping constants, a random applied force and moment."""
     d_t = 10.0 ** rng.uniform(-6, 6)
@@ -26,8 +32,8 @@ def contact_problem(rng: np.random.Generator, n: int, *, coplanar: bool = False,
         N[:, 0] += rng.normal(size=n) * 1e-9
     N /= np.linalg.norm(N, axis=1, keepdims=True)
     if duplicate and n > 1:
-        P[n // 2:] = P[: n - n // 2]
-        N[n // 2:] = N[: n - n // 2]
+        P[n // 2 :] = P[: n - n // 2]
+        N[n // 2 :] = N[: n - n // 2]
     T = np.cross(P, N)
     A = d_t * N @ N.T + d_r * T @ T.T
     A = 0.5 * (A + A.T)
@@ -60,8 +66,9 @@ def test_matches_brute_force_on_random_small_problems(seed: int) -> None:
     for case in range(300):
         n = int(rng.integers(1, 7))
         kind = case % 4
-        A, b = contact_problem(rng, n, coplanar=kind == 1, duplicate=kind == 2,
-                               near_parallel=kind == 3)
+        A, b = contact_problem(
+            rng, n, coplanar=kind == 1, duplicate=kind == 2, near_parallel=kind == 3
+        )
         result = solve_lcp(A, b)
         assert result.ok, result.message
         assert np.all(np.isfinite(result.c))

@@ -134,8 +134,10 @@ def _segment_overlap(S: list[Pt], T: list[Pt]) -> list[Pt]:
         rx, ry = cx - ax, cy - ay
         t = (rx * d2y - ry * d2x) / denom
         u = (rx * d1y - ry * d1x) / denom
-        if -PLANAR_TOL_M / l1 <= t <= 1 + PLANAR_TOL_M / l1 and \
-                -PLANAR_TOL_M / l2 <= u <= 1 + PLANAR_TOL_M / l2:
+        if (
+            -PLANAR_TOL_M / l1 <= t <= 1 + PLANAR_TOL_M / l1
+            and -PLANAR_TOL_M / l2 <= u <= 1 + PLANAR_TOL_M / l2
+        ):
             t = min(max(t, 0.0), 1.0)
             return [(ax + t * d1x, ay + t * d1y)]
         return []
@@ -173,8 +175,10 @@ def reduce_polygon(P: np.ndarray, max_points: int) -> np.ndarray:
     while len(chosen) < max_points:
         order = sorted(chosen)
         edges = [(P[order[k]], P[order[(k + 1) % len(order)]]) for k in range(len(order))]
-        gains = [-1.0 if m in chosen else min(_point_segment_distance(P[m], a, b)
-                                              for a, b in edges) for m in range(len(P))]
+        gains = [
+            -1.0 if m in chosen else min(_point_segment_distance(P[m], a, b) for a, b in edges)
+            for m in range(len(P))
+        ]
         chosen.add(int(np.argmax(gains)))
     return P[sorted(chosen)]
 
@@ -213,11 +217,16 @@ def _snap(n: np.ndarray, face_normals: np.ndarray | None) -> np.ndarray:
     return face_normals[best] if cos[best] >= np.cos(NORMAL_SNAP_RAD) else n
 
 
-def contact_manifold(V_A: np.ndarray, V_B: np.ndarray, p_A: np.ndarray, p_B: np.ndarray,
-                     eps_contact_m: float, max_points: int = 8,
-                     normals_A: np.ndarray | None = None,
-                     normals_B: np.ndarray | None = None,
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def contact_manifold(
+    V_A: np.ndarray,
+    V_B: np.ndarray,
+    p_A: np.ndarray,
+    p_B: np.ndarray,
+    eps_contact_m: float,
+    max_points: int = 8,
+    normals_A: np.ndarray | None = None,
+    normals_B: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Contact points (k, 3), the unit normal (3,) from A towards B, and the gaps (k,) (m).
 
     ``V_A``, ``V_B``: the vertices (in W) of two convex parts that do not touch; ``p_A``, ``p_B``:

@@ -59,16 +59,28 @@ class SimParams:
         return self.k_t * self.char_length_m**2
 
     def __post_init__(self) -> None:
-        positive = ("dt_s", "eps_contact_m", "eps_barrier_m", "eps_capture_m", "golden_rel_tol",
-                    "max_speed_mps", "d_t", "char_length_m", "k_t", "barrier_gain",
-                    "tunnel_fraction")
+        positive = (
+            "dt_s",
+            "eps_contact_m",
+            "eps_barrier_m",
+            "eps_capture_m",
+            "golden_rel_tol",
+            "max_speed_mps",
+            "d_t",
+            "char_length_m",
+            "k_t",
+            "barrier_gain",
+            "tunnel_fraction",
+        )
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"SimParams.{name} must be a finite number > 0, got {value!r}")
         if not self.eps_barrier_m < self.eps_contact_m < self.eps_capture_m:
-            raise ValueError("SimParams needs eps_barrier_m < eps_contact_m < eps_capture_m, got "
-                             f"{self.eps_barrier_m}, {self.eps_contact_m}, {self.eps_capture_m}")
+            raise ValueError(
+                "SimParams needs eps_barrier_m < eps_contact_m < eps_capture_m, got "
+                f"{self.eps_barrier_m}, {self.eps_contact_m}, {self.eps_capture_m}"
+            )
         if not 0 < self.min_separation_fraction < 1:
             raise ValueError("min_separation_fraction must be in (0, 1)")
         if self.golden_rel_tol >= 1 or self.tunnel_fraction > 1:

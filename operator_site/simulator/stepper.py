@@ -112,8 +112,13 @@ class SimState:
 class Simulator:
     """First-order contact simulation of one workpiece among fixed obstacles."""
 
-    def __init__(self, scene: Scene, workpiece: str, params: SimParams | None = None,
-                 X_WO: dict[str, np.ndarray] | None = None) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        workpiece: str,
+        params: SimParams | None = None,
+        X_WO: dict[str, np.ndarray] | None = None,
+    ) -> None:
         self.params = params or SimParams()
         self.scene = scene
         poses = {o.name: o.X_WO for o in scene.objects} | (X_WO or {})
@@ -240,18 +245,28 @@ class Simulator:
             reach = p.eps_capture_m if name in self.state.held else p.eps_contact_m
             if pair.distance_m >= reach or pair.distance_m <= 0:
                 continue
-            points, n, gaps = contact_manifold(V_wp[pair.wp_part],
-                                         self.world.obstacle_vertices_W[pair.obstacle],
-                                         pair.p_wp, pair.p_obstacle, p.eps_contact_m,
-                                         p.max_points_per_pair, N_wp[pair.wp_part],
-                                         self.world.obstacle_normals_W[pair.obstacle])
+            points, n, gaps = contact_manifold(
+                V_wp[pair.wp_part],
+                self.world.obstacle_vertices_W[pair.obstacle],
+                pair.p_wp,
+                pair.p_obstacle,
+                p.eps_contact_m,
+                p.max_points_per_pair,
+                N_wp[pair.wp_part],
+                self.world.obstacle_normals_W[pair.obstacle],
+            )
             by_object.setdefault(name, []).append((points, -n, gaps, pair.distance_m))
         return tuple(
-            Contact(name, np.vstack([x[0] for x in items]),
-                    np.vstack([np.tile(x[1], (len(x[0]), 1)) for x in items]),
-                    np.concatenate([x[2] for x in items]), min(x[3] for x in items),
-                    name in self.state.held)
-            for name, items in by_object.items())
+            Contact(
+                name,
+                np.vstack([x[0] for x in items]),
+                np.vstack([np.tile(x[1], (len(x[0]), 1)) for x in items]),
+                np.concatenate([x[2] for x in items]),
+                min(x[3] for x in items),
+                name in self.state.held,
+            )
+            for name, items in by_object.items()
+        )
 
     def step(self) -> StepResult:
         """Advance one time step Δt and return what happened."""
@@ -286,21 +301,37 @@ class Simulator:
             st.resting = True
         else:
             near = self._near(X0, sweep)
-            s_best = self._line_search(X0, v, w, near, sweep, work_rate, gain) if len(near) \
-                else p.dt_s
+            s_best = (
+                self._line_search(X0, v, w, near, sweep, work_rate, gain) if len(near) else p.dt_s
+            )
             X1 = self._pose_at(X0, v, w, s_best)
             X1[:3, :3] = orthonormalize(X1[:3, :3])
             st.X_WO = X1
             st.contacts = self._contacts(X1, self._near(X1, 0.0))
         d_min = min((c.distance_m for c in st.contacts), default=math.inf)
-        result = StepResult(time_s=st.time_s, X_WO=X1.copy(), contacts=st.contacts,
-                            s_fraction=s_best / p.dt_s, queries=self.world.queries - queries0,
-                            min_distance_m=d_min, speed_limited=limited, lcp_ok=lcp_ok)
+        result = StepResult(
+            time_s=st.time_s,
+            X_WO=X1.copy(),
+            contacts=st.contacts,
+            s_fraction=s_best / p.dt_s,
+            queries=self.world.queries - queries0,
+            min_distance_m=d_min,
+            speed_limited=limited,
+            lcp_ok=lcp_ok,
+        )
         st.history.append(result)
         return result
 
-    def _line_search(self, X0: np.ndarray, v: np.ndarray, w: np.ndarray, near: np.ndarray,
-                     sweep_m: float, work_rate: float, gain: float) -> float:
+    def _line_search(
+        self,
+        X0: np.ndarray,
+        v: np.ndarray,
+        w: np.ndarray,
+        near: np.ndarray,
+        sweep_m: float,
+        work_rate: float,
+        gain: float,
+    ) -> float:
         """argmin over s ∈ [0, Δt] of U(s) = −work_rate·s + Σ U_i(d_i(s)) (§V-B)."""
         p = self.params
         cache: dict[float, float] = {}

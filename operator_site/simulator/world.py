@@ -47,8 +47,9 @@ class SimWorld:
         self.workpiece = wp.name
         self.wp_parts = wp.model.parts
         self.wp_vertices_O = np.vstack([p.vertices_O for p in self.wp_parts])
-        self._wp_objects = [fcl.CollisionObject(fcl_convex(p), fcl.Transform())
-                            for p in self.wp_parts]
+        self._wp_objects = [
+            fcl.CollisionObject(fcl_convex(p), fcl.Transform()) for p in self.wp_parts
+        ]
         self.obstacle_names: list[str] = []
         self.obstacle_object: list[str] = []
         self.obstacle_vertices_W: list[np.ndarray] = []
@@ -96,7 +97,14 @@ class SimWorld:
             for i in obstacles:
                 result = fcl.DistanceResult()
                 d = fcl.distance(wp, self._obstacles[i], self._request, result)
-                out.append(PairDistance(float(d), int(i), k, np.array(result.nearest_points[0]),
-                                        np.array(result.nearest_points[1])))
+                out.append(
+                    PairDistance(
+                        float(d),
+                        int(i),
+                        k,
+                        np.array(result.nearest_points[0]),
+                        np.array(result.nearest_points[1]),
+                    )
+                )
         self.queries += len(self._wp_objects) * len(obstacles)
         return out
