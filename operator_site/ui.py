@@ -16,14 +16,22 @@ import viser
 
 from models.robot import RobotModel, load_robot
 from models.scene import Scene
-from models.transforms import R_to_quat_wxyz
+from models.transforms import R_to_quat_wxyz, make_pose, quat_wxyz_to_R
 from operator_site.link import LinkStatus, WorkSiteLink
+from operator_site.task import TaskSession
 
 log = logging.getLogger("operator-site")
 
 UI_PERIOD_S = 0.05
 """The page is refreshed from the link at most this often (20 Hz)."""
 STATUS_PERIOD_S = 0.5
+NO_WORKPIECE = "(none)"
+CONTACT_RGB = (230, 40, 40)
+TASK_HELP = (
+    "Pick a block (click it, or choose it below), then drag the arrows and rings around it: "
+    "the block follows on a spring and bumps, slides and settles against what it meets. "
+    "**Capture mode**: click the frame or the table to keep the block touching it."
+)
 INITIAL_EYE_W = (1.05, -0.85, 0.75)
 INITIAL_LOOK_AT_W = (0.40, 0.0, 0.05)
 
@@ -88,6 +96,9 @@ class OperatorPage:
         self.server.initial_camera.position = INITIAL_EYE_W
         self.server.initial_camera.look_at = INITIAL_LOOK_AT_W
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        self.session = TaskSession(scene)
+        self._lock = threading.Lock()
+        self.message = ""
         self._build_gui()
         self._build_scene()
         self.frames_shown = 0
@@ -106,20 +117,37 @@ class OperatorPage:
             format="jpeg",
             jpeg_quality=85,
         )
+        with gui.add_folder("Task"):
+            gui.add_markdown(TASK_HELP)
+            names = [o.name for o in self.scene.movable]
+            self.workpiece_dropdown = gui.add_dropdown("workpiece", (NO_WORKPIECE, *names))
+            self.capture_mode = gui.add_checkbox("capture mode", False)
+            self.reset_button = gui.add_button("put the block back")
+            self.task_md = gui.add_markdown("")
+        self.workpiece_dropdown.on_update(lambda _: self.on_select(self.workpiece_dropdown.value))
+        self.reset_button.on_click(lambda _: self.on_reset())
 
     def _build_scene(self) -> None:
         scene = self.server.scene
+        self.object_frames = {}
         for obj in self.scene.objects:
             frame = scene.add_frame(f"/world/{obj.name}", show_axes=False)
             _set_pose(frame, obj.X_WO)
+            self.object_frames[obj.name] = frame
             for k, part in enumerate(obj.model.parts):
-                scene.add_mesh_simple(
+                mesh = scene.add_mesh_simple(
                     f"/world/{obj.name}/part_{k}",
                     part.vertices_O,
                     part.triangles(),
                     color=_rgb255(obj.model.rgba),
                     flat_shading=True,
                 )
+                mesh.on_click(lambda _, name=obj.name: self.on_click_object(name))
+        self.dragger = scene.add_transform_controls("/dragger", scale=0.12, visible=False)
+        self.dragger.on_update(lambda _: self.on_drag())
+        self.contact_points = scene.add_point_cloud(
+            "/contacts", np.zeros((0, 3)), CONTACT_RGB, point_size=0.006, visible=False
+        )
         cam = self.scene.camera
         fov_y = 2 * np.arctan2(cam.height / 2, cam.K[1, 1])
         frustum = scene.add_camera_frustum(
@@ -153,6 +181,83 @@ class OperatorPage:
             for name, X_WL in poses.items():
                 _set_pose(self.link_frames[name], X_WL)
 
+    # ------------------------------------------------------------------- operator actions
+
+    def on_select(self, name: str) -> None:
+        """Make ``name`` the workpiece (or none) and put the dragger on it."""
+        with self._lock:
+            if name == self.session.workpiece:
+                return  # the dropdown echoing our own selection back
+            if name == NO_WORKPIECE:
+                self.dragger.visible = False
+                self.message = ""
+                return
+            try:
+                self.session.select(name)
+            except ValueError as e:
+                self.message = str(e)
+                return
+            X = self.session.X_WO[name]
+            _set_pose(self.dragger, X)
+            self.dragger.visible = True
+            self.message = f"dragging **{name}**"
+        if self.workpiece_dropdown.value != name:
+            self.workpiece_dropdown.value = name
+
+    def on_click_object(self, name: str) -> None:
+        """A click on an object: toggles capture in capture mode, else picks a movable block."""
+        if self.capture_mode.value and self.session.sim is not None:
+            with self._lock:
+                try:
+                    now = self.session.toggle_capture(name)
+                    self.message = f"{name}: {'captured' if now else 'released'}"
+                except ValueError as e:
+                    self.message = str(e)
+            return
+        if not self.scene.object(name).fixed:
+            self.on_select(name)
+
+    def on_drag(self) -> None:
+        """The dragger moved: it is the spring's new target."""
+        X_WD = make_pose(
+            quat_wxyz_to_R(np.asarray(self.dragger.wxyz)), np.asarray(self.dragger.position)
+        )
+        with self._lock:
+            if self.session.sim is not None:
+                self.session.set_target(X_WD)
+
+    def on_reset(self) -> None:
+        """Put the workpiece back where it was picked up, dragger too."""
+        with self._lock:
+            self.session.reset()
+            if self.session.workpiece is not None:
+                X = self.session.X_WO[self.session.workpiece]
+                _set_pose(self.dragger, X)
+                _set_pose(self.object_frames[self.session.workpiece], X)
+
+    def step_task(self) -> None:
+        """One simulator step of the workpiece, shown on the page."""
+        with self._lock:
+            result = self.session.step()
+            captured = sorted(self.session.captured)
+        if result is None:
+            return
+        _set_pose(self.object_frames[self.session.workpiece], result.X_WO)
+        points = [c.points_W for c in result.contacts]
+        self.contact_points.points = np.vstack(points) if points else np.zeros((0, 3))
+        self.contact_points.visible = bool(points)
+        touching = ", ".join(sorted(c.object for c in result.contacts)) or "nothing"
+        self.task_md.content = "  \n".join(
+            filter(
+                None,
+                [
+                    self.message,
+                    f"touching: {touching}",
+                    f"captured: {', '.join(captured)}" if captured else "",
+                ],
+            )
+        )
+
     def update(self) -> None:
         """Poll the link once and show what changed."""
         new_state, new_frame = self.link.poll()
@@ -170,6 +275,7 @@ class OperatorPage:
         while not stop.is_set():
             t = time.monotonic()
             self.update()
+            self.step_task()
             if t >= next_status:
                 self.status_md.content = status_markdown(self.link.site_id, self.link.status)
                 next_status = t + STATUS_PERIOD_S

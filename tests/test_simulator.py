@@ -314,3 +314,13 @@ def test_benchmark_command_runs_and_reports_the_issue_keys(tmp_path) -> None:
     assert scenes["around_corner"]["went_around"]
     assert "far_objects_cost_ratio" in scenes["corner+1000_far"]
     assert (tmp_path / "sim.csv").is_file()
+
+
+def test_a_step_that_would_collide_stops_at_the_barrier_not_where_it_started(scene) -> None:
+    # 1.5 mm above the table, pulled down hard: the full step would go through the table, so
+    # the search must find the barrier's minimum near ε_b (both probes past the wall: go left).
+    sim = Simulator(scene, "cube", X_WO={"cube": at(0.2, 0.3, CUBE_HALF + 1.5e-3)})
+    sim.set_target(at(0.2, 0.3, CUBE_HALF - 0.05))
+    r = sim.step()
+    assert 0 < r.s_fraction < 1
+    assert P.eps_barrier_m / 2 <= r.X_WO[2, 3] - CUBE_HALF < P.eps_contact_m

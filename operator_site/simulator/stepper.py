@@ -25,6 +25,8 @@ from operator_site.simulator.params import SimParams
 from operator_site.simulator.world import PairDistance, SimWorld
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+MAX_LIFT_DOUBLINGS = 12
+"""A workpiece starting too close to something is lifted by ε_b·2^k, k ≤ this (≈ 0.4 m)."""
 REST_DISPLACEMENT_M = 1e-12
 """A step that would move no point of the workpiece further than this is no step: the pose and
 contacts stay as they are and no query is made (a settled block costs next to nothing)."""
@@ -126,9 +128,30 @@ class Simulator:
         model = scene.object(workpiece).model
         self.c_O = model.com_O.copy()
         self.r_max_m = float(np.max(np.linalg.norm(self.world.wp_vertices_O - self.c_O, axis=1)))
-        X0 = np.array(poses[workpiece], dtype=np.float64)
+        X0 = self._lift_clear(np.array(poses[workpiece], dtype=np.float64))
         self.state = SimState(X_WO=X0, X_WD=X0.copy())
         self.state.contacts = self._contacts(X0, self._near(X0, 0.0))
+
+    def _lift_clear(self, X_WO: np.ndarray) -> np.ndarray:
+        """``X_WO`` raised straight up until the workpiece is ε_b clear of everything.
+
+        A model from a scene file or from vision has blocks exactly on the table (distance 0),
+        where the barrier would never let them move; the lift is the least power-of-two
+        multiple of ε_b that clears them (it settles back to ε_b on the first steps).
+        """
+        eps_b = self.params.eps_barrier_m
+        near = self._near(X_WO, 0.0)
+        X = X_WO.copy()
+        for k in range(MAX_LIFT_DOUBLINGS + 1):
+            pairs = self.world.distances(X, near) if len(near) else []
+            if min((pair.distance_m for pair in pairs), default=math.inf) >= eps_b:
+                return X
+            X = X_WO.copy()
+            X[2, 3] += eps_b * 2**k
+        raise ValueError(
+            f"workpiece {self.world.workpiece!r} is stuck inside another object: "
+            f"lifting it {eps_b * 2**MAX_LIFT_DOUBLINGS:.3f} m did not free it"
+        )
 
     # ------------------------------------------------------------------------------ inputs
 
@@ -357,7 +380,7 @@ class Simulator:
         a, b = hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo)
         tol = p.golden_rel_tol * p.dt_s
         while hi - lo > tol:
-            if U(a) < U(b):
+            if U(a) <= U(b):  # ties (both inf: past a wall) shrink towards s = 0
                 hi, b = b, a
                 a = hi - GOLDEN * (hi - lo)
             else:

@@ -1,0 +1,78 @@
+"""The operator's task in progress: the work-site model, the chosen workpiece and its simulator.
+
+UI-independent, so every operator action (select, drag, capture, reset) is testable without a
+browser; the page calls these methods from its callbacks, under its lock.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.scene import Scene
+from operator_site.simulator import SimParams, Simulator, StepResult
+
+
+class TaskSession:
+    """The model's object poses, and at most one workpiece being dragged in the simulator."""
+
+    def __init__(self, scene: Scene, params: SimParams | None = None) -> None:
+        self.scene = scene
+        self.params = params or SimParams()
+        self.X_WO: dict[str, np.ndarray] = {o.name: o.X_WO.copy() for o in scene.objects}
+        self.sim: Simulator | None = None
+        self._start_X_WO: np.ndarray | None = None
+
+    @property
+    def workpiece(self) -> str | None:
+        return self.sim.world.workpiece if self.sim else None
+
+    @property
+    def captured(self) -> set[str]:
+        return set(self.sim.state.capturable) if self.sim else set()
+
+    def select(self, name: str) -> None:
+        """Make movable object ``name`` the workpiece (its last pose stays in the model)."""
+        obj = self.scene.object(name)
+        if obj.fixed:
+            raise ValueError(f"{name!r} is part of the fixed environment and cannot be moved")
+        if self.sim is not None:
+            self.X_WO[self.sim.world.workpiece] = self.sim.X_WO
+        self.sim = Simulator(self.scene, name, self.params, X_WO=self.X_WO)
+        self._start_X_WO = self.X_WO[name].copy()
+
+    def set_target(self, X_WD: np.ndarray) -> None:
+        """Where the dragger is (the spring's far end), for the selected workpiece."""
+        if self.sim is None:
+            raise ValueError("select a workpiece first")
+        self.sim.set_target(X_WD)
+
+    def toggle_capture(self, name: str) -> bool:
+        """Capture ``name`` (hold contact once touched), or release it; True if now captured."""
+        if self.sim is None:
+            raise ValueError("select a workpiece first")
+        if name == self.sim.world.workpiece:
+            raise ValueError("the workpiece cannot capture itself")
+        if name in self.sim.state.capturable:
+            self.sim.release(name)
+            return False
+        self.sim.capture(name)
+        return True
+
+    def step(self) -> StepResult | None:
+        """One simulator step for the workpiece, or None when nothing is selected."""
+        if self.sim is None:
+            return None
+        result = self.sim.step()
+        self.X_WO[self.sim.world.workpiece] = result.X_WO
+        return result
+
+    def reset(self) -> None:
+        """Put the workpiece back where it was when selected and forget the path."""
+        if self.sim is None or self._start_X_WO is None:
+            return
+        name = self.sim.world.workpiece
+        self.X_WO[name] = self._start_X_WO.copy()
+        captured = set(self.sim.state.capturable)
+        self.sim = Simulator(self.scene, name, self.params, X_WO=self.X_WO)
+        for other in captured:
+            self.sim.capture(other)
