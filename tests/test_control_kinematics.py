@@ -1,0 +1,176 @@
+"""Closed-form IK of the Puma-type arm against its forward kinematics (itself checked against
+pybullet in test_robot_model.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from models.robot import HOME_Q, PUMA_URDF, load_robot
+from models.scene import load_scene
+from models.transforms import make_pose, rpy_to_R
+from work_site.control.kinematics import (
+    arm_geometry,
+    geometric_jacobian_W,
+    ik_flange,
+    ik_nearest,
+    ik_tcp,
+)
+
+ROBOT = load_robot(PUMA_URDF)
+GEOMETRY = arm_geometry(ROBOT)
+POSE_TOL = 1e-9  # m and rotation-matrix entries
+
+
+def angle_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.abs((a - b + np.pi) % (2 * np.pi) - np.pi)
+
+
+joint_vectors = st.tuples(
+    *[st.floats(float(lo), float(hi)) for lo, hi in zip(ROBOT.q_lower, ROBOT.q_upper, strict=True)]
+).map(np.array)
+
+
+def test_geometry_is_read_from_the_model() -> None:
+    assert GEOMETRY.shoulder_height_m == pytest.approx(0.33)
+    assert GEOMETRY.upper_arm_m == pytest.approx(0.305)
+    assert GEOMETRY.forearm_m == pytest.approx(0.33)
+    assert GEOMETRY.wrist_to_flange_m == pytest.approx(0.076)
+    np.testing.assert_allclose(GEOMETRY.X_FG[:3, 3], [0, 0, 0.115], atol=1e-12)
+
+
+@settings(max_examples=500, deadline=None)
+@given(q=joint_vectors)
+def test_every_solution_reproduces_the_pose_and_q_is_among_them(q: np.ndarray) -> None:
+    X = ROBOT.flange_pose_W(q)
+    solutions, singular = ik_flange(X, ROBOT, q)
+    assert solutions
+    # At a wrist (shoulder) singularity q4 (q1) is kept, which costs at most π·1e-6 rad of
+    # rotation (1e-6 m of position): the price of not spinning a joint for nothing.
+    tol = 1e-5 if {"wrist", "shoulder"} & set(singular.split("+")) else POSE_TOL
+    for s in solutions:
+        np.testing.assert_allclose(ROBOT.flange_pose_W(s), X, atol=tol)
+    if not singular:
+        assert min(angle_diff(s, q).max() for s in solutions) < 1e-7
+
+
+@settings(max_examples=500, deadline=None)
+@given(q=joint_vectors)
+def test_nearest_solution_to_q_is_q(q: np.ndarray) -> None:
+    result = ik_nearest(ROBOT.flange_pose_W(q), q, ROBOT)
+    assert result.ok, result.reason
+    tol = 1e-5 if {"wrist", "shoulder"} & set(result.singular.split("+")) else POSE_TOL
+    np.testing.assert_allclose(ROBOT.flange_pose_W(result.q), ROBOT.flange_pose_W(q), atol=tol)
+    if not result.singular:
+        np.testing.assert_allclose(result.q, q, atol=1e-7)
+
+
+def test_home_pose_gives_home() -> None:
+    result = ik_nearest(ROBOT.flange_pose_W(np.array(HOME_Q)), np.array(HOME_Q), ROBOT)
+    assert result.ok and not result.singular
+    np.testing.assert_allclose(result.q, HOME_Q, atol=1e-12)
+
+
+@pytest.mark.parametrize("q5", [0.0, 1e-7, -1e-7])
+def test_singular_wrist_keeps_q4_and_still_reaches(q5: float) -> None:
+    q = np.array([0.3, 0.4, 1.2, 0.7, q5, -0.5])
+    q_current = q + np.array([0.0, 0.0, 0.0, 0.2, 0.0, 0.0])
+    result = ik_nearest(ROBOT.flange_pose_W(q), q_current, ROBOT)
+    assert result.ok and "wrist" in result.singular
+    assert result.q[3] == pytest.approx(q_current[3])
+    np.testing.assert_allclose(ROBOT.flange_pose_W(result.q), ROBOT.flange_pose_W(q), atol=1e-6)
+
+
+def test_shoulder_singularity_keeps_q1() -> None:
+    # Wrist centre on the joint-1 axis: a sin q2 + b sin(q2 + q3) = 0.
+    a, b = GEOMETRY.upper_arm_m, GEOMETRY.forearm_m
+    q2 = 0.5
+    q3 = -q2 - math.asin(a / b * math.sin(q2))
+    q = np.array([0.0, q2, q3, 0.3, 0.5, 0.0])
+    X = ROBOT.flange_pose_W(q)
+    q_current = q.copy()
+    q_current[0] = 1.1
+    result = ik_nearest(X, q_current, ROBOT)
+    assert result.ok and "shoulder" in result.singular
+    assert result.q[0] == pytest.approx(1.1)
+    np.testing.assert_allclose(ROBOT.flange_pose_W(result.q), X, atol=1e-6)
+
+
+def test_near_the_workspace_boundary() -> None:
+    q = np.array([0.2, 0.8, 1e-5, 0.1, 0.6, 0.2])  # elbow all but straight
+    result = ik_nearest(ROBOT.flange_pose_W(q), q, ROBOT)
+    assert result.ok
+    np.testing.assert_allclose(ROBOT.flange_pose_W(result.q), ROBOT.flange_pose_W(q), atol=1e-9)
+
+
+def test_unreachable_and_out_of_limits_say_why() -> None:
+    far = make_pose(rpy_to_R(np.array([math.pi, 0.0, 0.0])), (1.2, 0.0, 0.2))
+    result = ik_nearest(far, np.array(HOME_Q), ROBOT)
+    assert not result.ok and result.q is None
+    assert result.reason.startswith("unreachable: wrist centre")
+    assert "reach 0.635 m" in result.reason
+    # Gripper down with its x along +x of W needs q6 = ±π, just past joint 6's ±3.14 rad.
+    down = make_pose(rpy_to_R(np.array([math.pi, 0.0, 0.0])), (0.45, 0.0, 0.03))
+    result = ik_tcp(down, np.array(HOME_Q), ROBOT)
+    assert not result.ok and result.q is None
+    assert result.reason.startswith("outside joint limits (joint_6")
+
+
+def ik_symmetric_grasp(X_WG: np.ndarray):
+    """A parallel gripper grasps the same turned half a turn about its axis; joint 6 reaches
+    ±3.14 rad, so one of the two is always inside its limits."""
+    flipped = X_WG @ make_pose(rpy_to_R(np.array([0.0, 0.0, math.pi])))
+    results = [ik_tcp(X, np.array(HOME_Q), ROBOT) for X in (X_WG, flipped)]
+    return next((r for r in results if r.ok), results[0]), results
+
+
+def test_gripper_down_over_the_frame_is_reachable_and_regular() -> None:
+    for z in np.linspace(0.03, 0.3, 10):
+        for yaw in np.linspace(-math.pi, math.pi, 9):
+            X_WG = make_pose(rpy_to_R(np.array([math.pi, 0.0, yaw])), (0.45, 0.0, z))
+            result, both = ik_symmetric_grasp(X_WG)
+            assert result.ok, (z, yaw, [r.reason for r in both])
+            assert result.singular == ""
+            X = ROBOT.tcp_pose_W(result.q)
+            np.testing.assert_allclose(X[:3, 3], X_WG[:3, 3], atol=1e-9)
+            np.testing.assert_allclose(X[:3, 2], X_WG[:3, 2], atol=1e-9)
+
+
+def test_every_block_can_be_grasped_from_above_where_the_scene_puts_it() -> None:
+    for obj in load_scene().movable:
+        p = obj.X_WO[:3, 3]
+        X_WG = make_pose(rpy_to_R(np.array([math.pi, 0.0, 0.0])), p)
+        result, both = ik_symmetric_grasp(X_WG)
+        assert result.ok and not result.singular, (obj.name, [r.reason for r in both])
+
+
+def test_jacobian_matches_finite_differences() -> None:
+    rng = np.random.default_rng(3)
+    h = 1e-6
+    for _ in range(20):
+        q = rng.uniform(ROBOT.q_lower, ROBOT.q_upper) * 0.8
+        J = geometric_jacobian_W(q, ROBOT)
+        for i in range(6):
+            dq = np.zeros(6)
+            dq[i] = h
+            Xp, Xm = ROBOT.flange_pose_W(q + dq), ROBOT.flange_pose_W(q - dq)
+            v = (Xp[:3, 3] - Xm[:3, 3]) / (2 * h)
+            dR = (Xp[:3, :3] - Xm[:3, :3]) / (2 * h) @ ROBOT.flange_pose_W(q)[:3, :3].T
+            w = np.array([dR[2, 1], dR[0, 2], dR[1, 0]])
+            np.testing.assert_allclose(J[:3, i], v, atol=1e-6)
+            np.testing.assert_allclose(J[3:, i], w, atol=1e-6)
+
+
+def test_a_model_of_another_shape_is_refused() -> None:
+    import dataclasses
+
+    joint = ROBOT.joint("joint_2")
+    bent = dataclasses.replace(joint, axis=np.array([1.0, 0.0, 0.0]))
+    joints = tuple(bent if j.name == "joint_2" else j for j in ROBOT.joints)
+    other = dataclasses.replace(ROBOT, joints=joints, _joint_by_name={j.name: j for j in joints})
+    with pytest.raises(ValueError, match="joint_2 axis"):
+        arm_geometry(other)
