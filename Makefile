@@ -48,6 +48,7 @@ lint: $(STAMP)
 # Every benchmark; figures land in docs/bench/ (CSV, PNG) and docs/benchmarks.md shows them.
 bench: $(BENCH_STAMP)
 	$(VENV)/bin/operator-site bench sim --out docs/bench
+	$(VENV)/bin/work-site bench control --out docs/bench
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

@@ -14,10 +14,10 @@ from hypothesis import strategies as st
 
 from models.geometry import make_convex_part, mass_properties
 from models.scene import ObjectModel, Scene, SceneObject, load_scene
-from models.transforms import make_pose, rpy_to_R
+from models.transforms import make_pose, rpy_to_R, so3_exp, so3_log
 from operator_site.simulator.contacts import contact_manifold
 from operator_site.simulator.params import SimParams
-from operator_site.simulator.stepper import Simulator, so3_exp, so3_log
+from operator_site.simulator.stepper import Simulator
 
 P = SimParams()
 CUBE_HALF = 0.025

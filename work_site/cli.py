@@ -31,6 +31,20 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run the work-site server until Ctrl-C or SIGTERM.",
     )
     add_serve_arguments(serve)
+    bench = sub.add_parser(
+        "bench",
+        help="run a benchmark and print its JSON summary",
+        description="Prints a JSON summary as its last line and writes CSV files into --out.",
+    )
+    bench.add_argument(
+        "name", choices=["control"], help="control: the arm's execution of moves (issue 5)"
+    )
+    bench.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/bench"),
+        help="directory for CSV files (default: %(default)s)",
+    )
     return parser
 
 
@@ -135,6 +149,13 @@ def main(argv: list[str]) -> int:
     )
     if args.command == "serve":
         return serve(args)
+    if args.command == "bench":
+        import json
+
+        from work_site.control import benchmark
+
+        print(json.dumps(benchmark.main(args.out)))
+        return 0
     parser.print_help()
     return 2
 

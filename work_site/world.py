@@ -32,6 +32,9 @@ FT_SENSOR_JOINT = "ft_sensor_joint"
 FLANGE_LINK = "flange"
 ARM_MAX_FORCE_N = 300.0
 FINGER_MAX_FORCE_N = 40.0
+SERVO_POSITION_GAIN = 1.0
+"""pybullet's joint servo gain (its default is 0.1). Measured on a 10 cm TCP line at 0.1 m/s:
+tracking error 0.48 mm at 0.1, 0.31 mm at 0.3, 0.10 mm at 1.0."""
 PYBULLET_CONVEX_MARGIN_M = 1e-3
 """pybullet's collision margin around convex meshes (measured: blocks rest 1 mm high without
 compensation)."""
@@ -171,6 +174,7 @@ class World:
         for j, q in zip(self.arm_joints, placement.q_home_rad, strict=True):
             p.resetJointState(robot, j, float(q), physicsClientId=self.cid)
         self.q_target = np.array(placement.q_home_rad, dtype=np.float64)
+        self.q_dot_target = np.zeros(6)
         self.finger_target_m = 0.02
         for j in self.finger_joints:
             p.resetJointState(robot, j, self.finger_target_m, physicsClientId=self.cid)
@@ -201,6 +205,8 @@ class World:
             self.arm_joints,
             p.POSITION_CONTROL,
             targetPositions=self.q_target.tolist(),
+            targetVelocities=self.q_dot_target.tolist(),
+            positionGains=[SERVO_POSITION_GAIN] * 6,
             forces=[ARM_MAX_FORCE_N] * 6,
             physicsClientId=self.cid,
         )

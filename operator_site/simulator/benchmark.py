@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from models.scene import Scene, SceneObject, load_scene
-from models.transforms import make_pose, rpy_to_R
+from models.transforms import make_pose, rpy_to_R, so3_log
 from operator_site.simulator.params import SimParams
-from operator_site.simulator.stepper import Simulator, so3_log
+from operator_site.simulator.stepper import Simulator
 
 CUBE_HALF_M = 0.025
 CORNER_W = np.array([0.35, -0.10])  # the frame's inside corner at its smallest x and y
@@ -173,7 +173,7 @@ def around_corner(scene: Scene, params: SimParams) -> dict:
 
 def rotation_drift(steps: int = 1_000_000) -> dict:
     """The pose update's rotation, applied ``steps`` times: how far RᵀR drifts from I."""
-    from operator_site.simulator.stepper import orthonormalize, so3_exp
+    from models.transforms import orthonormalize, so3_exp
 
     rng = np.random.default_rng(0)
     turns = [so3_exp(w) for w in rng.normal(scale=0.02, size=(97, 3))]

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from models.scene import Scene
+from models.transforms import orthonormalize, so3_exp, so3_log
 from operator_site.simulator.barrier import barrier, capture_barrier
 from operator_site.simulator.contacts import contact_manifold
 from operator_site.simulator.lcp import solve_lcp
@@ -30,36 +31,6 @@ MAX_LIFT_DOUBLINGS = 12
 REST_DISPLACEMENT_M = 1e-12
 """A step that would move no point of the workpiece further than this is no step: the pose and
 contacts stay as they are and no query is made (a settled block costs next to nothing)."""
-
-
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector ``w`` (rad), by Rodrigues' formula."""
-    theta = float(np.linalg.norm(w))
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if theta < 1e-8:  # second-order series: exact to rounding at this size
-        return np.eye(3) + K + 0.5 * K @ K
-    return np.eye(3) + (math.sin(theta) / theta) * K + ((1 - math.cos(theta)) / theta**2) * K @ K
-
-
-def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (rad) of rotation matrix ``R``, robust near 0 and π."""
-    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    theta = math.acos(cos)
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if theta < 1e-6:
-        return 0.5 * v
-    if theta > math.pi - 1e-6:
-        # Near π: the axis is the column of R + I with the largest norm.
-        M = R + np.eye(3)
-        axis = M[:, np.argmax(np.linalg.norm(M, axis=0))]
-        axis /= np.linalg.norm(axis)
-        return theta * axis
-    return theta / (2.0 * math.sin(theta)) * v
-
-
-def orthonormalize(R: np.ndarray) -> np.ndarray:
-    """One Newton step towards the nearest rotation: keeps ``RᵀR = I`` to rounding forever."""
-    return R @ (1.5 * np.eye(3) - 0.5 * R.T @ R)
 
 
 @dataclass(frozen=True, eq=False)
