@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 import urllib.request
 
 import numpy as np
 import pytest
 import zenoh
 
+from models.robot import PUMA_URDF, load_robot
 from models.scene import load_scene
+from models.transforms import make_pose, rpy_to_R
 from operator_site.link import WorkSiteLink
 from operator_site.ui import OperatorPage
 from protocol import MotionCommand, MotionProgram, key, make_config
@@ -18,6 +21,7 @@ from tests.conftest import free_port, wait_until
 
 pytestmark = pytest.mark.integration
 
+ROBOT = load_robot(PUMA_URDF)
 STARTUP_TIMEOUT_S = 20.0  # the bound for ≥ 50 states and ≥ 1 frame
 LIVELINESS_TIMEOUT_S = 5.0
 
@@ -103,7 +107,8 @@ def test_bad_payloads_are_refused_and_the_server_keeps_running(work_site, link_t
     reports = link.status.reports
     assert all(r.status == "refused" for r in reports)
     assert sum(r.program_id == "invalid" for r in reports) == len(garbage)
-    assert any(r.program_id == "p1" and "does not execute" in r.message for r in reports)
+    # Well-formed but unsafe: the gripper would go to the robot's base.
+    assert any(r.program_id == "p1" and "outside the workspace" in r.message for r in reports)
     # Still alive and publishing after all that.
     assert ws.proc.poll() is None
     before = link.robot_state.seq
@@ -163,3 +168,79 @@ def test_page_stays_up_while_the_work_site_is_absent_and_comes_back(work_site, l
         assert wait_until(lambda: (page.update(), not link.status.work_site_alive)[1], 5.0)
     finally:
         page.close()
+
+
+DOWN = rpy_to_R(np.array([np.pi, 0.0, np.pi]))
+
+
+def move(x: float, y: float, z: float, speed: float = 0.1) -> MotionCommand:
+    return MotionCommand(
+        kind="move",
+        X_WP=make_pose(DOWN, (x, y, z)),
+        speed_mps=speed,
+        force_limit_n=10.0,
+        contacts=(),
+    )
+
+
+def reports_of(link: WorkSiteLink, program_id: str) -> list:
+    return [r for r in link.status.reports if r.program_id == program_id]
+
+
+def test_a_program_runs_reports_in_order_and_a_stop_halts_it(work_site, link_to) -> None:
+    ws = work_site("--no-camera")
+    link = link_to(ws)
+    assert wait_until(
+        lambda: (link.poll(), link.status.label == "connected")[1], STARTUP_TIMEOUT_S
+    ), ws.log()
+    program = MotionProgram(
+        program_id="two_moves",
+        X_GP=np.eye(4),
+        commands=(move(0.40, -0.1, 0.15), move(0.45, -0.1, 0.12)),
+    )
+    link.send_program(program)
+    assert wait_until(
+        lambda: (
+            link.poll(),
+            any(
+                r.status == "done" and r.command_index == -1 for r in reports_of(link, "two_moves")
+            ),
+        )[1],
+        20.0,
+    ), (link.status.reports, ws.log())
+    statuses = [(r.command_index, r.status) for r in reports_of(link, "two_moves")]
+    assert statuses == [
+        (-1, "accepted"),
+        (0, "started"),
+        (0, "done"),
+        (1, "started"),
+        (1, "done"),
+        (-1, "done"),
+    ]
+    X_WF = link.robot_state.X_WF
+    X_WG = ROBOT.tcp_pose_W(link.robot_state.q)
+    assert np.linalg.norm(X_WG[:3, 3] - [0.45, -0.1, 0.12]) < 1e-3, X_WF
+    # The same id again is refused (a replay), without motion.
+    link.send_program(program)
+    assert wait_until(
+        lambda: (link.poll(), any(r.status == "refused" for r in reports_of(link, "two_moves")))[1],
+        10.0,
+    )
+    # A slow long move, stopped on the way: the arm holds short of the goal.
+    slow = MotionProgram(
+        program_id="slow", X_GP=np.eye(4), commands=(move(0.30, 0.1, 0.25, speed=0.02),)
+    )
+    link.send_program(slow)
+    assert wait_until(
+        lambda: (link.poll(), any(r.status == "started" for r in reports_of(link, "slow")))[1], 10.0
+    )
+    link.send_stop("operator pressed stop")
+    assert wait_until(
+        lambda: (link.poll(), any(r.status == "stopped" for r in reports_of(link, "slow")))[1], 5.0
+    ), ws.log()
+    q_stop = link.robot_state.q.copy()
+    assert wait_until(lambda: (link.poll(), link.robot_state.seq > 0)[1], 1.0)
+    time.sleep(0.5)
+    link.poll()
+    np.testing.assert_allclose(link.robot_state.q, q_stop, atol=2e-3)  # held, not moving on
+    assert np.linalg.norm(ROBOT.tcp_pose_W(link.robot_state.q)[:3, 3] - [0.30, 0.1, 0.25]) > 0.02

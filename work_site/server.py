@@ -12,9 +12,9 @@ import threading
 import time
 from dataclasses import dataclass
 
-import numpy as np
 import zenoh
 
+from models.robot import load_robot
 from models.scene import Scene
 from protocol import (
     DEFAULT_SITE_ID,
@@ -31,13 +31,15 @@ from protocol import (
     key,
 )
 from work_site.camera import CameraProcess, RenderRequest
+from work_site.control.controller import CONTROL_PERIOD_S, TaskController
+from work_site.control.executor import Execution, check_program
 from work_site.world import World
 
 log = logging.getLogger("work-site")
 
-MAX_CATCH_UP_STEPS = 50
-"""Physics steps run back to back at most before the loop yields; beyond that it falls behind
-real time (and says so) rather than starving the publishers."""
+MAX_CATCH_UP_TICKS = 5
+"""Control periods (10 physics steps each) run back to back at most before the loop yields;
+beyond that it falls behind real time (and counts it) rather than starving the publishers."""
 INBOX_CAPACITY = 64
 
 
@@ -55,8 +57,10 @@ class ServerOptions:
     def __post_init__(self) -> None:
         if not 100.0 <= self.physics_rate_hz <= 10000.0:
             raise ValueError(f"physics_rate_hz must be in [100, 10000], got {self.physics_rate_hz}")
-        if not 0 < self.state_rate_hz <= self.physics_rate_hz:
-            raise ValueError("state_rate_hz must be in (0, physics_rate_hz]")
+        if not 0 < self.state_rate_hz <= 1.0 / CONTROL_PERIOD_S:
+            raise ValueError(
+                f"state_rate_hz must be in (0, {1.0 / CONTROL_PERIOD_S:g}] (the control rate)"
+            )
         if not 0 < self.heartbeat_rate_hz <= 100:
             raise ValueError("heartbeat_rate_hz must be in (0, 100]")
         if self.camera_supersample < 1:
@@ -72,7 +76,9 @@ class WorkSiteServer:
         self.scene = scene
         self.options = options or ServerOptions()
         self._zenoh_config = zenoh_config
-        self.stats = {"states": 0, "frames": 0, "refused": 0, "late_steps": 0}
+        self.stats = {"states": 0, "frames": 0, "refused": 0, "late_ticks": 0}
+        self._execution: Execution | None = None
+        self._seen_programs: set[str] = set()
 
     def run(self, stop: threading.Event, ready: threading.Event | None = None) -> None:
         """Serve until ``stop`` is set; ``ready`` is set once publishing has started."""
@@ -115,18 +121,20 @@ class WorkSiteServer:
         inbox_stop = session.declare_subscriber(
             key(site, "stop"), zenoh.handlers.RingChannel(INBOX_CAPACITY)
         )
-        dt = world.time_step_s
-        state_every = max(1, round(opts.physics_rate_hz / opts.state_rate_hz))
+        controller = TaskController(world, load_robot(self.scene.robot.urdf_path))
+        self._controller = controller
+        tick_s = controller.steps_per_tick * world.time_step_s
+        state_every = max(1, round(1.0 / (tick_s * opts.state_rate_hz)))
         camera_period_s = 1.0 / self.scene.camera.frame_rate_hz
         heartbeat_period_s = 1.0 / opts.heartbeat_rate_hz
-        steps, t0 = 0, time.monotonic()
+        ticks, t0 = 0, time.monotonic()
         next_frame_s = next_heartbeat_s = 0.0
         seq_state = seq_frame = seq_heartbeat = 0
         log.info(
             "work site %r serving; physics %.0f Hz, state %.0f Hz, camera %.1f Hz",
             site,
             opts.physics_rate_hz,
-            opts.physics_rate_hz / state_every,
+            1.0 / (tick_s * state_every),
             self.scene.camera.frame_rate_hz if camera else 0.0,
         )
         if ready is not None:
@@ -134,15 +142,18 @@ class WorkSiteServer:
         try:
             while not stop.is_set():
                 elapsed = time.monotonic() - t0
-                due = int(elapsed / dt) - steps
-                if due > MAX_CATCH_UP_STEPS:
-                    self.stats["late_steps"] += due - MAX_CATCH_UP_STEPS
-                    t0 += (due - MAX_CATCH_UP_STEPS) * dt  # drop the backlog: stay real time
-                    due = MAX_CATCH_UP_STEPS
+                due = int(elapsed / tick_s) - ticks
+                if due > MAX_CATCH_UP_TICKS:
+                    self.stats["late_ticks"] += due - MAX_CATCH_UP_TICKS
+                    t0 += (due - MAX_CATCH_UP_TICKS) * tick_s  # drop the backlog: real time
+                    due = MAX_CATCH_UP_TICKS
                 for _ in range(due):
-                    world.step()
-                    steps += 1
-                    if steps % state_every == 0:
+                    if self._execution is not None and not self._execution.finished:
+                        self._execution.tick()
+                    else:
+                        controller.tick()
+                    ticks += 1
+                    if ticks % state_every == 0:
                         pub_state.put(encode(self._robot_state(world, seq_state)))
                         seq_state += 1
                         self.stats["states"] += 1
@@ -185,7 +196,7 @@ class WorkSiteServer:
                     )
                     seq_heartbeat += 1
                     next_heartbeat_s += heartbeat_period_s
-                sleep_s = t0 + (steps + 1) * dt - time.monotonic()
+                sleep_s = t0 + (ticks + 1) * tick_s - time.monotonic()
                 if sleep_s > 0:
                     time.sleep(sleep_s)
         finally:
@@ -206,23 +217,25 @@ class WorkSiteServer:
             wrench_S=snap.wrench_S,
         )
 
-    def _report(self, program_id: str, status: str, message: str) -> None:
+    def _report(self, program_id: str, command_index: int, status: str, message: str) -> None:
         self._pub_report.put(
             encode(
                 ExecutionReport(
                     program_id=program_id,
-                    command_index=-1,
+                    command_index=command_index,
                     status=status,
-                    wrench_S=np.zeros(6),
-                    message=message,
+                    wrench_S=self._controller.world.robot_snapshot().wrench_S,
+                    message=message[:4096],
                     stamp_s=time.time(),
                 )
             )
         )
+        log.info("program %s command %d: %s %s", program_id, command_index, status, message)
 
     def _handle_inbox(
         self, inbox_program: zenoh.Subscriber, inbox_stop: zenoh.Subscriber, world: World
     ) -> None:
+        running = self._execution is not None and not self._execution.finished
         while (sample := inbox_stop.try_recv()) is not None:
             try:
                 msg = decode(sample.payload.to_bytes(), expected=Stop)
@@ -230,8 +243,12 @@ class WorkSiteServer:
                 self.stats["refused"] += 1
                 log.warning("refused a stop message: %s", e)
                 continue
-            # Holding the current joint angles is the stop: no trajectory runs yet.
-            world.q_target = world.robot_joint_positions()[0]
+            # Stops act even when malformed programs flood the inbox: they are read first.
+            if running:
+                self._execution.stop(f"stop: {msg.reason}")
+                running = False
+            else:
+                self._controller.stop()
             log.info("stop: %s", msg.reason)
         while (sample := inbox_program.try_recv()) is not None:
             try:
@@ -239,9 +256,20 @@ class WorkSiteServer:
             except ProtocolError as e:
                 self.stats["refused"] += 1
                 log.warning("refused a program: %s", e)
-                self._report("invalid", "refused", f"program refused: {e}")
+                self._report("invalid", -1, "refused", f"program refused: {e}")
                 continue
-            self.stats["refused"] += 1
-            self._report(
-                program.program_id, "refused", "this work site does not execute motion programs yet"
-            )
+            pid = program.program_id
+            if pid in self._seen_programs:
+                reason = "a program with this id was already received"
+            elif running:
+                reason = f"busy with program {self._execution.program.program_id}"
+            else:
+                reason = check_program(program, self._controller)
+            if reason:
+                self.stats["refused"] += 1
+                self._report(pid, -1, "refused", reason)
+                continue
+            self._seen_programs.add(pid)
+            self._report(pid, -1, "accepted", f"{len(program.commands)} commands")
+            self._execution = Execution(program, self._controller, self._report)
+            running = True

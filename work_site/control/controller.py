@@ -42,7 +42,7 @@ class TaskController:
         self.X_WB = world.scene.robot.X_WB
         self.move: LinearMove | None = None
         self.t_s = 0.0
-        self._steps_per_tick = max(1, round(CONTROL_PERIOD_S / world.time_step_s))
+        self.steps_per_tick = max(1, round(CONTROL_PERIOD_S / world.time_step_s))
 
     def commanded_tcp_W(self) -> np.ndarray:
         """The TCP pose the joint targets command (``X_WG``)."""
@@ -73,7 +73,7 @@ class TaskController:
     def tick(self) -> TickResult:
         """One control period: the next setpoint, then the physics steps of the period."""
         if self.move is None:
-            self.world.step(self._steps_per_tick)
+            self.world.step(self.steps_per_tick)
             return TickResult("idle")
         self.t_s += CONTROL_PERIOD_S
         X = self.move.pose_at(self.t_s)
@@ -94,7 +94,7 @@ class TaskController:
         q_dot = np.linalg.lstsq(J, np.concatenate([v_F, w]), rcond=None)[0]
         self.world.q_target = result.q
         self.world.q_dot_target = q_dot
-        self.world.step(self._steps_per_tick)
+        self.world.step(self.steps_per_tick)
         if self.t_s >= self.move.duration_s:
             self.move = None
             self.world.q_dot_target = np.zeros(6)
