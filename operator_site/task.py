@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from models.robot import load_robot
 from models.scene import Scene
+from operator_site.grasp import finger_parts_O, top_grasp
 from operator_site.simulator import SimParams, Simulator, StepResult
 
 
@@ -21,6 +23,10 @@ class TaskSession:
         self.X_WO: dict[str, np.ndarray] = {o.name: o.X_WO.copy() for o in scene.objects}
         self.sim: Simulator | None = None
         self._start_X_WO: np.ndarray | None = None
+        self.robot = load_robot(scene.robot.urdf_path)
+        self.X_GP = np.eye(4)
+        self.opening_m = 0.0
+        self.fingers_O: tuple = ()
 
     @property
     def workpiece(self) -> str | None:
@@ -31,13 +37,18 @@ class TaskSession:
         return set(self.sim.state.capturable) if self.sim else set()
 
     def select(self, name: str) -> None:
-        """Make movable object ``name`` the workpiece (its last pose stays in the model)."""
+        """Make movable object ``name`` the workpiece, held by the gripper's fingers in a grasp
+        from above (the fingers move with it); its last pose stays in the model."""
         obj = self.scene.object(name)
         if obj.fixed:
             raise ValueError(f"{name!r} is part of the fixed environment and cannot be moved")
         if self.sim is not None:
             self.X_WO[self.sim.world.workpiece] = self.sim.X_WO
-        self.sim = Simulator(self.scene, name, self.params, X_WO=self.X_WO)
+        self.X_GP, self.opening_m = top_grasp(self.robot, obj.model.bbox_O)
+        self.fingers_O = tuple(finger_parts_O(self.robot, self.X_GP, self.opening_m))
+        self.sim = Simulator(
+            self.scene, name, self.params, X_WO=self.X_WO, attached_O=self.fingers_O
+        )
         self._start_X_WO = self.X_WO[name].copy()
 
     def set_target(self, X_WD: np.ndarray) -> None:
@@ -73,6 +84,8 @@ class TaskSession:
         name = self.sim.world.workpiece
         self.X_WO[name] = self._start_X_WO.copy()
         captured = set(self.sim.state.capturable)
-        self.sim = Simulator(self.scene, name, self.params, X_WO=self.X_WO)
+        self.sim = Simulator(
+            self.scene, name, self.params, X_WO=self.X_WO, attached_O=self.fingers_O
+        )
         for other in captured:
             self.sim.capture(other)

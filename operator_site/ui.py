@@ -27,6 +27,7 @@ UI_PERIOD_S = 0.05
 STATUS_PERIOD_S = 0.5
 NO_WORKPIECE = "(none)"
 CONTACT_RGB = (230, 40, 40)
+FINGER_RGB = (40, 40, 48)
 TASK_HELP = (
     "Pick a block (click it, or choose it below), then drag the arrows and rings around it: "
     "the block follows on a spring and bumps, slides and settles against what it meets. "
@@ -99,6 +100,7 @@ class OperatorPage:
         self.session = TaskSession(scene)
         self._lock = threading.Lock()
         self.message = ""
+        self.finger_meshes: list = []
         self._build_gui()
         self._build_scene()
         self.frames_shown = 0
@@ -190,6 +192,7 @@ class OperatorPage:
                 return  # the dropdown echoing our own selection back
             if name == NO_WORKPIECE:
                 self.dragger.visible = False
+                self._show_fingers(None)
                 self.message = ""
                 return
             try:
@@ -200,9 +203,28 @@ class OperatorPage:
             X = self.session.X_WO[name]
             _set_pose(self.dragger, X)
             self.dragger.visible = True
-            self.message = f"dragging **{name}**"
+            self._show_fingers(name)
+            self.message = f"dragging **{name}**, held as the gripper will hold it"
         if self.workpiece_dropdown.value != name:
             self.workpiece_dropdown.value = name
+
+    def _show_fingers(self, name: str | None) -> None:
+        """The gripper's fingers, drawn on the workpiece where the grasp puts them."""
+        for handle in self.finger_meshes:
+            handle.remove()
+        self.finger_meshes = []
+        if name is None:
+            return
+        for k, part in enumerate(self.session.fingers_O):
+            self.finger_meshes.append(
+                self.server.scene.add_mesh_simple(
+                    f"/world/{name}/finger_{k}",
+                    part.vertices_O,
+                    part.triangles(),
+                    color=FINGER_RGB,
+                    flat_shading=True,
+                )
+            )
 
     def on_click_object(self, name: str) -> None:
         """A click on an object: toggles capture in capture mode, else picks a movable block."""

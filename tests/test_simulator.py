@@ -324,3 +324,30 @@ def test_a_step_that_would_collide_stops_at_the_barrier_not_where_it_started(sce
     r = sim.step()
     assert 0 < r.s_fraction < 1
     assert P.eps_barrier_m / 2 <= r.X_WO[2, 3] - CUBE_HALF < P.eps_contact_m
+
+
+@pytest.mark.parametrize("with_fingers", [False, True])
+def test_fingers_held_on_the_block_meet_a_wall_first(scene: Scene, with_fingers: bool) -> None:
+    from models.robot import load_robot
+    from operator_site.grasp import finger_parts_O, top_grasp
+
+    wall = box_object("wall", (0.3, 0.02, 0.1), at(0.2, 0.41, 0.05))  # inner face at y = 0.40
+    scene2 = dataclasses.replace(scene, objects=(*scene.objects, wall))
+    fingers = ()
+    if with_fingers:
+        robot = load_robot(scene.robot.urdf_path)
+        X_GP, opening = top_grasp(robot, scene.object("cube").model.bbox_O)
+        fingers = tuple(finger_parts_O(robot, X_GP, opening))
+    sim = Simulator(
+        scene2, "cube", X_WO={"cube": at(0.2, 0.3, CUBE_HALF + 2e-4)}, attached_O=fingers
+    )
+    sim.set_target(at(0.2, 0.45, CUBE_HALF - 0.003))  # through the wall
+    run(sim, 100)
+    gap = 0.40 - (sim.X_WO[1, 3] + CUBE_HALF)  # the cube's +y face to the wall
+    finger_thickness = 0.015
+    if with_fingers:
+        # The finger, 15 mm thick, meets the wall first; pushed high up, the block also tips a
+        # little towards the wall, so the gap is less than the full thickness.
+        assert finger_thickness / 2 < gap < finger_thickness + P.eps_contact_m
+    else:
+        assert gap == pytest.approx(P.eps_barrier_m, abs=2e-5)

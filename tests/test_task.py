@@ -73,6 +73,7 @@ def test_page_callbacks_pick_drag_capture_and_reset(page: OperatorPage) -> None:
     assert page.session.workpiece is None and not page.dragger.visible
     page.on_click_object("cube")
     assert page.session.workpiece == "cube" and page.dragger.visible
+    assert len(page.finger_meshes) == 2  # the gripper's fingers, shown where they will hold it
     assert page.workpiece_dropdown.value == "cube"
     start = page.session.X_WO["cube"].copy()
     np.testing.assert_allclose(page.dragger.position, start[:3, 3])
@@ -98,7 +99,7 @@ def test_page_callbacks_pick_drag_capture_and_reset(page: OperatorPage) -> None:
     np.testing.assert_array_equal(page.session.X_WO["cube"], start)
     np.testing.assert_allclose(page.dragger.position, start[:3, 3])
     page.on_select(NO_WORKPIECE)
-    assert not page.dragger.visible
+    assert not page.dragger.visible and not page.finger_meshes
 
 
 def test_dragging_into_the_frame_corner_from_the_page(page: OperatorPage) -> None:

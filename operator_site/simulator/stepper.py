@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from models.geometry import ConvexPart
 from models.scene import Scene
 from models.transforms import orthonormalize, so3_exp, so3_log
 from operator_site.simulator.barrier import barrier, capture_barrier
@@ -91,11 +92,13 @@ class Simulator:
         workpiece: str,
         params: SimParams | None = None,
         X_WO: dict[str, np.ndarray] | None = None,
+        attached_O: tuple[ConvexPart, ...] = (),
     ) -> None:
+        """``attached_O``: convex parts that move with the workpiece (the gripper's fingers)."""
         self.params = params or SimParams()
         self.scene = scene
         poses = {o.name: o.X_WO for o in scene.objects} | (X_WO or {})
-        self.world = SimWorld(scene, workpiece, poses)
+        self.world = SimWorld(scene, workpiece, poses, attached_O)
         model = scene.object(workpiece).model
         self.c_O = model.com_O.copy()
         self.r_max_m = float(np.max(np.linalg.norm(self.world.wp_vertices_O - self.c_O, axis=1)))

@@ -41,11 +41,19 @@ class PairDistance:
 class SimWorld:
     """Fixed obstacles (every object but the workpiece) and the workpiece's parts in fcl."""
 
-    def __init__(self, scene: Scene, workpiece: str, X_WO: dict[str, np.ndarray] | None = None):
+    def __init__(
+        self,
+        scene: Scene,
+        workpiece: str,
+        X_WO: dict[str, np.ndarray] | None = None,
+        attached_O: tuple[ConvexPart, ...] = (),
+    ):
+        """``attached_O``: more convex parts moving with the workpiece (the gripper's fingers),
+        in its frame O."""
         X_WO = X_WO or {}
         wp = scene.object(workpiece)
         self.workpiece = wp.name
-        self.wp_parts = wp.model.parts
+        self.wp_parts = (*wp.model.parts, *attached_O)
         self.wp_vertices_O = np.vstack([p.vertices_O for p in self.wp_parts])
         self._wp_objects = [
             fcl.CollisionObject(fcl_convex(p), fcl.Transform()) for p in self.wp_parts

@@ -1,0 +1,59 @@
+"""The gripper's fingers as part of the moving body (DESIGN.md, "Grasp and program frames").
+
+When the operator drags a block, the fingers that will hold it move with it: the simulator and
+the program check treat them as convex parts of the workpiece, so a task never drives a finger
+into a wall. Frames: G gripper TCP, P (= O) the workpiece; ``X_GP`` is the grasp.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.geometry import ConvexPart, make_convex_part
+from models.robot import TCP_LINK, RobotModel
+from models.transforms import invert_pose
+
+_BOX_FACES = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+
+
+def finger_parts_O(robot: RobotModel, X_GP: np.ndarray, opening_m: float) -> list[ConvexPart]:
+    """The fingers' collision boxes, at ``opening_m``, as convex parts in the workpiece frame."""
+    poses = robot.link_poses_W(np.zeros(robot.n_arm), opening_m)
+    X_OG = invert_pose(np.asarray(X_GP, dtype=np.float64))
+    X_GW = invert_pose(poses[TCP_LINK])
+    parts = []
+    for name in robot.finger_joints:
+        link = robot.links[robot.joint(name).child]
+        for shape in link.collisions:
+            if shape.kind != "box":
+                raise ValueError(f"{robot.source}: finger {link.name} must be made of boxes")
+            half = np.asarray(shape.size) / 2
+            corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+            X_OS = X_OG @ X_GW @ poses[link.name] @ shape.X_LV
+            V = (corners * half) @ X_OS[:3, :3].T + X_OS[:3, 3]
+            parts.append(make_convex_part(V, _BOX_FACES, f"{link.name} collision box"))
+    return parts
+
+
+FINGERTIP_DEPTH_M = 0.018
+"""A default grasp reaches this far down the block from its top: a 50 mm block sitting in a
+corner keeps its fingertips 2 mm above the frame's 30 mm bars."""
+
+
+def top_grasp(robot: RobotModel, bbox_O: np.ndarray) -> tuple[np.ndarray, float]:
+    """A grasp from above (``X_GP``, finger opening m) for a block with bounding box (2, 3) in O:
+    gripper z down, fingers on the block's ±y faces, fingertips FINGERTIP_DEPTH_M below its top
+    (or at its middle, for blocks lower than that)."""
+    lo, hi = bbox_O
+    opening = float(hi[1] - lo[1])
+    # How far the fingertips reach below the TCP (G's z points down, out of the palm).
+    X_GP0 = np.eye(4)
+    tip_below_tcp = max(
+        float(part.vertices_O[:, 2].max()) for part in finger_parts_O(robot, X_GP0, opening)
+    )
+    z_tips = max(hi[2] - FINGERTIP_DEPTH_M, 0.5 * (lo[2] + hi[2]) - tip_below_tcp)
+    centre = 0.5 * (lo + hi)
+    X_OG = np.eye(4)
+    X_OG[:3, :3] = np.diag([-1.0, 1.0, -1.0])
+    X_OG[:3, 3] = (centre[0], centre[1], z_tips + tip_below_tcp)
+    return invert_pose(X_OG), opening
