@@ -35,15 +35,19 @@ def finger_parts_O(robot: RobotModel, X_GP: np.ndarray, opening_m: float) -> lis
     return parts
 
 
-FINGERTIP_DEPTH_M = 0.018
-"""A default grasp reaches this far down the block from its top: a 50 mm block sitting in a
-corner keeps its fingertips 2 mm above the frame's 30 mm bars."""
+CORNER_FINGERTIP_DEPTH_M = 0.018
+"""A grasp reaching only this far down a 50 mm block keeps the fingertips 2 mm above the
+frame's 30 mm bars when the block sits in a corner. Measured: carried that way, a cube slipped
+out of the grip on the lift (the pads hold an 18 mm strip); such grasps need the pad and grip
+work of issue 5 first."""
 
 
-def top_grasp(robot: RobotModel, bbox_O: np.ndarray) -> tuple[np.ndarray, float]:
+def top_grasp(
+    robot: RobotModel, bbox_O: np.ndarray, fingertip_depth_m: float | None = None
+) -> tuple[np.ndarray, float]:
     """A grasp from above (``X_GP``, finger opening m) for a block with bounding box (2, 3) in O:
-    gripper z down, fingers on the block's ±y faces, fingertips FINGERTIP_DEPTH_M below its top
-    (or at its middle, for blocks lower than that)."""
+    gripper z down, fingers on the block's ±y faces, the TCP at the block's centre, or, with
+    ``fingertip_depth_m``, the fingertips that far below its top (never lower than centred)."""
     lo, hi = bbox_O
     opening = float(hi[1] - lo[1])
     # How far the fingertips reach below the TCP (G's z points down, out of the palm).
@@ -51,7 +55,8 @@ def top_grasp(robot: RobotModel, bbox_O: np.ndarray) -> tuple[np.ndarray, float]
     tip_below_tcp = max(
         float(part.vertices_O[:, 2].max()) for part in finger_parts_O(robot, X_GP0, opening)
     )
-    z_tips = max(hi[2] - FINGERTIP_DEPTH_M, 0.5 * (lo[2] + hi[2]) - tip_below_tcp)
+    centred = 0.5 * (lo[2] + hi[2]) - tip_below_tcp
+    z_tips = centred if fingertip_depth_m is None else max(hi[2] - fingertip_depth_m, centred)
     centre = 0.5 * (lo + hi)
     X_OG = np.eye(4)
     X_OG[:3, :3] = np.diag([-1.0, 1.0, -1.0])

@@ -22,7 +22,7 @@ class TaskSession:
         self.params = params or SimParams()
         self.X_WO: dict[str, np.ndarray] = {o.name: o.X_WO.copy() for o in scene.objects}
         self.sim: Simulator | None = None
-        self._start_X_WO: np.ndarray | None = None
+        self.start_X_WO: np.ndarray | None = None
         self.robot = load_robot(scene.robot.urdf_path)
         self.X_GP = np.eye(4)
         self.opening_m = 0.0
@@ -49,7 +49,7 @@ class TaskSession:
         self.sim = Simulator(
             self.scene, name, self.params, X_WO=self.X_WO, attached_O=self.fingers_O
         )
-        self._start_X_WO = self.X_WO[name].copy()
+        self.start_X_WO = self.X_WO[name].copy()
 
     def set_target(self, X_WD: np.ndarray) -> None:
         """Where the dragger is (the spring's far end), for the selected workpiece."""
@@ -79,10 +79,10 @@ class TaskSession:
 
     def reset(self) -> None:
         """Put the workpiece back where it was when selected and forget the path."""
-        if self.sim is None or self._start_X_WO is None:
+        if self.sim is None or self.start_X_WO is None:
             return
         name = self.sim.world.workpiece
-        self.X_WO[name] = self._start_X_WO.copy()
+        self.X_WO[name] = self.start_X_WO.copy()
         captured = set(self.sim.state.capturable)
         self.sim = Simulator(
             self.scene, name, self.params, X_WO=self.X_WO, attached_O=self.fingers_O

@@ -18,6 +18,7 @@ from models.robot import RobotModel, load_robot
 from models.scene import Scene
 from models.transforms import R_to_quat_wxyz, make_pose, quat_wxyz_to_R
 from operator_site.link import LinkStatus, WorkSiteLink
+from operator_site.program import choose_grasp_yaw, pick_and_place
 from operator_site.task import TaskSession
 
 log = logging.getLogger("operator-site")
@@ -101,6 +102,8 @@ class OperatorPage:
         self._lock = threading.Lock()
         self.message = ""
         self.finger_meshes: list = []
+        self.pending_program = None
+        self._programs_made = 0
         self._build_gui()
         self._build_scene()
         self.frames_shown = 0
@@ -126,8 +129,13 @@ class OperatorPage:
             self.capture_mode = gui.add_checkbox("capture mode", False)
             self.reset_button = gui.add_button("put the block back")
             self.task_md = gui.add_markdown("")
+            self.program_button = gui.add_button("make the robot program")
+            self.send_button = gui.add_button("send it to the robot", disabled=True)
+            self.program_md = gui.add_markdown("")
         self.workpiece_dropdown.on_update(lambda _: self.on_select(self.workpiece_dropdown.value))
         self.reset_button.on_click(lambda _: self.on_reset())
+        self.program_button.on_click(lambda _: self.on_make_program())
+        self.send_button.on_click(lambda _: self.on_send_program())
 
     def _build_scene(self) -> None:
         scene = self.server.scene
@@ -256,6 +264,38 @@ class OperatorPage:
                 X = self.session.X_WO[self.session.workpiece]
                 _set_pose(self.dragger, X)
                 _set_pose(self.object_frames[self.session.workpiece], X)
+
+    def on_make_program(self) -> None:
+        """Turn the task (the block from where it was picked to where it is now) into a robot
+        program, and show it for confirmation."""
+        with self._lock:
+            name = self.session.workpiece
+            if name is None or self.session.start_X_WO is None:
+                self.program_md.content = "Pick a block and move it first."
+                return
+            start, goal = self.session.start_X_WO, self.session.X_WO[name]
+            self._programs_made += 1
+            program_id = f"{name}-{int(time.time())}-{self._programs_made}"
+            X_GP = choose_grasp_yaw(start, self.session.X_GP)
+            self.pending_program = pick_and_place(program_id, start, goal, X_GP)
+        lines = [f"**program `{program_id}`**, {len(self.pending_program.commands)} commands:"]
+        for i, c in enumerate(self.pending_program.commands):
+            p = c.X_WP[:3, 3]
+            lines.append(
+                f"{i}. {c.kind} to ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m at "
+                f"{c.speed_mps * 1000:.0f} mm/s"
+            )
+        self.program_md.content = "  \n".join(lines)
+        self.send_button.disabled = False
+
+    def on_send_program(self) -> None:
+        """Second confirmation: send the pending program to the work site."""
+        program, self.pending_program = self.pending_program, None
+        self.send_button.disabled = True
+        if program is None:
+            return
+        self.link.send_program(program)
+        self.program_md.content += f"  \nsent to the work site `{self.link.site_id}`"
 
     def step_task(self) -> None:
         """One simulator step of the workpiece, shown on the page."""

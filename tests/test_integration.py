@@ -244,3 +244,55 @@ def test_a_program_runs_reports_in_order_and_a_stop_halts_it(work_site, link_to)
     link.poll()
     np.testing.assert_allclose(link.robot_state.q, q_stop, atol=2e-3)  # held, not moving on
     assert np.linalg.norm(ROBOT.tcp_pose_W(link.robot_state.q)[:3, 3] - [0.30, 0.1, 0.25]) > 0.02
+
+
+def test_drag_confirm_send_and_the_robot_does_it(work_site, link_to) -> None:
+    """The operator's whole loop today: pick the cube on the page, drag it 8 cm along the
+    table (towards the robot), make the program, send it; the real work site grasps, carries
+    and places it."""
+    ws = work_site("--no-camera")
+    link = link_to(ws)
+    page = OperatorPage(load_scene(), link, port=free_port())
+    try:
+        assert wait_until(
+            lambda: (page.update(), link.status.label == "connected")[1], STARTUP_TIMEOUT_S
+        ), ws.log()
+        page.on_select("cube")
+        start = page.session.X_WO["cube"].copy()
+        page.dragger.position = tuple(start[:3, 3] + [-0.08, 0.0, -0.003])
+        page.on_drag()
+        for _ in range(80):
+            page.step_task()
+        goal = page.session.X_WO["cube"].copy()
+        assert goal[0, 3] == pytest.approx(start[0, 3] - 0.08, abs=1e-3)
+        page.on_make_program()
+        program = page.pending_program
+        assert program is not None and not page.send_button.disabled
+        assert [c.kind for c in program.commands] == [
+            "guarded_grasp",
+            "move",
+            "move",
+            "move",
+            "release",
+            "move",
+        ]
+        page.on_send_program()
+        assert page.send_button.disabled and page.pending_program is None
+
+        def finished() -> bool:
+            page.update()
+            return any(
+                r.program_id == program.program_id
+                and r.command_index == -1
+                and r.status in ("done", "failed", "refused")
+                for r in link.status.reports
+            )
+
+        assert wait_until(finished, 60.0), (link.status.reports, ws.log())
+        last = [r for r in link.status.reports if r.program_id == program.program_id][-1]
+        assert last.status == "done", [(r.status, r.message) for r in link.status.reports]
+        # The gripper ends above where the block was put down.
+        X_WG = ROBOT.tcp_pose_W(link.robot_state.q)
+        np.testing.assert_allclose(X_WG[:2, 3], goal[:2, 3], atol=2e-3)
+    finally:
+        page.close()

@@ -44,6 +44,18 @@ PYBULLET_CONVEX_MARGIN_M = 1e-3
 compensation)."""
 
 
+FINGER_OVERCLOSE_TOL_M = 1e-5
+"""Closed on nothing, the coupled fingers settle a hair past zero (seen: −2e-8 m)."""
+
+
+def _opening(sum_m: float) -> float:
+    """The finger opening from the two finger positions; a closure past zero within
+    FINGER_OVERCLOSE_TOL_M reads as closed, beyond it is a fault in the model."""
+    if sum_m < -FINGER_OVERCLOSE_TOL_M:
+        raise RuntimeError(f"gripper fingers closed past each other ({sum_m:.3g} m)")
+    return max(float(sum_m), 0.0)
+
+
 def _shrink(part: ConvexPart, margin_m: float) -> np.ndarray:
     """Vertices of ``part`` with every face plane moved inwards by ``margin_m``.
 
@@ -270,7 +282,7 @@ class World:
         return RobotSnapshot(
             q=np.array([s[0] for s in arm]),
             X_WF=pose_from_pybullet(flange[4], flange[5]),
-            gripper_opening_m=float(sum(s[0] for s in fingers)),
+            gripper_opening_m=_opening(sum(s[0] for s in fingers)),
             wrench_S=np.array(sensor[2], dtype=np.float64),
         )
 

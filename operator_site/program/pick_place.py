@@ -1,0 +1,51 @@
+"""A pick-and-place program: the simplest robot program for a task (no §VI-A deformation)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.transforms import invert_pose, make_pose, rpy_to_R
+from protocol import MotionCommand, MotionProgram
+
+CLEARANCE_M = 0.06
+"""Lift, carry and lower this high above the start and goal poses (clears the 30 mm bars)."""
+CARRY_SPEED_MPS = 0.1
+PLACE_SPEED_MPS = 0.02
+"""The last stretch down to the goal is slow: the block is set down, not dropped."""
+_HALF_TURN = make_pose(rpy_to_R(np.array([0.0, 0.0, np.pi])))
+
+
+def choose_grasp_yaw(X_WP: np.ndarray, X_GP: np.ndarray) -> np.ndarray:
+    """``X_GP`` or the same grasp turned half a turn about the gripper axis (a parallel gripper
+    holds both alike), whichever points the gripper's x axis more along −x of W: the arm's wrist
+    then stays well inside joint 6's ±3.14 rad."""
+    turned = _HALF_TURN @ X_GP
+    x_plain = (X_WP @ invert_pose(X_GP))[0, 0]
+    x_turned = (X_WP @ invert_pose(turned))[0, 0]
+    return X_GP if x_plain <= x_turned else turned
+
+
+def _above(X_WP: np.ndarray) -> np.ndarray:
+    X = X_WP.copy()
+    X[2, 3] += CLEARANCE_M
+    return X
+
+
+def pick_and_place(
+    program_id: str, X_WP_start: np.ndarray, X_WP_goal: np.ndarray, X_GP: np.ndarray
+) -> MotionProgram:
+    """Grasp the workpiece at ``X_WP_start``, lift, carry above ``X_WP_goal``, lower it there,
+    release and back off upwards."""
+
+    def cmd(kind: str, X: np.ndarray, speed: float = CARRY_SPEED_MPS) -> MotionCommand:
+        return MotionCommand(kind=kind, X_WP=X, speed_mps=speed, force_limit_n=10.0, contacts=())
+
+    commands = (
+        cmd("guarded_grasp", X_WP_start),
+        cmd("move", _above(X_WP_start)),
+        cmd("move", _above(X_WP_goal)),
+        cmd("move", X_WP_goal, PLACE_SPEED_MPS),
+        cmd("release", X_WP_goal),
+        cmd("move", _above(X_WP_goal)),
+    )
+    return MotionProgram(program_id=program_id, X_GP=X_GP, commands=commands)
