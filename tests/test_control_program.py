@@ -113,3 +113,24 @@ def test_unsupported_and_unsafe_programs_are_refused_before_motion(site) -> None
     )
     assert "speed" in check_program(fast, controller)
     np.testing.assert_array_equal(world.q_target, q0)
+
+
+def test_an_internal_fault_holds_the_arm_and_fails_the_program(site) -> None:
+    from protocol import make_config
+    from work_site.server import WorkSiteServer
+
+    world, controller = site
+    server = WorkSiteServer(load_scene(), make_config())
+    server._controller = controller
+    X = make_pose(rpy_to_R(np.array([math.pi, 0.0, math.pi])), (0.40, -0.1, 0.15))
+    program = MotionProgram(program_id="f", X_GP=np.eye(4), commands=(command("move", X),))
+    reports = []
+    server._execution = Execution(program, controller, lambda *r: reports.append(r))
+    for _ in range(5):
+        server._execution.tick()
+    assert controller.move is not None  # moving
+    server._fault(RuntimeError("boom"))
+    server._fault(RuntimeError("boom again"))
+    assert controller.move is None and server._execution.finished
+    assert reports[-1][2] == "stopped" and "work-site fault: RuntimeError: boom" in reports[-1][3]
+    assert server.stats["faults"] == 2

@@ -79,6 +79,7 @@ class WorkSiteServer:
         self.stats = {"states": 0, "frames": 0, "refused": 0, "late_ticks": 0}
         self._execution: Execution | None = None
         self._seen_programs: set[str] = set()
+        self._faults_logged: set[str] = set()
 
     def run(self, stop: threading.Event, ready: threading.Event | None = None) -> None:
         """Serve until ``stop`` is set; ``ready`` is set once publishing has started."""
@@ -148,15 +149,19 @@ class WorkSiteServer:
                     t0 += (due - MAX_CATCH_UP_TICKS) * tick_s  # drop the backlog: real time
                     due = MAX_CATCH_UP_TICKS
                 for _ in range(due):
-                    if self._execution is not None and not self._execution.finished:
-                        self._execution.tick()
-                    else:
-                        controller.tick()
-                    ticks += 1
-                    if ticks % state_every == 0:
-                        pub_state.put(encode(self._robot_state(world, seq_state)))
-                        seq_state += 1
-                        self.stats["states"] += 1
+                    try:
+                        if self._execution is not None and not self._execution.finished:
+                            self._execution.tick()
+                        else:
+                            controller.tick()
+                        ticks += 1
+                        if ticks % state_every == 0:
+                            pub_state.put(encode(self._robot_state(world, seq_state)))
+                            seq_state += 1
+                            self.stats["states"] += 1
+                    except Exception as e:  # a fault of ours: stop safely, keep serving
+                        ticks += 1
+                        self._fault(e)
                 self._handle_inbox(inbox_program, inbox_stop, world)
                 if camera is not None:
                     done = camera.poll()
@@ -216,6 +221,24 @@ class WorkSiteServer:
             gripper_opening_m=snap.gripper_opening_m,
             wrench_S=snap.wrench_S,
         )
+
+    def _fault(self, error: Exception) -> None:
+        """An internal error in a control period: hold the arm, fail the program, log it
+        (with the traceback once per kind), and go on serving."""
+        self.stats["faults"] = self.stats.get("faults", 0) + 1
+        kind = type(error).__name__
+        if kind not in self._faults_logged:
+            self._faults_logged.add(kind)
+            log.exception("internal fault in the control loop; arm held")
+        else:
+            log.error("internal fault in the control loop (%s); arm held", error)
+        try:
+            if self._execution is not None and not self._execution.finished:
+                self._execution.stop(f"work-site fault: {kind}: {error}")
+            else:
+                self._controller.stop()
+        except Exception:
+            log.exception("could not stop cleanly after the fault")
 
     def _report(self, program_id: str, command_index: int, status: str, message: str) -> None:
         self._pub_report.put(
