@@ -119,7 +119,7 @@ def test_an_internal_fault_holds_the_arm_and_fails_the_program(site) -> None:
     from protocol import make_config
     from work_site.server import WorkSiteServer
 
-    world, controller = site
+    _, controller = site
     server = WorkSiteServer(load_scene(), make_config())
     server._controller = controller
     X = make_pose(rpy_to_R(np.array([math.pi, 0.0, math.pi])), (0.40, -0.1, 0.15))
