@@ -21,12 +21,3 @@ def barrier(d_m: float, eps_barrier_m: float, gain: float) -> float:
 def capture_barrier(d_m: float, eps_barrier_m: float, eps_capture_m: float, gain: float) -> float:
     """Fig. 10-B: the barrier at 0 plus its mirror at ε_o (``inf`` outside (0, ε_o))."""
     return barrier(d_m, eps_barrier_m, gain) + barrier(eps_capture_m - d_m, eps_barrier_m, gain)
-
-
-def barrier_slope(d_m: float, eps_barrier_m: float, gain: float) -> float:
-    """dU/dd (J/m): negative inside the barrier (it pushes apart), zero beyond ε_b."""
-    if d_m >= eps_barrier_m:
-        return 0.0
-    if d_m <= 0.0:
-        return -math.inf
-    return gain * (1.0 / eps_barrier_m - 1.0 / d_m)
