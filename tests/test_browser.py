@@ -86,6 +86,16 @@ def test_page_shows_scene_camera_and_connected_status(tmp_path: Path) -> None:
                 page.screenshot(path=str(shot))
                 shutil.copy(shot, SCREENSHOT_DIR / shot.name)
                 assert shot.stat().st_size > 10_000
+                # The confirm path: pick the cube, make its program, send it; the work site
+                # runs it (lift and put back: the cube was not dragged) and reports done.
+                page.locator('input[value="(none)"]:visible').first.click()
+                page.get_by_role("option", name="cube").click()
+                page.get_by_text("dragging cube").wait_for(timeout=30_000)
+                page.get_by_role("button", name="make the robot program").click()
+                page.get_by_text("guarded_grasp to").wait_for(timeout=30_000)
+                page.get_by_role("button", name="send it to the robot").click()
+                page.get_by_text("program complete").wait_for(timeout=120_000)
+                page.screenshot(path=str(SCREENSHOT_DIR / "operator_page_program_done.png"))
             finally:
                 browser.close()
     finally:
