@@ -49,6 +49,7 @@ lint: $(STAMP)
 bench: $(BENCH_STAMP)
 	$(VENV)/bin/operator-site bench sim --out docs/bench
 	$(VENV)/bin/work-site bench control --out docs/bench
+	$(PY) bench/bench_lcp.py > docs/bench/lcp.json
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis
