@@ -10,7 +10,7 @@ import pytest
 from models.robot import load_robot
 from models.scene import load_scene
 from models.transforms import make_pose, rpy_to_R
-from protocol import MotionCommand, MotionProgram
+from protocol import ContactState, MotionCommand, MotionProgram, ProtocolError
 from work_site.control.controller import TaskController
 from work_site.control.executor import Execution, check_program
 from work_site.world import World
@@ -96,22 +96,42 @@ def test_grasping_air_fails_with_a_reason(site) -> None:
     assert "nothing between the fingers" in reports[-1][3]
 
 
-def test_unsupported_and_unsafe_programs_are_refused_before_motion(site) -> None:
+def test_each_unsafe_program_is_refused_with_its_reason_before_motion(site) -> None:
     world, controller = site
     q0 = world.q_target.copy()
     X = make_pose(rpy_to_R(np.array([math.pi, 0.0, math.pi])), (0.45, 0.0, 0.1))
-    contact = MotionProgram(program_id="c", X_GP=np.eye(4), commands=(command("contact_move", X),))
-    assert "not supported by this work site yet" in check_program(contact, controller)
-    low = X.copy()
+    table = ContactState(object="table", normals_W=np.array([[0.0, 0.0, 1.0]]))
+
+    def program(*commands: MotionCommand) -> MotionProgram:
+        return MotionProgram(program_id="p", X_GP=np.eye(4), commands=commands)
+
+    def cmd(kind: str, X_WP=X, speed=0.01, force=10.0, contacts=()) -> MotionCommand:
+        return MotionCommand(
+            kind=kind, X_WP=X_WP, speed_mps=speed, force_limit_n=force, contacts=contacts
+        )
+
+    low, far = X.copy(), X.copy()
     low[2, 3] = 0.0
-    assert "outside the workspace" in check_program(
-        MotionProgram(program_id="low", X_GP=np.eye(4), commands=(command("move", low),)),
-        controller,
-    )
-    fast = MotionProgram(
-        program_id="fast", X_GP=np.eye(4), commands=(command("move", X, speed=1.0),)
-    )
-    assert "speed" in check_program(fast, controller)
+    far[:3, 3] = (0.74, 0.44, 0.49)  # inside the box, out of the arm's reach
+    grasp = cmd("guarded_grasp")
+    cases = {
+        "nothing is held": program(cmd("contact_move", contacts=(table,))),
+        "needs the contacts": program(grasp, cmd("contact_move")),
+        "limit for moves into contact": program(grasp, cmd("contact_move", speed=0.1)),
+        "the work site's own limit": program(cmd("move", force=1000.0)),
+        "force limit 0.0 N": program(cmd("move", force=0.0)),
+        "no room for its contacts": program(
+            grasp, cmd("contact_move", force=1.0, contacts=(table,))
+        ),
+        "outside the workspace": program(cmd("move", low)),
+        "speed": program(cmd("move", speed=1.0)),
+        "unreachable": program(cmd("move", far)),
+    }
+    # NaN never gets this far: the message refuses it (tests/test_protocol_*).
+    with pytest.raises(ProtocolError, match="finite"):
+        cmd("move", np.full((4, 4), math.nan))
+    for reason, bad in cases.items():
+        assert reason in check_program(bad, controller), (reason, check_program(bad, controller))
     np.testing.assert_array_equal(world.q_target, q0)
 
 

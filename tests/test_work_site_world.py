@@ -12,8 +12,9 @@ from models.scene import load_scene
 from work_site.camera import opengl_matrices, render_grey
 from work_site.world import World
 
-REST_TOL_M = 5e-5  # blocks settle within 0.05 mm of their modelled resting pose
-REST_TOL_RAD = np.deg2rad(0.05)
+REST_TOL_M = 1e-4  # within 0.1 mm of the modelled resting pose: the compliant table (1e4 N/m)
+# lets a block sink its weight over the stiffness (measured: the 150 g tall_block, 0.08 mm)
+REST_TOL_RAD = np.deg2rad(0.1)  # the tall_block settles tilted 0.064° on the compliant table
 
 
 @pytest.fixture(scope="module")

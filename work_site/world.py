@@ -33,19 +33,28 @@ FLANGE_LINK = "flange"
 ARM_MAX_FORCE_N = 300.0
 FINGER_MAX_FORCE_N = 40.0
 FINGER_COUPLING_MAX_FORCE_N = 200.0
+FINGER_LOCK_MAX_FORCE_N = 200.0
 FINGER_PAD_FRICTION = 2.0
 """Rubber finger pads: pybullet multiplies it with the wood's default 0.5. Measured carrying the
 cube 6 cm up and 5.8 cm across: with 0.5 it slid 20 mm in the grip, with 2.0 it ends 1.1 mm off."""
 SERVO_POSITION_GAIN = 1.0
 """pybullet's joint servo gain (its default is 0.1). Measured on a 10 cm TCP line at 0.1 m/s:
 tracking error 0.48 mm at 0.1, 0.31 mm at 0.3, 0.10 mm at 1.0."""
+ENV_CONTACT_STIFFNESS_N_PER_M = 1e4
+"""Contact stiffness of the fixed environment (table, frame): wood backed by a robot that is
+not infinitely stiff. pybullet's default rigid contact answered a 20 mm/s touch with a 1,012 N
+spike in one 1 ms step, which no force guard can catch; at 1e4 N/m a 10 N guard stops within
+0.2 N of its threshold (`work-site bench control`), and a 75 g block sinks 0.07 mm."""
+ENV_CONTACT_DAMPING_N_S_PER_M = 100.0
+"""Damping of those contacts: enough that a touch does not bounce."""
 PYBULLET_CONVEX_MARGIN_M = 1e-3
 """pybullet's collision margin around convex meshes (measured: blocks rest 1 mm high without
 compensation)."""
 
 
-FINGER_OVERCLOSE_TOL_M = 1e-5
-"""Closed on nothing, the coupled fingers settle a hair past zero (seen: −2e-8 m)."""
+FINGER_OVERCLOSE_TOL_M = 2e-4
+"""Closed on nothing, the coupled fingers settle a hair past zero (seen: −2e-8 m; −1e-5 m with
+closed fingertips pressed onto the table, where the gear constraint gives a little)."""
 
 
 def _opening(sum_m: float) -> float:
@@ -158,6 +167,14 @@ class World:
             p.changeDynamics(
                 body, -1, localInertiaDiagonal=moments.tolist(), physicsClientId=self.cid
             )
+        else:
+            p.changeDynamics(
+                body,
+                -1,
+                contactStiffness=ENV_CONTACT_STIFFNESS_N_PER_M,
+                contactDamping=ENV_CONTACT_DAMPING_N_S_PER_M,
+                physicsClientId=self.cid,
+            )
         p.changeVisualShape(body, -1, rgbaColor=list(model.rgba), physicsClientId=self.cid)
         return body
 
@@ -215,14 +232,43 @@ class World:
             erp=0.2,
             physicsClientId=self.cid,
         )
-        p.setJointMotorControl2(
-            robot, right, p.VELOCITY_CONTROL, force=0.0, physicsClientId=self.cid
-        )
+        self._gear = gear
+        self.robot = robot
+        self.fingers_locked = False
+        self.unlock_fingers()
         for finger in self.finger_joints:
             p.changeDynamics(
                 robot, finger, lateralFriction=FINGER_PAD_FRICTION, physicsClientId=self.cid
             )
         return robot
+
+    def lock_fingers(self) -> None:
+        """Hold the right finger where it is, uncoupled, while the left one keeps squeezing.
+
+        pybullet leaves the gear constraint's force out of the wrist sensor joint's reaction:
+        a 40 N grip on a cube read as a steady 11.5 N false force, drifting as the arm moved.
+        A held block needs no centring, so the grip is then one locked jaw and one pushing jaw
+        (it holds against side forces up to the pushing motor's limit); the sensor then reads
+        the held cube's weight to 1 mN (0.736 N).
+        """
+        right = self.finger_joints[1]
+        self._right_locked_m = p.getJointState(self.robot, right, physicsClientId=self.cid)[0]
+        p.changeConstraint(self._gear, maxForce=0.0, physicsClientId=self.cid)
+        self.fingers_locked = True
+
+    def unlock_fingers(self) -> None:
+        """Couple the fingers again (the right one follows the left through the gear)."""
+        p.changeConstraint(
+            self._gear, maxForce=FINGER_COUPLING_MAX_FORCE_N, physicsClientId=self.cid
+        )
+        p.setJointMotorControl2(
+            self.robot,
+            self.finger_joints[1],
+            p.VELOCITY_CONTROL,
+            force=0.0,
+            physicsClientId=self.cid,
+        )
+        self.fingers_locked = False
 
     def set_object_pose(self, name: str, X_WO: np.ndarray) -> None:
         """Place object ``name`` so that its URDF link frame is at ``X_WO``; zero its velocity."""
@@ -263,6 +309,15 @@ class World:
             force=FINGER_MAX_FORCE_N,
             physicsClientId=self.cid,
         )
+        if self.fingers_locked:
+            p.setJointMotorControl2(
+                self.robot,
+                self.finger_joints[1],
+                p.POSITION_CONTROL,
+                targetPosition=self._right_locked_m,
+                force=FINGER_LOCK_MAX_FORCE_N,
+                physicsClientId=self.cid,
+            )
         for _ in range(n):
             p.stepSimulation(physicsClientId=self.cid)
         self.time_s += n * self.time_step_s

@@ -1,7 +1,14 @@
-"""``work-site bench control``: how well the arm executes moves (issue 5).
+"""``work-site bench control``: how well the arm executes moves and contact programs (issue 5).
 
-Today: linear-move tracking at several TCP speeds. Guarded moves, corner placement and sliding
-under impedance come with the rest of issue 5. Prints a JSON object; writes ``control.csv``.
+- tracking: a 10 cm TCP line at several speeds, commanded against measured;
+- guarded: closed fingertips lowered onto the table until 10 N, at several speeds: the force's
+  overshoot past the threshold (the speed/accuracy trade of execution);
+- corner: a scripted program puts the ``cube`` into the frame's inside corner with contact
+  moves; the block's final pose against the goal and the three contacts verified by force;
+- slide: the cube pressed on a wall of the frame and slid 6 cm along it under impedance: the
+  force along the wall's normal during the slide.
+
+Prints a JSON object; writes ``control.csv``, ``control_guarded.csv`` and ``control.png``.
 """
 
 from __future__ import annotations
@@ -14,21 +21,38 @@ import numpy as np
 
 from models.robot import load_robot
 from models.scene import load_scene
-from models.transforms import make_pose, rpy_to_R
-from work_site.control.controller import TaskController
+from models.transforms import invert_pose, make_pose, rpy_to_R, so3_log
+from protocol import ContactState, MotionCommand, MotionProgram
+from work_site.control.controller import Guard, TaskController
+from work_site.control.executor import CONTACT_VERIFY_N, Execution, check_program
 from work_site.world import World
 
 DOWN = rpy_to_R(np.array([math.pi, 0.0, math.pi]))
 SPEEDS_MPS = (0.025, 0.05, 0.1, 0.2)
+GUARD_SPEEDS_MPS = (0.005, 0.01, 0.02, 0.04, 0.08)
+GUARD_THRESHOLD_N = 10.0
+CUBE_HALF_M = 0.025
+FRAME_INNER_M = ((0.35, 0.55), (-0.10, 0.10))
+"""The frame's inner walls: x from, x to; y from, y to (DESIGN.md: 0.2 m opening at 0.45, 0)."""
+FINGERTIPS_BELOW_TCP_M = 0.015
+CORNER_GRIP_DEPTH_M = 0.018
+"""The fingertips reach this far down the cube: 2 mm above the frame's 30 mm bars."""
+CONTACT_FORCE_LIMIT_N = 20.0
+PLACE_GUARD_N = 4.0
+"""Setting the block down stops at this force (N)."""
+
+
+def _site() -> tuple[World, TaskController]:
+    scene = load_scene()
+    world = World(scene)
+    return world, TaskController(world, load_robot(scene.robot.urdf_path))
 
 
 def tracking(speed_mps: float) -> dict:
     """A 10 cm line along x at ``speed_mps``: worst commanded-to-measured TCP distance (mm) and
     worst distance of the measured TCP from the line itself (mm)."""
-    scene = load_scene()
-    world = World(scene)
+    world, controller = _site()
     try:
-        controller = TaskController(world, load_robot(scene.robot.urdf_path))
         start, goal = make_pose(DOWN, (0.35, -0.1, 0.15)), make_pose(DOWN, (0.45, -0.1, 0.15))
         for target, speed in ((start, 0.2), (goal, speed_mps)):
             controller.start_move(target, speed)
@@ -53,12 +77,225 @@ def tracking(speed_mps: float) -> dict:
     }
 
 
-def main(out_dir: Path) -> dict:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    rows = [tracking(v) for v in SPEEDS_MPS]
-    with (out_dir / "control.csv").open("w", newline="") as f:
+def guarded_touch(speed_mps: float, threshold_n: float = GUARD_THRESHOLD_N) -> dict:
+    """Closed fingertips lowered onto the bare table at ``speed_mps`` with a guard at
+    ``threshold_n``: the largest force along the guard afterwards, less the threshold (N)."""
+    world, c = _site()
+    try:
+        world.finger_target_m = 0.0
+        x, y = 0.30, 0.20
+        c.start_move(make_pose(DOWN, (x, y, FINGERTIPS_BELOW_TCP_M + 0.02)), 0.1)
+        while c.tick().status == "moving":
+            pass
+        for _ in range(30):
+            c.tick()
+        up = np.array([0.0, 0.0, 1.0])
+        # Aim 2 cm into the table: the guard, not the target, must end the move.
+        c.start_move(
+            make_pose(DOWN, (x, y, FINGERTIPS_BELOW_TCP_M - 0.02)),
+            speed_mps,
+            guard=Guard(up, threshold_n),
+        )
+        result = c.tick()
+        while result.status == "moving":
+            result = c.tick()
+        peak = c.force_peak_n
+        for _ in range(30):  # the force the stop leaves, and any ringing
+            c.tick()
+            peak = max(peak, float(c.force_W @ up))
+        held = float(c.force_W @ up)
+    finally:
+        world.close()
+    return {
+        "speed_mps": speed_mps,
+        "status": result.status,
+        "threshold_n": threshold_n,
+        "peak_n": peak,
+        "overshoot_n": peak - threshold_n,
+        "held_n": held,
+    }
+
+
+def _cmd(
+    kind: str, X_WP: np.ndarray, speed: float, contacts=(), force_n=CONTACT_FORCE_LIMIT_N
+) -> MotionCommand:
+    return MotionCommand(
+        kind=kind, X_WP=X_WP, speed_mps=speed, force_limit_n=force_n, contacts=tuple(contacts)
+    )
+
+
+def _run(execution: Execution, controller: TaskController, max_s: float = 60.0) -> list:
+    for _ in range(round(max_s / 0.01)):
+        execution.tick()
+        if execution.finished:
+            return []
+    raise RuntimeError("program did not finish in time")
+
+
+def corner_grasp_GP() -> np.ndarray:
+    """``X_GP`` holding the cube from above by its ±y faces, fingertips CORNER_GRIP_DEPTH_M down."""
+    X_OG = make_pose(DOWN, (0.0, 0.0, CUBE_HALF_M - CORNER_GRIP_DEPTH_M + FINGERTIPS_BELOW_TCP_M))
+    return invert_pose(X_OG)
+
+
+def corner_program(X_WP_start: np.ndarray) -> tuple[MotionProgram, np.ndarray]:
+    """The cube from ``X_WP_start`` into the frame's (−x, −y) inside corner, and the goal pose.
+
+    Like a deformed operator path (Fig. 12): over the bars, down onto the table 1 cm out from
+    both walls, then a contact move into the corner with table and both walls required."""
+    (x0, _), (y0, _) = FRAME_INNER_M
+    goal = make_pose(np.eye(3), (x0 + CUBE_HALF_M, y0 + CUBE_HALF_M, CUBE_HALF_M))
+    table = ContactState(object="table", normals_W=np.array([[0.0, 0.0, 1.0]]))
+    walls = ContactState(object="frame", normals_W=np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
+    lifted = X_WP_start.copy()
+    lifted[2, 3] += 0.06
+    near = goal.copy()
+    near[:3, 3] += (0.01, 0.01, 0.0)
+    above = near.copy()
+    above[2, 3] += 0.06
+    commands = (
+        _cmd("guarded_grasp", X_WP_start, 0.1),
+        _cmd("move", lifted, 0.1),
+        _cmd("move", above, 0.1),
+        _cmd("guarded_move", near, 0.02, (table,), PLACE_GUARD_N),
+        _cmd("contact_move", goal, 0.01, (table, walls)),
+        _cmd("release", goal, 0.01),
+        _cmd("move", goal @ make_pose(np.eye(3), (0.0, 0.0, 0.06)), 0.05),
+    )
+    return MotionProgram(program_id="corner", X_GP=corner_grasp_GP(), commands=commands), goal
+
+
+def corner() -> dict:
+    """Run :func:`corner_program` on the puzzle scene's cube; the cube's final pose against
+    the goal and the contact reports."""
+    world, c = _site()
+    reports: list[tuple] = []
+    try:
+        program, goal = corner_program(world.object_pose("cube"))
+        problem = check_program(program, c)
+        if problem:
+            raise RuntimeError(f"corner program refused: {problem}")
+        _run(Execution(program, c, lambda *r: reports.append(r)), c)
+        for _ in range(50):
+            c.tick()
+        X = world.object_pose("cube")
+    finally:
+        world.close()
+    verified = [r for r in reports if r[2] == "contact_verified"]
+    angle = float(np.linalg.norm(so3_log(goal[:3, :3].T @ X[:3, :3])))
+    return {
+        "corner_status": reports[-1][2],
+        "corner_message": reports[-1][3],
+        "corner_error_mm": float(np.linalg.norm(X[:3, 3] - goal[:3, 3])) * 1e3,
+        "corner_error_xyz_mm": ((X[:3, 3] - goal[:3, 3]) * 1e3).round(3).tolist(),
+        "corner_error_deg": math.degrees(angle),
+        "corner_contacts_verified": bool(verified) and reports[-1][2] == "done",
+        "corner_contact_report": verified[-1][3] if verified else "",
+    }
+
+
+def slide() -> dict:
+    """The cube put against the frame's x = 0.35 wall, then slid 6 cm along it (+y) by a
+    contact move: the force along the wall's normal at each period of the slide."""
+    world, c = _site()
+    (x0, _), _ = FRAME_INNER_M
+    start_y, end_y = -0.03, 0.03
+    table = ContactState(object="table", normals_W=np.array([[0.0, 0.0, 1.0]]))
+    wall = ContactState(object="frame", normals_W=np.array([[1.0, 0.0, 0.0]]))
+    on_wall = make_pose(np.eye(3), (x0 + CUBE_HALF_M, start_y, CUBE_HALF_M))
+    slid = make_pose(np.eye(3), (x0 + CUBE_HALF_M, end_y, CUBE_HALF_M))
+    near = on_wall.copy()
+    near[0, 3] += 0.01
+    above = near.copy()
+    above[2, 3] += 0.06
+    X_start = world.object_pose("cube")
+    lifted = X_start.copy()
+    lifted[2, 3] += 0.06
+    program = MotionProgram(
+        program_id="slide",
+        X_GP=corner_grasp_GP(),
+        commands=(
+            _cmd("guarded_grasp", X_start, 0.1),
+            _cmd("move", lifted, 0.1),
+            _cmd("move", above, 0.1),
+            _cmd("guarded_move", near, 0.02, (table,), PLACE_GUARD_N),
+            _cmd("contact_move", on_wall, 0.01, (table, wall)),
+            _cmd("contact_move", slid, 0.01, (table, wall)),
+        ),
+    )
+    reports: list[tuple] = []
+    normal_n: list[float] = []
+    try:
+        execution = Execution(program, c, lambda *r: reports.append(r))
+        for _ in range(6000):
+            execution.tick()
+            if execution.index == len(program.commands) - 1 and c.move is not None:
+                normal_n.append(float(c.force_W[0]))
+            if execution.finished:
+                break
+    finally:
+        world.close()
+    f = np.array(normal_n)
+    return {
+        "slide_status": reports[-1][2] if reports else "none",
+        "slide_message": reports[-1][3] if reports else "",
+        "slide_normal_n_mean": float(f.mean()) if f.size else math.nan,
+        "slide_normal_n_min": float(f.min()) if f.size else math.nan,
+        "slide_normal_n_max": float(f.max()) if f.size else math.nan,
+        "slide_band_n": [CONTACT_VERIFY_N, CONTACT_FORCE_LIMIT_N],
+        "slide_samples": int(f.size),
+    }
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    with path.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
+
+
+def _plot(out_dir: Path, tracking_rows: list[dict], guarded_rows: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
+    v = [r["speed_mps"] * 1e3 for r in tracking_rows]
+    a.plot(v, [r["tracking_mm_max"] for r in tracking_rows], "o-")
+    a.axhline(0.5, color="grey", ls="--", label="goal 0.5 mm")
+    a.set(xlabel="TCP speed (mm/s)", ylabel="max tracking error (mm)", title="Linear moves")
+    a.legend()
+    v = [r["speed_mps"] * 1e3 for r in guarded_rows]
+    b.plot(v, [r["overshoot_n"] for r in guarded_rows], "o-")
+    b.axhline(5.0, color="grey", ls="--", label="goal 5 N at 20 mm/s")
+    b.axvline(20.0, color="grey", ls=":")
+    b.set(
+        xlabel="approach speed (mm/s)",
+        ylabel=f"force overshoot past {GUARD_THRESHOLD_N:.0f} N (N)",
+        title="Guarded move onto the table",
+    )
+    b.legend()
+    fig.tight_layout()
+    fig.savefig(out_dir / "control.png", dpi=100)
+    plt.close(fig)
+
+
+def main(out_dir: Path) -> dict:
+    """Run every case; write CSVs and the plot under ``out_dir``; the JSON summary."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = [tracking(v) for v in SPEEDS_MPS]
+    _write_csv(out_dir / "control.csv", rows)
+    guarded = [guarded_touch(v) for v in GUARD_SPEEDS_MPS]
+    _write_csv(out_dir / "control_guarded.csv", guarded)
+    _plot(out_dir, rows, guarded)
     at_tenth = next(r for r in rows if r["speed_mps"] == 0.1)
-    return {"tracking_mm_max": at_tenth["tracking_mm_max"], "tracking_by_speed": rows}
+    at_20 = next(r for r in guarded if r["speed_mps"] == 0.02)
+    return {
+        "tracking_mm_max": at_tenth["tracking_mm_max"],
+        "guarded_overshoot_n": at_20["overshoot_n"],
+        **corner(),
+        **slide(),
+        "tracking_by_speed": rows,
+        "guarded_by_speed": guarded,
+    }

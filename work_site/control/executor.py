@@ -1,11 +1,19 @@
 """Runs motion programs from the wire (§VI-B): checked whole before any motion, then executed
 command by command with a report for each step; a stop takes effect within one control period.
 
-What runs today: ``guarded_grasp`` (open, approach from above, descend, close the coupled
-fingers until they stop on the block at the finger motor's force limit, check something is
-between them), ``move`` (a spatially-linear move of the workpiece frame P, i.e. the gripper TCP
-at ``X_WP · X_GP⁻¹``) and ``open_gripper``/``release``. Guarded moves and contact moves (force
-thresholds, impedance) are refused, with that reason, until issue 5 brings them.
+Commands (targets are workpiece poses ``X_WP``; the gripper TCP goes to ``X_WP · X_GP⁻¹``):
+- ``guarded_grasp``: open, approach from above, descend (guarded: touching anything fails),
+  close the coupled fingers until they stop on the block, check something is between them,
+  lift it clear by :data:`GRASP_LIFT_M` and weigh it (the payload's weight is then removed from
+  the wrist force);
+- ``move``: a spatially-linear move, failing on any force above the command's limit;
+- ``guarded_move``: a move that stops when the force against its direction exceeds the
+  command's ``force_limit_n``; with ``contacts`` it must end in them, verified by force;
+- ``contact_move``: a compliant move (impedance) towards the target biased into its contacts by
+  Δp with ``N Δp ≈ −d·1``; when it has settled, the force along each contact normal must reach
+  :data:`CONTACT_VERIFY_N` ("contact_verified" report) or the program fails;
+- ``open_gripper``/``release``: open the fingers (the payload is forgotten).
+Every force is also held under :data:`HARD_FORCE_LIMIT_N`, which no program can raise.
 """
 
 from __future__ import annotations
@@ -15,38 +23,113 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import nnls
 
 from models.transforms import invert_pose
-from protocol import MotionProgram
-from work_site.control.controller import MAX_TCP_SPEED_MPS, TaskController
+from protocol import ContactState, MotionProgram
+from work_site.control.controller import (
+    HARD_FORCE_LIMIT_N,
+    MAX_TCP_SPEED_MPS,
+    Guard,
+    Impedance,
+    TaskController,
+)
 from work_site.control.kinematics import ik_tcp
 
-SUPPORTED_KINDS = ("guarded_grasp", "move", "open_gripper", "release")
 WORKSPACE_MIN_W = np.array([0.10, -0.45, 0.02])
 """Lowest corner of the box every TCP target must lie in (m). z: the fingertips hang 15 mm
 below the TCP, so 0.02 m keeps them 5 mm above the table."""
 WORKSPACE_MAX_W = np.array([0.75, 0.45, 0.50])
 GRIPPER_OPEN_M = 0.08
+MAX_CONTACT_SPEED_MPS = 0.02
+"""Moves in contact (guarded and contact moves) are no faster than this (§VI-B)."""
+TARGET_BIAS_M = 0.005
+"""d of §VI-B: how far past each contact a contact move aims (the paper's ≈ 5 mm)."""
+TARGET_BIAS_MAX_M = 2 * TARGET_BIAS_M
+"""Bound on |Δp|: nearly parallel normals would otherwise ask for a long bias."""
+CONTACT_VERIFY_N = 2.0
+"""A contact is verified when the force along its normal reaches this (N); the impedance
+presses each with about stiffness × d = 5 N."""
+GUARD_OVERTRAVEL_M = 0.01
+"""A guarded move aims this far past its target (which is where contact is expected), so that
+the guard, not the target, ends it; a contact further off than this fails the command."""
+NORMALS_SAME_RAD = math.radians(5.0)
+"""Contact normals closer than this are one contact direction (a face reports one per point)."""
 
 Report = Callable[[str, int, str, str], None]
 """report(program_id, command_index, status, message)."""
 
+_MOVING_KINDS = ("guarded_grasp", "move", "guarded_move", "contact_move")
+
+
+def contact_directions(contacts: tuple[ContactState, ...]) -> list[tuple[str, np.ndarray]]:
+    """The distinct (object, unit normal into the workpiece) directions of ``contacts``."""
+    out: list[tuple[str, np.ndarray]] = []
+    for c in contacts:
+        for n in np.asarray(c.normals_W, dtype=np.float64):
+            n = n / np.linalg.norm(n)
+            if all(
+                name != c.object or float(m @ n) < math.cos(NORMALS_SAME_RAD) for name, m in out
+            ):
+                out.append((c.object, n))
+    return out
+
+
+def target_bias_W(normals_W: np.ndarray, d_m: float = TARGET_BIAS_M) -> np.ndarray:
+    """Δp (m, W) with ``N Δp ≈ −d·1`` in the least-squares sense, its norm bounded by
+    :data:`TARGET_BIAS_MAX_M` (§VI-B)."""
+    N = np.asarray(normals_W, dtype=np.float64).reshape(-1, 3)
+    dp = np.linalg.lstsq(N, -d_m * np.ones(len(N)), rcond=None)[0]
+    size = float(np.linalg.norm(dp))
+    return dp * (TARGET_BIAS_MAX_M / size) if size > TARGET_BIAS_MAX_M else dp
+
+
+def contact_forces_n(force_W: np.ndarray, normals_W: np.ndarray) -> np.ndarray:
+    """Non-negative normal forces ``f`` (N) with ``Σ f_i n_i`` closest to ``force_W``."""
+    N = np.asarray(normals_W, dtype=np.float64).reshape(-1, 3)
+    return nnls(N.T, np.asarray(force_W, dtype=np.float64))[0]
+
 
 def check_program(program: MotionProgram, controller: TaskController) -> str:
-    """Why ``program`` must not run ("" if it may): unsupported commands, targets outside the
-    workspace or unreachable, speeds above the limit. Checked whole, before any motion."""
+    """Why ``program`` must not run ("" if it may): a contact move with nothing held, targets
+    outside the workspace or unreachable, speeds or force limits beyond the work site's.
+    Checked whole, before any motion."""
     if not program.commands:
         return "empty program"
     X_PG = invert_pose(program.X_GP)
     q = controller.world.q_target.copy()
+    holding = False
     for i, cmd in enumerate(program.commands):
         where = f"command {i} ({cmd.kind})"
-        if cmd.kind not in SUPPORTED_KINDS:
-            return f"{where}: not supported by this work site yet"
-        if cmd.kind not in ("move", "guarded_grasp"):
+        if cmd.kind in ("open_gripper", "release"):
+            holding = False
             continue
+        if cmd.kind == "guarded_grasp":
+            holding = True
+        elif cmd.kind == "contact_move" and not holding:
+            return f"{where}: nothing is held (a guarded_grasp must come first)"
+        if not np.all(np.isfinite(cmd.X_WP)):
+            return f"{where}: target pose has NaN or infinite entries"
         if not (math.isfinite(cmd.speed_mps) and 0 < cmd.speed_mps <= MAX_TCP_SPEED_MPS):
             return f"{where}: speed {cmd.speed_mps} m/s not in (0, {MAX_TCP_SPEED_MPS}] m/s"
+        if cmd.kind in ("guarded_move", "contact_move") and cmd.speed_mps > MAX_CONTACT_SPEED_MPS:
+            return (
+                f"{where}: speed {cmd.speed_mps} m/s is above {MAX_CONTACT_SPEED_MPS} m/s, "
+                "the limit for moves into contact"
+            )
+        if not (math.isfinite(cmd.force_limit_n) and 0 < cmd.force_limit_n <= HARD_FORCE_LIMIT_N):
+            return (
+                f"{where}: force limit {cmd.force_limit_n} N not in (0, {HARD_FORCE_LIMIT_N}] N "
+                "(the work site's own limit)"
+            )
+        if cmd.kind == "contact_move":
+            if not cmd.contacts:
+                return f"{where}: a contact move needs the contacts it must keep"
+            if cmd.force_limit_n <= CONTACT_VERIFY_N * len(contact_directions(cmd.contacts)):
+                return (
+                    f"{where}: force limit {cmd.force_limit_n} N leaves no room for its "
+                    f"contacts' {CONTACT_VERIFY_N} N each"
+                )
         X_WG = cmd.X_WP @ X_PG
         p = X_WG[:3, 3]
         if np.any(p < WORKSPACE_MIN_W) or np.any(p > WORKSPACE_MAX_W):
@@ -63,10 +146,16 @@ def check_program(program: MotionProgram, controller: TaskController) -> str:
 
 @dataclass(frozen=True)
 class MoveTo:
-    """A straight TCP move to ``X_WG`` at ``speed_mps``."""
+    """A straight TCP move to ``X_WG`` at ``speed_mps``; with a ``guard``, a touch ends it:
+    ``touch_fails`` says whether that is a failure (with that message) or the goal."""
 
     X_WG: np.ndarray
     speed_mps: float
+    force_limit_n: float = HARD_FORCE_LIMIT_N
+    guard: Guard | None = None
+    impedance: Impedance | None = None
+    touch_fails: str = ""
+    must_touch: bool = False
 
 
 @dataclass(frozen=True)
@@ -84,6 +173,33 @@ class CheckGrip:
     min_opening_m: float
 
 
+@dataclass(frozen=True)
+class Weigh:
+    """Hold still ``ticks`` periods, then take the mean force as the payload's weight."""
+
+    ticks: int
+
+
+@dataclass(frozen=True)
+class LockGrip:
+    """Lock the gripped fingers (see ``World.lock_fingers``)."""
+
+
+@dataclass(frozen=True)
+class VerifyContacts:
+    """Fail unless the force along each of ``contacts``' normals reaches CONTACT_VERIFY_N:
+    the force now, or ``at_guard`` the one that stopped the guarded move before (which then
+    eases as the servo stops pushing)."""
+
+    contacts: tuple[ContactState, ...]
+    at_guard: bool = False
+
+
+@dataclass(frozen=True)
+class ForgetPayload:
+    """The fingers are opening: unlock them, nothing is held."""
+
+
 FINGERS_STILL_M = 2e-6
 """Fingers moving less than this per control period have stopped (m)."""
 FINGERS_STILL_TICKS = 5
@@ -91,28 +207,73 @@ FINGERS_MAX_TICKS = 150
 GRASP_APPROACH_M = 0.06
 """The grasp approaches from this far above the grasp pose, straight down (m)."""
 GRASP_DESCENT_MPS = 0.03
+GRASP_TOUCH_N = 3.0
+"""Descending to grasp, a force this large means the fingers hit something (N)."""
+GRASP_LIFT_M = 0.005
+"""After closing, the block is lifted this far and weighed (m)."""
+WEIGH_TICKS = 20
 MIN_GRIP_OPENING_M = 0.005
+_UP_W = np.array([0.0, 0.0, 1.0])
 
 
 def expand(program: MotionProgram, index: int) -> list:
     """The primitive actions of command ``index``."""
     cmd = program.commands[index]
     if cmd.kind in ("open_gripper", "release"):
-        return [SetFingers(GRIPPER_OPEN_M / 2)]
+        return [ForgetPayload(), SetFingers(GRIPPER_OPEN_M / 2)]
     X_WG = cmd.X_WP @ invert_pose(program.X_GP)
+    limit = cmd.force_limit_n
     if cmd.kind == "move":
-        return [MoveTo(X_WG, cmd.speed_mps)]
+        return [MoveTo(X_WG, cmd.speed_mps, limit)]
+    if cmd.kind == "guarded_move":
+        here = program.commands[index - 1].X_WP if index > 0 else cmd.X_WP
+        direction = cmd.X_WP[:3, 3] - here[:3, 3]
+        if np.linalg.norm(direction) > 0:
+            against = -direction / np.linalg.norm(direction)
+        else:  # no motion: the guard looks along the expected contacts' normals
+            against = np.sum([n for _, n in contact_directions(cmd.contacts)] or [_UP_W], axis=0)
+            against /= np.linalg.norm(against)
+        beyond = X_WG.copy()
+        beyond[:3, 3] -= GUARD_OVERTRAVEL_M * against
+        guarded = MoveTo(
+            beyond,
+            cmd.speed_mps,
+            HARD_FORCE_LIMIT_N,
+            guard=Guard(against, limit),
+            must_touch=bool(cmd.contacts),
+        )
+        return [guarded, VerifyContacts(cmd.contacts, at_guard=True)] if cmd.contacts else [guarded]
+    if cmd.kind == "contact_move":
+        biased = X_WG.copy()
+        normals = np.array([n for _, n in contact_directions(cmd.contacts)])
+        biased[:3, 3] += target_bias_W(normals)
+        return [
+            MoveTo(biased, cmd.speed_mps, limit, impedance=Impedance()),
+            VerifyContacts(cmd.contacts),
+        ]
     if cmd.kind == "guarded_grasp":
         above = X_WG.copy()
         above[2, 3] += GRASP_APPROACH_M
+        lifted = X_WG.copy()
+        lifted[2, 3] += GRASP_LIFT_M
         return [
+            ForgetPayload(),
             SetFingers(GRIPPER_OPEN_M / 2),
-            MoveTo(above, cmd.speed_mps),
-            MoveTo(X_WG, min(cmd.speed_mps, GRASP_DESCENT_MPS)),
+            MoveTo(above, cmd.speed_mps, limit),
+            MoveTo(
+                X_WG,
+                min(cmd.speed_mps, GRASP_DESCENT_MPS),
+                limit,
+                guard=Guard(_UP_W, GRASP_TOUCH_N),
+                touch_fails="the fingers touched something on the way down to the grasp",
+            ),
             SetFingers(0.0),
             CheckGrip(MIN_GRIP_OPENING_M),
+            LockGrip(),
+            MoveTo(lifted, GRASP_DESCENT_MPS, limit),
+            Weigh(WEIGH_TICKS),
         ]
-    raise ValueError(f"command {index}: {cmd.kind} is not supported by this work site yet")
+    raise ValueError(f"command {index}: {cmd.kind} is not supported by this work site")
 
 
 @dataclass
@@ -130,12 +291,14 @@ class Execution:
         self._fingers_last = -1.0
         self._fingers_still = 0
         self._fingers_ticks = 0
+        self._weighed: list[np.ndarray] = []
 
     def tick(self) -> None:
         """One control period: advance the current action; start the next when it is done."""
         if self.finished:
             return
         c = self.controller
+        action = self._actions[0] if self._actions else None
         if c.move is not None:
             result = c.tick()
             if result.status == "failed":
@@ -143,7 +306,16 @@ class Execution:
                 return
             if result.status == "moving":
                 return
-        elif self._actions and isinstance(self._actions[0], SetFingers):
+            if isinstance(action, MoveTo):
+                if result.status == "guarded" and action.touch_fails:
+                    self._finish("failed", f"command {self.index}: {action.touch_fails}")
+                    return
+                if result.status == "done" and action.must_touch:
+                    self._finish(
+                        "failed", f"command {self.index}: reached its target without contact"
+                    )
+                    return
+        elif isinstance(action, SetFingers):
             c.tick()
             opening = c.world.robot_snapshot().gripper_opening_m
             moved = abs(opening - self._fingers_last)
@@ -155,6 +327,15 @@ class Execution:
                 and self._fingers_ticks < FINGERS_MAX_TICKS
             ):
                 return
+        elif isinstance(action, Weigh):
+            c.tick()
+            self._weighed.append(c.force_W)
+            if len(self._weighed) < action.ticks:
+                return
+            mass = c.sensor.tare(np.mean(self._weighed, axis=0))
+            self.report(
+                self.program.program_id, self.index, "started", f"holding {mass * 1e3:.0f} g"
+            )
         else:
             c.tick()
         if self._actions:
@@ -189,17 +370,57 @@ class Execution:
                         f"fingers (they closed to {opening * 1e3:.1f} mm)",
                     )
                     return
-                self._actions.pop(0)
-                continue
-            if isinstance(action, MoveTo):
+            elif isinstance(action, VerifyContacts):
+                force_W = c.guard_force_W if action.at_guard else c.force_W
+                problem = self._verify(action.contacts, force_W)
+                if problem:
+                    c.stop()
+                    self._finish("failed", f"command {self.index}: {problem}")
+                    return
+            elif isinstance(action, ForgetPayload):
+                c.world.unlock_fingers()
+                c.sensor.clear_payload()
+            elif isinstance(action, LockGrip):
+                c.world.lock_fingers()
+            elif isinstance(action, MoveTo):
                 try:
-                    c.start_move(action.X_WG, action.speed_mps)
+                    c.start_move(
+                        action.X_WG,
+                        action.speed_mps,
+                        guard=action.guard,
+                        impedance=action.impedance,
+                        force_limit_n=action.force_limit_n,
+                    )
                 except ValueError as e:
                     self._finish("failed", f"command {self.index}: {e}")
-            else:
+                return
+            elif isinstance(action, SetFingers):
                 c.world.finger_target_m = action.each_m
                 self._fingers_last, self._fingers_still, self._fingers_ticks = -1.0, 0, 0
-            return
+                return
+            elif isinstance(action, Weigh):
+                self._weighed = []
+                return
+            self._actions.pop(0)
+
+    def _verify(self, contacts: tuple[ContactState, ...], force_W: np.ndarray) -> str:
+        """Report the contacts verified by ``force_W`` (N, W); the reason if one is not ("" if
+        all are)."""
+        directions = contact_directions(contacts)
+        f = contact_forces_n(force_W, np.array([n for _, n in directions]))
+        weakest = int(np.argmin(f))
+        summary = ", ".join(
+            f"{name} {fi:.1f} N along {np.round(n, 2).tolist()}"
+            for (name, n), fi in zip(directions, f, strict=True)
+        )
+        if f[weakest] < CONTACT_VERIFY_N:
+            return (
+                f"contact with {directions[weakest][0]} not verified: {f[weakest]:.1f} N along "
+                f"its normal, below {CONTACT_VERIFY_N} N (wrist force "
+                f"{np.round(force_W, 1).tolist()} N; {summary})"
+            )
+        self.report(self.program.program_id, self.index, "contact_verified", summary)
+        return ""
 
     def stop(self, reason: str) -> None:
         """Stop now: hold the arm where it is."""

@@ -1,0 +1,168 @@
+"""Force at the work site: the wrist sensor, guarded moves, impedance and the execution monitor,
+in real pybullet with the block's real pose as the judge (issue 5)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pybullet as p
+import pytest
+
+from models.transforms import make_pose, rpy_to_R
+from protocol import ContactState, MotionCommand, MotionProgram
+from work_site.control import benchmark
+from work_site.control.executor import (
+    CONTACT_VERIFY_N,
+    TARGET_BIAS_M,
+    TARGET_BIAS_MAX_M,
+    Execution,
+    check_program,
+    contact_forces_n,
+    target_bias_W,
+)
+
+TABLE = ContactState(object="table", normals_W=np.array([[0.0, 0.0, 1.0]]))
+
+
+@pytest.fixture
+def site():
+    world, controller = benchmark._site()
+    yield world, controller
+    world.close()
+
+
+def run(program: MotionProgram, controller) -> list[tuple]:
+    reports: list[tuple] = []
+    problem = check_program(program, controller)
+    assert problem == "", problem
+    execution = Execution(program, controller, lambda *r: reports.append(r))
+    for _ in range(6000):
+        execution.tick()
+        if execution.finished:
+            return reports
+    raise AssertionError("program did not finish")
+
+
+@pytest.mark.parametrize("rpy", [(math.pi, 0.0, math.pi), (math.pi, 0.4, 2.0)])
+def test_the_wrist_sensor_reads_a_known_force_on_the_hand(site, rpy) -> None:
+    world, c = site
+    c.start_move(make_pose(rpy_to_R(np.array(rpy)), (0.45, -0.1, 0.2)), 0.2)
+    while c.tick().status == "moving":
+        pass
+    for _ in range(30):
+        c.tick()
+    np.testing.assert_allclose(c.force_W, 0.0, atol=0.01)  # the hand's weight is removed
+    F_W = np.array([3.0, -2.0, 4.0])
+    hand = world.finger_joints[0] - 1  # gripper_base, the fingers' parent link
+    for _ in range(30):
+        at = c.measured_tcp_W()[:3, 3]
+        p.applyExternalForce(world.robot, hand, F_W, at, p.WORLD_FRAME, physicsClientId=world.cid)
+        c.steps_per_tick = 1  # applyExternalForce lasts one step
+        c.tick()
+    np.testing.assert_allclose(c.force_W, F_W, atol=0.1)
+
+
+def test_a_guarded_move_stops_on_the_table_within_5_N_of_its_threshold() -> None:
+    result = benchmark.guarded_touch(0.02)
+    assert result["status"] == "guarded"
+    assert 0.0 <= result["overshoot_n"] <= 5.0, result
+    assert result["held_n"] > 0.0  # still touching after the stop, not bounced off
+
+
+def test_corner_placement_ends_within_1_mm_and_1_degree_with_three_contacts_verified() -> None:
+    result = benchmark.corner()
+    assert result["corner_status"] == "done", result["corner_message"]
+    assert result["corner_contacts_verified"]
+    assert result["corner_error_mm"] <= 1.0, result
+    assert result["corner_error_deg"] <= 1.0, result
+    report = result["corner_contact_report"]
+    assert "table" in report and report.count("frame") == 2, report
+
+
+def test_sliding_along_a_wall_keeps_the_normal_force_in_its_band() -> None:
+    result = benchmark.slide()
+    assert result["slide_status"] == "done", result["slide_message"]
+    assert result["slide_samples"] > 100
+    low, high = result["slide_band_n"]
+    assert low <= result["slide_normal_n_min"] <= result["slide_normal_n_max"] <= high, result
+
+
+def _grasp_and_lift(world) -> tuple[list[MotionCommand], np.ndarray]:
+    X = world.object_pose("cube")
+    lifted = X.copy()
+    lifted[2, 3] += 0.06
+    return [benchmark._cmd("guarded_grasp", X, 0.1), benchmark._cmd("move", lifted, 0.1)], lifted
+
+
+def test_a_contact_that_is_not_there_fails_the_program(site) -> None:
+    world, c = site
+    commands, lifted = _grasp_and_lift(world)
+    down = lifted.copy()
+    down[:3, 3] = (0.25, -0.2, benchmark.CUBE_HALF_M)  # open table: no wall at −x
+    above = down.copy()
+    above[2, 3] += 0.05
+    wall = ContactState(object="frame", normals_W=np.array([[1.0, 0.0, 0.0]]))
+    program = MotionProgram(
+        program_id="ghost",
+        X_GP=benchmark.corner_grasp_GP(),
+        commands=(
+            *commands,
+            benchmark._cmd("move", above, 0.1),
+            benchmark._cmd("guarded_move", down, 0.02, (TABLE,), benchmark.PLACE_GUARD_N),
+            benchmark._cmd("contact_move", down, 0.01, (TABLE, wall)),
+        ),
+    )
+    reports = run(program, c)
+    assert reports[-1][2] == "failed", reports[-1]
+    assert "contact with frame not verified" in reports[-1][3]
+    assert any(r[2] == "contact_verified" and "table" in r[3] for r in reports)
+
+
+def test_a_guarded_move_that_meets_nothing_fails(site) -> None:
+    world, c = site
+    commands, lifted = _grasp_and_lift(world)
+    floating = lifted.copy()
+    floating[2, 3] += 0.02  # upwards, into the air, expecting the table
+    program = MotionProgram(
+        program_id="air",
+        X_GP=benchmark.corner_grasp_GP(),
+        commands=(*commands, benchmark._cmd("guarded_move", floating, 0.02, (TABLE,))),
+    )
+    reports = run(program, c)
+    assert reports[-1][2] == "failed" and "without contact" in reports[-1][3], reports[-1]
+
+
+def test_an_unexpected_force_stops_the_arm_at_the_commands_limit(site) -> None:
+    world, c = site
+    commands, lifted = _grasp_and_lift(world)
+    pressed = lifted.copy()
+    pressed[2, 3] = benchmark.CUBE_HALF_M - 0.004  # 4 mm into the table: a plain move
+    program = MotionProgram(
+        program_id="press",
+        X_GP=benchmark.corner_grasp_GP(),
+        commands=(*commands, benchmark._cmd("move", pressed, 0.02, force_n=8.0)),
+    )
+    reports = run(program, c)
+    assert reports[-1][2] == "failed", reports[-1]
+    assert "exceeds the limit of 8.0 N" in reports[-1][3]
+    assert c.move is None  # held where it stopped
+
+
+def test_the_target_bias_solves_N_dp_equals_minus_d() -> None:
+    corner = np.eye(3)
+    dp = target_bias_W(corner)
+    np.testing.assert_allclose(corner @ dp, -TARGET_BIAS_M * np.ones(3), atol=1e-15)
+    # Nearly parallel normals would ask for a long bias: its norm is bounded.
+    tilt = math.radians(2.0)
+    wedge = np.array([[1.0, 0.0, 0.0], [math.cos(tilt), math.sin(tilt), 0.0]])
+    assert np.linalg.norm(target_bias_W(wedge)) <= TARGET_BIAS_MAX_M + 1e-15
+
+
+def test_contact_forces_split_a_wrench_along_the_normals() -> None:
+    normals = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    np.testing.assert_allclose(contact_forces_n([3.0, 4.0, 5.0], normals), [5.0, 3.0, 4.0])
+    # A pull away from a wall is no contact force (never negative).
+    f = contact_forces_n([-3.0, 0.0, 5.0], normals)
+    assert f[1] == 0.0 and f[0] == pytest.approx(5.0)
+    assert CONTACT_VERIFY_N > 0

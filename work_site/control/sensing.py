@@ -1,0 +1,57 @@
+"""The wrist force sensor, read as the force the world exerts on the gripper and what it holds.
+
+pybullet reports the sensor joint's reaction ``wrench_S``: the force the flange exerts on the
+sensor's child link, in the sensor frame S. Held still in free space it carries the weight of
+everything beyond the sensor (measured: 8.348 N for the model's 0.851 kg), so the external
+force on the hand, in W, is ``−R_WS f_S − m_hand g_W`` (checked by applying known forces in
+tests/test_control_force.py).
+
+The held block's weight is measured once it hangs free and removed until the fingers open
+(§VI-B: payload gravity compensated in the wrench). The fingers' gear coupling must be off while
+holding (see ``World.lock_fingers``): pybullet leaves its force out of this reaction.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.robot import RobotModel
+from work_site.world import FT_SENSOR_JOINT, GRAVITY_W, RobotSnapshot
+
+
+def mass_beyond_kg(robot: RobotModel, joint_name: str) -> float:
+    """The mass of every link beyond joint ``joint_name`` (its child and descendants)."""
+    children: dict[str, list[str]] = {}
+    for j in robot.joints:
+        children.setdefault(j.parent, []).append(j.child)
+    stack, total = [robot.joint(joint_name).child], 0.0
+    while stack:
+        link = stack.pop()
+        total += robot.links[link].mass
+        stack.extend(children.get(link, []))
+    return total
+
+
+class WristSensor:
+    """External force on the hand (N, in W), with the hand's and the payload's weight removed."""
+
+    def __init__(self, robot: RobotModel) -> None:
+        self.hand_mass_kg = mass_beyond_kg(robot, FT_SENSOR_JOINT)
+        self._hand_weight_W = self.hand_mass_kg * np.asarray(GRAVITY_W, dtype=np.float64)
+        self.payload_W = np.zeros(3)
+        """The held payload's weight (N, in W), as last measured by :meth:`tare`."""
+
+    def force_W(self, snapshot: RobotSnapshot) -> np.ndarray:
+        """External force on hand + payload (N, W), payload weight removed."""
+        R_WS = snapshot.X_WF[:3, :3]  # the sensor joint is fixed at the flange, unrotated
+        return -R_WS @ snapshot.wrench_S[:3] - self._hand_weight_W - self.payload_W
+
+    def tare(self, force_W: np.ndarray) -> float:
+        """Take ``force_W`` (mean :meth:`force_W`, held still and free of contact) as the
+        payload's weight; returns the payload's mass (kg)."""
+        self.payload_W = self.payload_W + np.asarray(force_W, dtype=np.float64)
+        return float(-self.payload_W[2] / np.linalg.norm(GRAVITY_W))
+
+    def clear_payload(self) -> None:
+        """The fingers have opened: nothing is held."""
+        self.payload_W = np.zeros(3)
