@@ -37,7 +37,8 @@ HARD_FORCE_LIMIT_N = 40.0
 FORCE_WINDOW_STEPS = 5
 """Guards and limits look at the mean of this many 1 ms readings: a servo setpoint change
 reads as up to 4.3 N for a single step while accelerating (measured), and a stop's deceleration
-as tens of newtons; neither is a contact. The window delays detection by 2.5 ms."""
+as tens of newtons; neither is a contact. The window delays detection by 2.5 ms (tried: a
+guard on two readings in a row instead overshot more, 10 N at 40 mm/s against 3.6 N)."""
 
 
 @dataclass(frozen=True)
