@@ -20,6 +20,7 @@ from protocol import (
     Heartbeat,
     MotionProgram,
     ProtocolError,
+    Recognitions,
     RobotState,
     Stop,
     alive_key,
@@ -83,6 +84,9 @@ class WorkSiteLink:
         self._sub_state = self.session.declare_subscriber(key(site_id, "robot_state"), ring(4))
         self._sub_camera = self.session.declare_subscriber(key(site_id, "camera"), ring(1))
         self._sub_report = self.session.declare_subscriber(key(site_id, "report"), ring(256))
+        self._sub_recognitions = self.session.declare_subscriber(
+            key(site_id, "recognitions"), ring(1)
+        )
         self._sub_heartbeat = self.session.declare_subscriber(key(site_id, "heartbeat"), ring(4))
         self._sub_alive = self.session.liveliness().declare_subscriber(
             alive_key(site_id, "work_site"), ring(16), history=True
@@ -96,6 +100,8 @@ class WorkSiteLink:
         self.status = LinkStatus()
         self.robot_state: RobotState | None = None
         self.camera_frame: CameraFrame | None = None
+        self.recognitions: Recognitions | None = None
+        """The latest recognitions the work site published (with its frame's ``seq``)."""
         self._state_rate, self._frame_rate = RateMeter(), RateMeter()
         self._last_state_s: float | None = None
         self._last_frame_s: float | None = None
@@ -131,6 +137,9 @@ class WorkSiteLink:
             if (msg := self._decode(sample, ExecutionReport, "execution report")) is not None:
                 self.status.reports.append(msg)
                 del self.status.reports[:-100]
+        while (sample := self._sub_recognitions.try_recv()) is not None:
+            if (msg := self._decode(sample, Recognitions, "recognitions")) is not None:
+                self.recognitions = msg
         while (sample := self._sub_heartbeat.try_recv()) is not None:
             self._decode(sample, Heartbeat, "heartbeat")
         s = self.status

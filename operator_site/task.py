@@ -77,6 +77,15 @@ class TaskSession:
         self.X_WO[self.sim.world.workpiece] = result.X_WO
         return result
 
+    def replay(self, path_X_WO: list[np.ndarray]) -> None:
+        """Drag the selected workpiece through ``path_X_WO`` again, one simulator step per
+        pose (a saved task coming back with its history)."""
+        if self.sim is None:
+            raise ValueError("select a workpiece first")
+        for X in path_X_WO:
+            self.set_target(X)
+            self.step()
+
     def reset(self) -> None:
         """Put the workpiece back where it was when selected and forget the path."""
         if self.sim is None or self.start_X_WO is None:

@@ -94,7 +94,9 @@ def test_page_shows_scene_camera_and_connected_status(tmp_path: Path) -> None:
                 page.get_by_role("button", name="make the robot program").click()
                 page.get_by_text("guarded_grasp to").wait_for(timeout=30_000)
                 page.get_by_role("button", name="send it to the robot").click()
-                page.get_by_text("program complete").wait_for(timeout=120_000)
+                # In the status line and in the execution log.
+                page.get_by_text("program complete").first.wait_for(timeout=120_000)
+                assert page.get_by_role("button", name="STOP the robot").is_visible()
                 page.screenshot(path=str(SCREENSHOT_DIR / "operator_page_program_done.png"))
             finally:
                 browser.close()

@@ -12,7 +12,7 @@ from operator_site.link import WorkSiteLink
 from operator_site.task import TaskSession
 from operator_site.ui import NO_WORKPIECE, OperatorPage
 from protocol import make_config
-from tests.conftest import free_port
+from tests.conftest import free_port, wait_until
 
 CUBE_HALF = 0.025
 
@@ -120,3 +120,87 @@ def test_dragging_into_the_frame_corner_from_the_page(page: OperatorPage) -> Non
     # keeps it a finger (15 mm) away, while the x wall and the table are met at ε_b.
     np.testing.assert_allclose(gap, [eps_b, 0.015 + eps_b, eps_b], atol=1e-6)
     np.testing.assert_allclose(X[:3, :3], make_pose()[:3, :3], atol=1e-6)
+
+
+def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) -> None:
+    from protocol import Recognition, Recognitions
+
+    page.on_select(NO_WORKPIECE)
+    for name in list(page.model.poses):
+        page.on_remove(name)
+    assert not page.object_frames["cube"].visible and page.object_frames["frame"].visible
+    assert page.workpiece_dropdown.options == (NO_WORKPIECE,)
+    assert page.on_accept_recognitions() == 0  # nothing recognised yet: says so
+    assert "Nothing recognised yet" in page.model_md.content
+    scene = page.scene
+    sunk = scene.object("cube").X_WO.copy()
+    sunk[2, 3] -= 0.002  # vision put it 2 mm into the table
+    page.link.recognitions = Recognitions(
+        seq=7,
+        stamp_s=0.0,
+        elapsed_s=0.05,
+        objects=(
+            Recognition(model="cube", X_WO=sunk, score=0.9),
+            Recognition(model="plank", X_WO=scene.object("plank").X_WO, score=0.8),
+            Recognition(model="wedge", X_WO=scene.object("wedge").X_WO, score=0.2),  # too weak
+        ),
+    )
+    page.update()
+    assert "cube: score 0.90 (not accepted)" in page.recognitions_md.content
+    assert page.on_accept_recognitions() == 2
+    assert set(page.model.poses) == {"cube", "plank"}
+    assert page.object_frames["cube"].visible and not page.object_frames["wedge"].visible
+    assert page.workpiece_dropdown.options == (NO_WORKPIECE, "cube", "plank")
+    assert "cube: moved 2.1 mm" in page.model_md.content  # the correction, shown
+    assert page.session.X_WO["cube"][2, 3] == pytest.approx(
+        CUBE_HALF + page.session.params.eps_barrier_m, abs=1e-5
+    )
+    # Remove mode: a click in the 3D view takes a block out of the model.
+    page.remove_mode.value = True
+    page.on_click_object("plank")
+    page.remove_mode.value = False
+    assert set(page.model.poses) == {"cube"} and not page.object_frames["plank"].visible
+    page.on_select("plank")  # no longer in the model: refused, with the reason
+    assert page.session.workpiece is None and "no object 'plank'" in page.message
+
+
+def test_the_stop_button_sends_a_stop(page: OperatorPage) -> None:
+    from protocol import Stop, decode, key
+
+    got = []
+    sub = page.link.session.declare_subscriber(
+        key(page.link.site_id, "stop"), lambda s: got.append(decode(s.payload.to_bytes(), Stop))
+    )
+    page.on_stop()
+    assert wait_until(lambda: bool(got), 5.0)
+    assert got[0].reason == "operator pressed stop"
+    assert "stop sent" in page.program_md.content
+    sub.undeclare()
+
+
+def test_a_task_saved_and_loaded_comes_back(page: OperatorPage, tmp_path) -> None:
+    page.on_select("cube")
+    start = page.session.X_WO["cube"].copy()
+    page.dragger.position = tuple(start[:3, 3] + [0.05, 0.02, -0.003])
+    page.on_drag()
+    for _ in range(60):
+        page.step_task()
+    end = page.session.X_WO["cube"].copy()
+    path = tmp_path / "task.json"
+    page.on_save(str(path))
+    assert "saved to" in page.task_md.content and path.exists()
+    page.on_reset()
+    np.testing.assert_array_equal(page.session.X_WO["cube"], start)
+    page.on_load(str(path))
+    assert "60 steps replayed" in page.task_md.content, page.task_md.content
+    assert page.session.workpiece == "cube"
+    np.testing.assert_allclose(page.session.X_WO["cube"][:3, 3], end[:3, 3], atol=1e-4)
+    np.testing.assert_allclose(page.session.start_X_WO, start, atol=1e-12)
+    # A bad file says what is wrong and changes nothing.
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    page.on_load(str(bad))
+    assert "⚠" in page.task_md.content and "bad.json" in page.task_md.content
+    assert page.session.workpiece == "cube"
+    page.on_load(str(tmp_path / "missing.json"))
+    assert "cannot read it" in page.task_md.content
