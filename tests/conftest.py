@@ -50,8 +50,11 @@ def work_site(tmp_path: Path) -> Iterator[Callable[..., WorkSiteProcess]]:
     """Start ``python -m work_site serve`` on a free port; killed at the end of the test."""
     started: list[WorkSiteProcess] = []
 
-    def start(*extra: str, site_id: str = "test") -> WorkSiteProcess:
+    def start(*extra: str, site_id: str = "test", vision: bool = False) -> WorkSiteProcess:
+        """``vision``: run recognition too (off by default: it costs a core)."""
         endpoint = f"tcp/127.0.0.1:{free_port()}"
+        if not vision and "--vision-rate" not in extra:
+            extra = (*extra, "--vision-rate", "0")
         log_path = tmp_path / f"work_site_{len(started)}.log"
         with log_path.open("w") as log:
             proc = subprocess.Popen(

@@ -48,6 +48,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+DEFAULT_VISION_RATE_HZ = 1.0
+"""Vision's default rate: what it sustains here next to the camera renderer and the 1 kHz
+control loop on two cores (see docs/benchmarks.md)."""
+
+
 def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--scene",
@@ -85,6 +90,14 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         help="render N× larger and average down, for realistic edges (cost ≈ N²)",
     )
     parser.add_argument(
+        "--vision-rate",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="recognise at most this many camera frames per second, in a separate process; "
+        "0 turns vision off (default: 1 with the camera, 0 without)",
+    )
+    parser.add_argument(
         "--physics-rate",
         type=float,
         default=1000.0,
@@ -114,6 +127,11 @@ def serve(args: argparse.Namespace) -> int:
             state_rate_hz=args.state_rate,
             camera=not args.no_camera,
             camera_supersample=args.camera_supersample,
+            vision_rate_hz=(
+                args.vision_rate
+                if args.vision_rate is not None
+                else (0.0 if args.no_camera else DEFAULT_VISION_RATE_HZ)
+            ),
         )
         listen = args.listen if args.listen is not None else [DEFAULT_WORK_SITE_ENDPOINT]
         config = make_config(listen=listen, connect=args.connect)

@@ -1,6 +1,7 @@
 """The work-site server: steps the world in real time and talks to operator sites over zenoh.
 
-Publishes robot state (≥ 100 Hz), grey camera frames (at the camera's rate) and a heartbeat;
+Publishes robot state (≥ 100 Hz), grey camera frames (at the camera's rate), the objects vision
+recognises in them (at ``vision_rate_hz`` or as fast as vision keeps up) and a heartbeat;
 declares a liveliness token; takes programs and stops from the wire. Whatever arrives is decoded
 and validated first, and nothing that arrives can stop this loop.
 """
@@ -23,6 +24,8 @@ from protocol import (
     Heartbeat,
     MotionProgram,
     ProtocolError,
+    Recognition,
+    Recognitions,
     RobotState,
     Stop,
     alive_key,
@@ -33,6 +36,7 @@ from protocol import (
 from work_site.camera import CameraProcess, RenderRequest
 from work_site.control.controller import CONTROL_PERIOD_S, TaskController
 from work_site.control.executor import Execution, check_program
+from work_site.recognition import VisionProcess, VisionResult
 from work_site.world import World
 
 log = logging.getLogger("work-site")
@@ -53,6 +57,9 @@ class ServerOptions:
     heartbeat_rate_hz: float = 1.0
     camera: bool = True
     camera_supersample: int = 1
+    vision_rate_hz: float = 0.0
+    """Frames recognised per second at most (0: no vision). Vision runs in its own process,
+    on the newest frame whenever it is idle."""
 
     def __post_init__(self) -> None:
         if not 100.0 <= self.physics_rate_hz <= 10000.0:
@@ -65,6 +72,10 @@ class ServerOptions:
             raise ValueError("heartbeat_rate_hz must be in (0, 100]")
         if self.camera_supersample < 1:
             raise ValueError("camera_supersample must be ≥ 1")
+        if not 0.0 <= self.vision_rate_hz <= 100.0:
+            raise ValueError(f"vision_rate_hz must be in [0, 100], got {self.vision_rate_hz}")
+        if self.vision_rate_hz > 0 and not self.camera:
+            raise ValueError("vision needs the camera")
 
 
 class WorkSiteServer:
@@ -76,7 +87,7 @@ class WorkSiteServer:
         self.scene = scene
         self.options = options or ServerOptions()
         self._zenoh_config = zenoh_config
-        self.stats = {"states": 0, "frames": 0, "refused": 0, "late_ticks": 0}
+        self.stats = {"states": 0, "frames": 0, "recognitions": 0, "refused": 0, "late_ticks": 0}
         self._execution: Execution | None = None
         self._seen_programs: set[str] = set()
         self._faults_logged: set[str] = set()
@@ -86,10 +97,13 @@ class WorkSiteServer:
         opts = self.options
         world = World(self.scene, time_step_s=1.0 / opts.physics_rate_hz)
         camera = CameraProcess(self.scene.path, opts.camera_supersample) if opts.camera else None
+        self._vision = VisionProcess(self.scene.path) if opts.vision_rate_hz > 0 else None
         try:
             with zenoh.open(self._zenoh_config) as session:
                 self._serve(session, world, camera, stop, ready)
         finally:
+            if self._vision is not None:
+                self._vision.close()
             if camera is not None:
                 camera.close()
             world.close()
@@ -112,6 +126,10 @@ class WorkSiteServer:
             key(site, "camera"), congestion_control=drop, priority=zenoh.Priority.DATA_LOW
         )
         pub_heartbeat = session.declare_publisher(key(site, "heartbeat"))
+        self._pub_recognitions = session.declare_publisher(
+            key(site, "recognitions"), priority=zenoh.Priority.DATA
+        )
+        self._next_vision_s = 0.0
         self._pub_report = session.declare_publisher(
             key(site, "report"), priority=zenoh.Priority.INTERACTIVE_HIGH
         )
@@ -181,6 +199,7 @@ class WorkSiteServer:
                             )
                         )
                         self.stats["frames"] += 1
+                        self._recognise(seq, stamp, image, elapsed)
                     if elapsed >= next_frame_s and not camera.busy:
                         q, fingers = world.robot_joint_positions()
                         camera.request(
@@ -188,6 +207,10 @@ class WorkSiteServer:
                         )
                         seq_frame += 1
                         next_frame_s = max(next_frame_s + camera_period_s, elapsed)
+                if self._vision is not None:
+                    result = self._vision.poll()
+                    if result is not None:
+                        self._publish_recognitions(result)
                 if elapsed >= next_heartbeat_s:
                     pub_heartbeat.put(
                         encode(
@@ -209,6 +232,33 @@ class WorkSiteServer:
             inbox_stop.undeclare()
             token.undeclare()
             log.info("work site %r stopped: %s", site, self.stats)
+
+    def _recognise(self, seq: int, stamp_s: float, image, elapsed_s: float) -> None:
+        """Hand a new frame to vision if it is idle and its rate allows."""
+        vision = self._vision
+        if vision is None or elapsed_s < self._next_vision_s:
+            return
+        if vision.request(seq, stamp_s, image):
+            self._next_vision_s = elapsed_s + 1.0 / self.options.vision_rate_hz
+
+    def _publish_recognitions(self, result: VisionResult) -> None:
+        if result.error:
+            log.warning("vision failed on frame %d: %s", result.seq, result.error)
+        objects = tuple(
+            Recognition(model=name, X_WO=X, score=score)
+            for name, X, score in result.objects
+        )
+        self._pub_recognitions.put(
+            encode(
+                Recognitions(
+                    seq=result.seq,
+                    stamp_s=result.stamp_s,
+                    elapsed_s=result.elapsed_s,
+                    objects=objects,
+                )
+            )
+        )
+        self.stats["recognitions"] += 1
 
     @staticmethod
     def _robot_state(world: World, seq: int) -> RobotState:

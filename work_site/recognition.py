@@ -1,0 +1,112 @@
+"""Recognition of the camera's frames in a child process (§IV), so that vision never stalls the
+control loop: the server hands it the newest frame whenever it is idle, at most at the rate it is
+given, and publishes what comes back with the frame's sequence number."""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("work-site")
+
+
+@dataclass(frozen=True)
+class VisionResult:
+    """What vision found in frame ``seq`` (objects as (model, X_WO, score)), or why it failed."""
+
+    seq: int
+    stamp_s: float
+    elapsed_s: float
+    objects: tuple[tuple[str, np.ndarray, float], ...]
+    error: str = ""
+
+
+def _vision_worker(scene_path: str, conn) -> None:
+    from models.scene import load_scene
+    from work_site.vision.recognizer import Recognizer
+
+    scene = load_scene(scene_path)
+    try:
+        recognizer = Recognizer(scene=scene)
+    except Exception as e:  # reported to the server, which keeps serving
+        conn.send(VisionResult(-1, 0.0, 0.0, (), f"vision could not start: {e}"))
+        return
+    conn.send(VisionResult(-1, 0.0, 0.0, ()))  # ready
+    try:
+        while True:
+            request = conn.recv()
+            if request is None:
+                return
+            seq, stamp_s, image = request
+            t0 = time.perf_counter()
+            try:
+                found = recognizer.recognise(image, scene.camera)
+                objects = tuple((r.model, r.X_WO, float(r.score)) for r in found)
+                error = ""
+            except Exception as e:  # one bad frame must not end vision
+                objects, error = (), f"{type(e).__name__}: {e}"
+            conn.send(VisionResult(seq, stamp_s, time.perf_counter() - t0, objects, error))
+    except (EOFError, KeyboardInterrupt):
+        return
+
+
+class VisionProcess:
+    """Recognises frames in a child process; at most one frame in flight."""
+
+    def __init__(self, scene_path: Path) -> None:
+        ctx = mp.get_context("spawn")  # never fork a process that runs zenoh threads
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(
+            target=_vision_worker, args=(str(scene_path), child), name="vision", daemon=True
+        )
+        self._proc.start()
+        child.close()
+        self.ready = False
+        self.busy = True  # until the worker says it is ready
+        self.failed = ""
+
+    def request(self, seq: int, stamp_s: float, image: np.ndarray) -> bool:
+        """Start recognising a frame unless busy (or not ready); True if started."""
+        if self.busy or not self.ready:
+            return False
+        self._conn.send((seq, stamp_s, image))
+        self.busy = True
+        return True
+
+    def poll(self) -> VisionResult | None:
+        """A finished result if one is ready, without waiting."""
+        if self.failed:
+            return None
+        if self.busy and self._conn.poll():
+            self.busy = False
+            result: VisionResult = self._conn.recv()
+            if result.seq < 0:  # the worker's start-up message
+                if result.error:
+                    self.failed = result.error
+                    log.error("%s; serving without vision", result.error)
+                else:
+                    self.ready = True
+                    log.info("vision ready")
+                return None
+            return result
+        if not self._proc.is_alive():
+            self.failed = f"vision process died (exit code {self._proc.exitcode})"
+            log.error("%s; serving without vision", self.failed)
+        return None
+
+    def close(self) -> None:
+        """Stop the vision process."""
+        try:
+            self._conn.send(None)
+        except (BrokenPipeError, OSError):
+            pass
+        self._proc.join(timeout=5)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(timeout=5)
+        self._conn.close()
