@@ -22,6 +22,7 @@ from .messages import (
     Recognitions,
     RobotState,
     Stop,
+    TruthPoses,
 )
 
 KEY_PREFIX = "telerobot"
@@ -35,6 +36,7 @@ TOPIC_MESSAGE_TYPES: Mapping[str, type[Message]] = {
     "report": ExecutionReport,
     "stop": Stop,
     "heartbeat": Heartbeat,
+    "truth": TruthPoses,
 }
 """The one message type published on each topic."""
 

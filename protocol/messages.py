@@ -286,6 +286,33 @@ class Heartbeat(Message):
     stamp_s: float
 
 
+@dataclass(frozen=True, eq=False)
+class ObjectPose(Record):
+    """One object's name and pose ``X_WO`` (nested in :class:`TruthPoses`)."""
+
+    _SPEC: ClassVar[Mapping[str, Field]] = {"name": _NAME, "X_WO": _POSE}
+
+    name: str
+    X_WO: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class TruthPoses(Message):
+    """Where the simulated work site's objects really are: its ground truth, published for
+    evaluating the system end to end (a real work site has none to publish)."""
+
+    TYPE: ClassVar[str] = "truth_poses"
+    _SPEC: ClassVar[Mapping[str, Field]] = {
+        "seq": _SEQ,
+        "stamp_s": _STAMP,
+        "objects": TupleField(ObjectPose, 0, MAX_RECOGNITIONS),
+    }
+
+    seq: int
+    stamp_s: float
+    objects: tuple[ObjectPose, ...]
+
+
 MESSAGE_TYPES: Mapping[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (
@@ -296,10 +323,11 @@ MESSAGE_TYPES: Mapping[str, type[Message]] = {
         ExecutionReport,
         Stop,
         Heartbeat,
+        TruthPoses,
     )
 }
 """Top-level message classes by type tag."""
 
-for _cls in (*MESSAGE_TYPES.values(), Recognition, ContactState, MotionCommand):
+for _cls in (*MESSAGE_TYPES.values(), Recognition, ContactState, MotionCommand, ObjectPose):
     check_spec_matches_fields(_cls)
 del _cls

@@ -29,11 +29,13 @@ from protocol import (
     Heartbeat,
     MotionCommand,
     MotionProgram,
+    ObjectPose,
     ProtocolError,
     Recognition,
     Recognitions,
     RobotState,
     Stop,
+    TruthPoses,
     decode,
     encode,
 )
@@ -186,6 +188,13 @@ heartbeats = st.builds(
     stamp_s=nonneg,
 )
 
+truth_poses = st.builds(
+    TruthPoses,
+    seq=seqs,
+    stamp_s=nonneg,
+    objects=st.lists(st.builds(ObjectPose, name=names, X_WO=poses()), max_size=3).map(tuple),
+)
+
 STRATEGIES: dict[type, st.SearchStrategy[Any]] = {
     CameraFrame: camera_frames(),
     Recognitions: recognitions,
@@ -194,6 +203,7 @@ STRATEGIES: dict[type, st.SearchStrategy[Any]] = {
     ExecutionReport: execution_reports,
     Stop: stops,
     Heartbeat: heartbeats,
+    TruthPoses: truth_poses,
 }
 
 
@@ -252,6 +262,9 @@ def random_message(cls: type, seed: int) -> Any:
         )
     if cls is Stop:
         return Stop("operator pressed stop", stamp)
+    if cls is TruthPoses:
+        objects = tuple(ObjectPose(name, random_pose(rng)) for _ in range(rng.integers(0, 4)))
+        return TruthPoses(seq, stamp, objects)
     assert cls is Heartbeat
     return Heartbeat(name.replace(".", "_"), str(rng.choice(ROLES)), seq, stamp)
 
@@ -349,6 +362,12 @@ def test_round_trip_stop(msg: Stop) -> None:
 @MANY
 @given(heartbeats)
 def test_round_trip_heartbeat(msg: Heartbeat) -> None:
+    check_round_trip(msg)
+
+
+@MANY
+@given(truth_poses)
+def test_round_trip_truth_poses(msg: TruthPoses) -> None:
     check_round_trip(msg)
 
 

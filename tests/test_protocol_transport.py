@@ -44,6 +44,7 @@ def test_keys() -> None:
         "report",
         "stop",
         "heartbeat",
+        "truth",
     }
     assert {key("s", t).rsplit("/", 1)[1] for t in TOPICS} == set(TOPICS)
     assert set(TOPIC_MESSAGE_TYPES.values()) == set(protocol.MESSAGE_TYPES.values())

@@ -23,11 +23,13 @@ from protocol import (
     ExecutionReport,
     Heartbeat,
     MotionProgram,
+    ObjectPose,
     ProtocolError,
     Recognition,
     Recognitions,
     RobotState,
     Stop,
+    TruthPoses,
     alive_key,
     decode,
     encode,
@@ -130,6 +132,7 @@ class WorkSiteServer:
             key(site, "recognitions"), priority=zenoh.Priority.DATA
         )
         self._next_vision_s = 0.0
+        pub_truth = session.declare_publisher(key(site, "truth"), congestion_control=drop)
         self._pub_report = session.declare_publisher(
             key(site, "report"), priority=zenoh.Priority.INTERACTIVE_HIGH
         )
@@ -202,8 +205,12 @@ class WorkSiteServer:
                         self._recognise(seq, stamp, image, elapsed)
                     if elapsed >= next_frame_s and not camera.busy:
                         q, fingers = world.robot_joint_positions()
-                        camera.request(
-                            RenderRequest(seq_frame, time.time(), world.object_poses(), q, fingers)
+                        poses = world.object_poses()
+                        camera.request(RenderRequest(seq_frame, time.time(), poses, q, fingers))
+                        # The simulation's ground truth, for end-to-end evaluation only.
+                        truth = tuple(ObjectPose(name=n, X_WO=X) for n, X in poses.items())
+                        pub_truth.put(
+                            encode(TruthPoses(seq=seq_frame, stamp_s=time.time(), objects=truth))
                         )
                         seq_frame += 1
                         next_frame_s = max(next_frame_s + camera_period_s, elapsed)
