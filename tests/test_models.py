@@ -254,3 +254,27 @@ def test_bad_scene_and_camera_files_name_the_problem(tmp_path: Path) -> None:
     cam_path.write_text(json.dumps(cam))
     with pytest.raises(ModelError, match=r"cam\.json: width must be"):
         load_camera(cam_path)
+
+
+def test_random_layouts_put_every_block_on_the_table_outside_the_frame_apart() -> None:
+    from models.layout import (
+        KEEP_OUT_W,
+        MAX_REACH_XY_M,
+        perturbed_camera_pose,
+        random_layout,
+    )
+
+    scene = load_scene()
+    for seed in range(50):
+        layout = random_layout(scene, seed)
+        assert set(layout) == {o.name for o in scene.movable}
+        centres = {n: X[:3, 3] for n, X in layout.items()}
+        for name, c in centres.items():
+            (kx0, kx1), (ky0, ky1) = KEEP_OUT_W
+            assert not (kx0 < c[0] < kx1 and ky0 < c[1] < ky1), (seed, name)
+            assert np.linalg.norm(c[:2]) <= MAX_REACH_XY_M
+            assert c[2] == scene.object(name).X_WO[2, 3]  # resting as in the scene file
+        assert random_layout(scene, seed).keys() == layout.keys()
+        np.testing.assert_array_equal(random_layout(scene, seed)["cube"], layout["cube"])
+    X = perturbed_camera_pose(scene.camera.X_WC, 3)
+    assert np.linalg.norm(X[:3, 3] - scene.camera.X_WC[:3, 3]) == pytest.approx(0.002)

@@ -7,6 +7,7 @@ world; the physics loop only sends poses and collects finished images, and never
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing as mp
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -91,10 +92,17 @@ class RenderRequest:
     fingers_m: np.ndarray
 
 
-def _render_worker(scene_path: str, supersample: int, conn: Connection) -> None:
+def _render_worker(
+    scene_path: str, supersample: int, X_WC: np.ndarray | None, conn: Connection
+) -> None:
     from work_site.world import World  # imported in the child: it owns its own client
 
-    world = World(load_scene(Path(scene_path)))
+    scene = load_scene(Path(scene_path))
+    if X_WC is not None:  # the real camera, off its calibrated pose
+        scene = dataclasses.replace(
+            scene, camera=dataclasses.replace(scene.camera, X_WC=np.asarray(X_WC))
+        )
+    world = World(scene)
     try:
         while True:
             request = conn.recv()
@@ -114,12 +122,15 @@ def _render_worker(scene_path: str, supersample: int, conn: Connection) -> None:
 class CameraProcess:
     """Renders in a child process; at most one request is in flight at a time."""
 
-    def __init__(self, scene_path: Path, supersample: int = 1) -> None:
+    def __init__(
+        self, scene_path: Path, supersample: int = 1, X_WC: np.ndarray | None = None
+    ) -> None:
+        """``X_WC``: where the camera really is, if not where the scene file says."""
         ctx = mp.get_context("spawn")  # never fork a process that runs zenoh threads
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
             target=_render_worker,
-            args=(str(scene_path), supersample, child),
+            args=(str(scene_path), supersample, X_WC, child),
             name="camera-renderer",
             daemon=True,
         )

@@ -6,6 +6,7 @@ work-site serve [--scene FILE] [--site-id ID] [--listen ENDPOINT] [--connect END
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import signal
 import sys
@@ -13,6 +14,7 @@ import threading
 from pathlib import Path
 
 from models.errors import ModelError
+from models.layout import perturbed_camera_pose, random_layout
 from models.scene import DEFAULT_SCENE, load_scene
 from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError, make_config
 from protocol.keys import check_site_id
@@ -90,6 +92,14 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         help="render N× larger and average down, for realistic edges (cost ≈ N²)",
     )
     parser.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        metavar="N",
+        help="lay the blocks out at random (seeded), outside the frame, and put the real "
+        "camera a little off its calibration (2 mm, 0.2°); default: the scene file as it is",
+    )
+    parser.add_argument(
         "--vision-rate",
         type=float,
         default=None,
@@ -121,7 +131,19 @@ def serve(args: argparse.Namespace) -> int:
     try:
         check_site_id(args.site_id)
         scene = load_scene(args.scene)
+        camera_X_WC = None
+        if args.seed is not None:
+            layout = random_layout(scene, args.seed)
+            scene = dataclasses.replace(
+                scene,
+                objects=tuple(
+                    dataclasses.replace(o, X_WO=layout[o.name]) if o.name in layout else o
+                    for o in scene.objects
+                ),
+            )
+            camera_X_WC = tuple(map(tuple, perturbed_camera_pose(scene.camera.X_WC, args.seed)))
         options = ServerOptions(
+            camera_X_WC=camera_X_WC,
             site_id=args.site_id,
             physics_rate_hz=args.physics_rate,
             state_rate_hz=args.state_rate,

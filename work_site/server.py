@@ -59,6 +59,9 @@ class ServerOptions:
     heartbeat_rate_hz: float = 1.0
     camera: bool = True
     camera_supersample: int = 1
+    camera_X_WC: tuple | None = None
+    """Where the camera really is (4×4 nested tuples), when not where its calibration says:
+    frames are rendered from here, vision still uses the calibrated model."""
     vision_rate_hz: float = 0.0
     """Frames recognised per second at most (0: no vision). Vision runs in its own process,
     on the newest frame whenever it is idle."""
@@ -98,7 +101,11 @@ class WorkSiteServer:
         """Serve until ``stop`` is set; ``ready`` is set once publishing has started."""
         opts = self.options
         world = World(self.scene, time_step_s=1.0 / opts.physics_rate_hz)
-        camera = CameraProcess(self.scene.path, opts.camera_supersample) if opts.camera else None
+        camera = (
+            CameraProcess(self.scene.path, opts.camera_supersample, opts.camera_X_WC)
+            if opts.camera
+            else None
+        )
         self._vision = VisionProcess(self.scene.path) if opts.vision_rate_hz > 0 else None
         try:
             with zenoh.open(self._zenoh_config) as session:

@@ -1,0 +1,70 @@
+"""Seeded variations of a scene for end-to-end runs: where the blocks lie, and how far the real
+camera is from its calibrated model."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from models.scene import Scene
+from models.transforms import make_pose, rpy_to_R, so3_exp
+
+LAYOUT_REGION_W = ((0.27, 0.63), (-0.30, 0.30))
+"""Where block centres may go (x from, to; y from, to; m): on the table within the arm's easy
+reach around the frame."""
+KEEP_OUT_W = ((0.31, 0.59), (-0.14, 0.14))
+"""No block centre inside the frame's outline grown by a block's half-width (m): blocks start
+outside the frame, leaving its corners free for the task."""
+MAX_REACH_XY_M = 0.58
+"""No block centre further than this from the robot's base axis (m): the wrist keeps ≥ 20 mm
+of reach in hand for grasps from above (the arm reaches 0.635 m from the shoulder)."""
+CLEARANCE_M = 0.012
+"""Blocks start at least this far apart (between their bounding circles), room for fingers."""
+MAX_TRIES = 2000
+
+
+def _radius_xy(scene: Scene, name: str) -> float:
+    V = np.vstack([p.vertices_O for p in scene.object(name).model.parts])
+    return float(np.max(np.linalg.norm(V[:, :2], axis=1)))
+
+
+def random_layout(scene: Scene, seed: int) -> dict[str, np.ndarray]:
+    """``X_WO`` for every movable object: standing as in the scene file, turned by a random yaw,
+    at a random place on the table outside the frame, none touching another."""
+    rng = np.random.default_rng(seed)
+    (x0, x1), (y0, y1) = LAYOUT_REGION_W
+    (kx0, kx1), (ky0, ky1) = KEEP_OUT_W
+    placed: dict[str, tuple[np.ndarray, float]] = {}
+    out: dict[str, np.ndarray] = {}
+    for obj in scene.movable:
+        r = _radius_xy(scene, obj.name)
+        for _ in range(MAX_TRIES):
+            xy = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
+            if (kx0 < xy[0] < kx1 and ky0 < xy[1] < ky1) or np.linalg.norm(xy) > MAX_REACH_XY_M:
+                continue
+            if any(np.linalg.norm(xy - c) < r + rc + CLEARANCE_M for c, rc in placed.values()):
+                continue
+            break
+        else:
+            raise ValueError(f"seed {seed}: no room for {obj.name} in {LAYOUT_REGION_W}")
+        yaw = rng.uniform(-math.pi, math.pi)
+        R = rpy_to_R(np.array([0.0, 0.0, yaw])) @ obj.X_WO[:3, :3]
+        out[obj.name] = make_pose(R, (xy[0], xy[1], obj.X_WO[2, 3]))
+        placed[obj.name] = (xy, r)
+    return out
+
+
+def perturbed_camera_pose(
+    X_WC: np.ndarray, seed: int, shift_m: float = 0.002, turn_rad: float = math.radians(0.2)
+) -> np.ndarray:
+    """``X_WC`` moved by a random ``shift_m`` and turned by a random ``turn_rad`` (the real
+    camera's offset from its calibration)."""
+    rng = np.random.default_rng(seed + 1_000_003)
+
+    def unit() -> np.ndarray:
+        v = rng.normal(size=3)
+        return v / np.linalg.norm(v)
+
+    X = np.array(X_WC, dtype=np.float64)
+    return make_pose(so3_exp(unit() * turn_rad) @ X[:3, :3], X[:3, 3] + unit() * shift_m)
