@@ -35,11 +35,20 @@ def finger_parts_O(robot: RobotModel, X_GP: np.ndarray, opening_m: float) -> lis
     return parts
 
 
-CORNER_FINGERTIP_DEPTH_M = 0.018
-"""A grasp reaching only this far down a 50 mm block keeps the fingertips 2 mm above the
-frame's 30 mm bars when the block sits in a corner. Measured: carried that way, a cube slipped
-out of the grip on the lift (the pads hold an 18 mm strip); such grasps need the pad and grip
-work of issue 5 first."""
+BAR_CLEARANCE_M = 0.032
+"""Fingertips at least this high above the table pass over the frame's 30 mm bars, so a block
+held that way can be pushed against a bar (DESIGN.md: grip high enough to clear them)."""
+MIN_GRIP_STRIP_M = 0.015
+"""A grip shorter than this down the block's sides is not trusted; lower blocks are held at
+mid-height (measured at the work site: an 18 mm strip carries the cube, 0.06 mm off)."""
+
+
+def bar_clearing_depth_m(bbox_O: np.ndarray) -> float | None:
+    """How far down an upright block (bottom on the table) the fingertips may reach and still
+    clear the bars; None if that leaves less than :data:`MIN_GRIP_STRIP_M` to hold."""
+    lo, hi = np.asarray(bbox_O, dtype=np.float64)
+    depth = float(hi[2] - lo[2]) - BAR_CLEARANCE_M
+    return depth if depth >= MIN_GRIP_STRIP_M else None
 
 
 def top_grasp(

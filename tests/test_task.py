@@ -116,9 +116,8 @@ def test_dragging_into_the_frame_corner_from_the_page(page: OperatorPage) -> Non
     corner = np.array([0.35 + CUBE_HALF, -0.10 + CUBE_HALF, CUBE_HALF])
     gap = X[:3, 3] - corner
     eps_b = page.session.params.eps_barrier_m
-    # Held at mid-height, the fingers are on the cube's ±y faces: the one facing the y wall
-    # keeps it a finger (15 mm) away, while the x wall and the table are met at ε_b.
-    np.testing.assert_allclose(gap, [eps_b, 0.015 + eps_b, eps_b], atol=1e-6)
+    # Held high, the fingers pass over the 30 mm bars: both walls and the table are met at ε_b.
+    np.testing.assert_allclose(gap, [eps_b, eps_b, eps_b], atol=1e-6)
     np.testing.assert_allclose(X[:3, :3], make_pose()[:3, :3], atol=1e-6)
 
 
