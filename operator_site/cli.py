@@ -2,6 +2,7 @@
 
 operator-site serve [--connect ENDPOINT] [--port 8080]   # the page, for a running work site
 operator-site demo                                       # both sites on this machine
+operator-site demo --scripted corner --seed 3 --json     # the whole chain, no person
 """
 
 from __future__ import annotations
@@ -87,6 +88,19 @@ def build_parser() -> argparse.ArgumentParser:
             help="zenoh endpoint of the work site or a router (default: %(default)s)",
         )
         p.add_argument("-v", "--verbose", action="store_true", help="log more")
+    demo.add_argument(
+        "--scripted",
+        choices=["corner", "around-corner"],
+        default=None,
+        metavar="TASK",
+        help="no page: run TASK end to end with a scripted operator (corner: a block into an "
+        "inside corner of the frame; around-corner: dragged round an outside corner) against a "
+        "work site started on loopback with --seed, or the one at --connect if given",
+    )
+    demo.add_argument("--seed", type=int, default=0, help="layout, workpiece, corner (default 0)")
+    demo.add_argument(
+        "--json", action="store_true", help="print the result as one JSON line (last line)"
+    )
     return parser
 
 
@@ -176,7 +190,30 @@ def main(argv: list[str]) -> int:
     )
     if args.command == "bench":
         return run_bench(args)
+    if args.command == "demo" and args.scripted:
+        return run_scripted_demo(args, connect_given="--connect" in argv)
     return demo(args) if args.command == "demo" else serve(args)
+
+
+def run_scripted_demo(args: argparse.Namespace, connect_given: bool) -> int:
+    """``demo --scripted``: one end-to-end run; exit code 0 on success, 1 otherwise."""
+    import json
+
+    from operator_site.scripted import run_scripted
+
+    result = run_scripted(
+        args.scripted,
+        args.seed,
+        connect=args.connect if connect_given else None,
+        site_id=args.site_id if connect_given else None,
+        scene=load_scene(args.scene),
+    )
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for k, v in result.items():
+            print(f"{k}: {v}")
+    return 0 if result["success"] else 1
 
 
 def run_bench(args: argparse.Namespace) -> int:

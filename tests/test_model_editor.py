@@ -81,3 +81,22 @@ def test_bad_recognitions_are_refused_with_the_reason(scene) -> None:
         model.accept("cube", np.full((4, 4), math.nan))
     with pytest.raises(KeyError, match="not in the model"):
         model.remove("cube")
+
+
+def test_a_symmetric_block_seen_upside_down_is_taken_upright(scene) -> None:
+    model = WorkSiteModel(scene)
+    X = truth(scene, "tall_block")
+    flipped = X.copy()
+    flipped[:3, :3] = X[:3, :3] @ rpy_to_R(np.array([math.pi, 0.0, 0.0]))
+    model.accept("tall_block", flipped)
+    upright = model.poses["tall_block"]
+    assert upright[2, 2] == pytest.approx(1.0)
+    np.testing.assert_array_equal(upright[:3, 3], X[:3, 3])
+    V = np.vstack([p.vertices_O for p in scene.object("tall_block").model.parts])
+    same = np.sort((V @ upright[:3, :3].T).round(9), axis=0)
+    np.testing.assert_allclose(same, np.sort((V @ X[:3, :3].T).round(9), axis=0), atol=1e-9)
+    # The L-block has no such symmetry: its pose is kept as given.
+    L = truth(scene, "l_block")
+    L[:3, :3] = L[:3, :3] @ rpy_to_R(np.array([math.pi, 0.0, 0.0]))
+    model.accept("l_block", L)
+    np.testing.assert_array_equal(model.poses["l_block"], L)

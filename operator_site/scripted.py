@@ -1,0 +1,285 @@
+"""``operator-site demo --scripted TASK``: the whole chain without a person (issue 9).
+
+The work site renders its camera frame (blocks laid out by the seed, camera a little off its
+calibration); vision recognises the blocks; the model editor accepts every recognition above the
+score threshold and makes the model consistent; a scripted operator drags the workpiece in the
+task simulator as a person would (the dragger's target moved through waypoints); the program
+generator makes the robot program; the work site executes it under its execution monitor. The
+block's final pose is read from the simulated work site's ground truth (``TruthPoses``) and
+compared with the simulator's goal.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from models.scene import Scene, load_scene
+from models.transforms import make_pose, rpy_to_R, so3_log
+from operator_site.link import WorkSiteLink
+from operator_site.model_editor import WorkSiteModel
+from operator_site.program import choose_grasp_yaw, pick_and_place
+from operator_site.task import TaskSession
+from protocol import MotionProgram, TruthPoses, decode, key, make_config
+
+TASKS = ("corner", "around-corner")
+WORKPIECES = ("cube", "tall_block")
+"""Blocks the scripted tasks may choose: tall enough to be held above the frame's bars."""
+FRAME_INNER_W = ((0.35, 0.55), (-0.10, 0.10))
+"""The frame's inner walls (x from, to; y from, to; m), DESIGN.md."""
+ACCEPT_SCORE = 0.5
+CONNECT_TIMEOUT_S = 60.0
+VISION_TIMEOUT_S = 120.0
+VISION_FRAMES = 3
+"""Recognised frames waited for at most while they come back empty."""
+EXECUTE_TIMEOUT_S = 240.0
+WAYPOINT_MAX_STEPS = 200
+WAYPOINT_REACHED_M = 0.5e-3
+SUCCESS_MM, SUCCESS_DEG = 1.5, 1.5
+
+
+def _yaw(R: np.ndarray) -> float:
+    return math.atan2(R[1, 0], R[0, 0])
+
+
+def corner_waypoints(
+    X_WO: np.ndarray, bbox_O: np.ndarray, corner: int
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """The dragger's targets for putting a block at ``X_WO`` into inside corner ``corner`` (0–3)
+    of the frame, as a person would: lift, carry over the bars to above a point 2 cm out from
+    both walls, turn square with the frame, lower onto the table, push into the corner. Also
+    the ideal goal pose (touching both walls and the table)."""
+    (x0, x1), (y0, y1) = FRAME_INNER_W
+    cx, sx = (x0, 1.0) if corner in (0, 3) else (x1, -1.0)
+    cy, sy = (y0, 1.0) if corner in (0, 1) else (y1, -1.0)
+    # Square with the frame: the yaw nearest the block's own among quarter turns.
+    yaw = _yaw(X_WO[:3, :3])
+    R = rpy_to_R(np.array([0.0, 0.0, round(yaw / (math.pi / 2)) * (math.pi / 2)]))
+    R = R @ rpy_to_R(np.array([0.0, 0.0, -yaw])) @ X_WO[:3, :3]
+    lo, hi = bbox_O
+    V = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
+    half = np.abs(V @ R.T).max(axis=0)
+    z = X_WO[2, 3]
+    goal = make_pose(R, (cx + sx * half[0], cy + sy * half[1], z))
+    up = X_WO.copy()
+    up[2, 3] = z + 0.07
+    out = np.array([sx, sy, 0.0]) * 0.02
+    above = make_pose(R, goal[:3, 3] + out + [0.0, 0.0, 0.07])
+    down = make_pose(R, goal[:3, 3] + out - [0.0, 0.0, 0.005])
+    push = make_pose(R, goal[:3, 3] - np.array([sx, sy, 0.0]) * 0.005 - [0.0, 0.0, 0.005])
+    return [up, above, down, push], goal
+
+
+def drag(session: TaskSession, waypoints: list[np.ndarray]) -> None:
+    """Move the dragger through ``waypoints``, each until the block is there or stops."""
+    for X in waypoints:
+        session.set_target(X)
+        for _ in range(WAYPOINT_MAX_STEPS):
+            result = session.step()
+            if result.s_fraction == 0.0 or (
+                np.linalg.norm(result.X_WO[:3, 3] - X[:3, 3]) < WAYPOINT_REACHED_M
+            ):
+                break
+
+
+ProgramMaker = Callable[[TaskSession, str], MotionProgram]
+
+
+def pick_and_place_program(session: TaskSession, program_id: str) -> MotionProgram:
+    """The simple program: lift, carry, set down where the task ended."""
+    name = session.workpiece
+    start, goal = session.start_X_WO, session.X_WO[name]
+    return pick_and_place(program_id, start, goal, choose_grasp_yaw(start, session.X_GP))
+
+
+class _Truth:
+    def __init__(self, link: WorkSiteLink) -> None:
+        self.latest: TruthPoses | None = None
+        self._sub = link.session.declare_subscriber(key(link.site_id, "truth"), self._on)
+
+    def _on(self, sample) -> None:
+        self.latest = decode(sample.payload.to_bytes(), expected=TruthPoses)
+
+    def pose_after(self, t_s: float, name: str, timeout_s: float = 5.0) -> np.ndarray:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            truth = self.latest
+            if truth is not None and truth.stamp_s >= t_s:
+                for o in truth.objects:
+                    if o.name == name:
+                        return o.X_WO
+            time.sleep(0.05)
+        raise TimeoutError("no ground truth from the work site")
+
+
+def _wait(predicate: Callable[[], bool], link: WorkSiteLink, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        link.poll()
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _start_work_site(seed: int, site_id: str, endpoint: str, log_path: Path) -> subprocess.Popen:
+    cmd = [
+        sys.executable, "-m", "work_site", "serve", "--listen", endpoint, "--site-id", site_id,
+        "--seed", str(seed), "--vision-rate", "2",
+    ]  # fmt: skip
+    with log_path.open("w") as out:
+        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def run_scripted(
+    task: str,
+    seed: int,
+    connect: str | None = None,
+    site_id: str | None = None,
+    scene: Scene | None = None,
+    make_program: ProgramMaker = pick_and_place_program,
+    log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+) -> dict:
+    """Run ``task`` with ``seed`` end to end; the result's JSON-ready dict. Starts a work site
+    on loopback (``--seed``-ed) unless ``connect`` names a running one."""
+    if task not in TASKS:
+        raise ValueError(f"unknown task {task!r} (known: {', '.join(TASKS)})")
+    if task != "corner":
+        raise NotImplementedError(f"task {task!r} is not scripted yet")
+    scene = scene or load_scene()
+    rng = np.random.default_rng(seed)
+    stage_s: dict[str, float] = {}
+    out: dict = {"task": task, "seed": seed, "success": False, "stage_s": stage_s}
+    proc = None
+    site_id = site_id or (f"e2e-{seed}" if connect is None else "site1")
+    if connect is None:
+        connect = f"tcp/127.0.0.1:{_free_port()}"
+        log_path = Path(tempfile.gettempdir()) / f"telerobot-e2e-{seed}-work-site.log"
+        proc = _start_work_site(seed, site_id, connect, log_path)
+        log(f"work site started (log: {log_path})")
+    link = WorkSiteLink(make_config(connect=[connect]), site_id)
+    truth = _Truth(link)
+    try:
+        t0 = time.monotonic()
+        if not _wait(lambda: link.status.label == "connected", link, CONNECT_TIMEOUT_S):
+            raise RuntimeError(f"no work site at {connect} within {CONNECT_TIMEOUT_S:.0f} s")
+        stage_s["connect"] = time.monotonic() - t0
+        t0 = time.monotonic()
+        seen: list = []
+
+        def recognised() -> bool:
+            r = link.recognitions
+            if r is not None and (not seen or seen[-1].seq != r.seq):
+                seen.append(r)
+            return bool(seen) and (bool(seen[-1].objects) or len(seen) >= VISION_FRAMES)
+
+        if not _wait(recognised, link, VISION_TIMEOUT_S):
+            raise RuntimeError(f"no recognitions within {VISION_TIMEOUT_S:.0f} s")
+        recs = seen[-1]
+        stage_s["vision_wait"] = time.monotonic() - t0
+        stage_s["vision"] = recs.elapsed_s
+        log(f"recognised {[(r.model, round(r.score, 2)) for r in recs.objects]}")
+
+        t0 = time.monotonic()
+        model = WorkSiteModel(scene)
+        for r in recs.objects:
+            if r.score >= ACCEPT_SCORE:
+                model.accept(r.model, r.X_WO, r.score)
+        corrections = model.make_consistent()
+        stage_s["model"] = time.monotonic() - t0
+        out["recognised"] = sorted(model.poses)
+        out["corrections_mm"] = {c.name: round(c.moved_mm, 2) for c in corrections}
+
+        candidates = [n for n in WORKPIECES if n in model.poses]
+        if not candidates:
+            raise RuntimeError(f"none of {WORKPIECES} was recognised")
+        workpiece = str(rng.choice(candidates))
+        corner = int(rng.integers(4))
+        out |= {"workpiece": workpiece, "corner": corner}
+
+        t0 = time.monotonic()
+        session = TaskSession(model.scene())
+        session.select(workpiece)
+        bbox = scene.object(workpiece).model.bbox_O
+        waypoints, ideal = corner_waypoints(session.X_WO[workpiece], bbox, corner)
+        drag(session, waypoints)
+        goal = session.X_WO[workpiece]
+        final = session.sim.history[-1]
+        stage_s["operator"] = time.monotonic() - t0
+        required = sorted({c.object for c in final.contacts})
+        out["contacts_required"] = sum(len(_directions(c.normals_W)) for c in final.contacts)
+        out["contacts_required_objects"] = required
+        out["goal_off_ideal_mm"] = float(np.linalg.norm(goal[:3, 3] - ideal[:3, 3]) * 1e3)
+
+        t0 = time.monotonic()
+        program = make_program(session, f"{task}-{seed}-{int(time.time())}")
+        stage_s["program"] = time.monotonic() - t0
+        out["commands"] = len(program.commands)
+
+        t0 = time.monotonic()
+        link.send_program(program)
+
+        def finished() -> bool:
+            return any(
+                r.program_id == program.program_id and r.command_index == -1
+                and r.status in ("done", "failed", "refused", "stopped")
+                for r in link.status.reports
+            )  # fmt: skip
+
+        if not _wait(finished, link, EXECUTE_TIMEOUT_S):
+            raise RuntimeError(f"the program did not finish within {EXECUTE_TIMEOUT_S:.0f} s")
+        stage_s["execute"] = time.monotonic() - t0
+        reports = [r for r in link.status.reports if r.program_id == program.program_id]
+        out["execution"] = f"{reports[-1].status}: {reports[-1].message}"
+        verified = [r for r in reports if r.status == "contact_verified"]
+        out["contacts_verified"] = verified[-1].message.count(" N along ") if verified else 0
+
+        X = truth.pose_after(time.time() + 0.3, workpiece)
+        error_mm = float(np.linalg.norm(X[:3, 3] - goal[:3, 3]) * 1e3)
+        error_deg = math.degrees(float(np.linalg.norm(so3_log(goal[:3, :3].T @ X[:3, :3]))))
+        out |= {"final_error_mm": error_mm, "final_error_deg": error_deg}
+        out["success"] = bool(
+            reports[-1].status == "done"
+            and error_mm <= SUCCESS_MM
+            and error_deg <= SUCCESS_DEG
+            and out["contacts_verified"] >= out["contacts_required"]
+        )
+        stage_s["computation"] = sum(stage_s.get(k, 0.0) for k in ("vision", "model", "program"))
+    except (RuntimeError, TimeoutError, ValueError) as e:
+        out["error"] = str(e)
+    finally:
+        link.close()
+        if proc is not None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+    return out
+
+
+def _directions(normals_W: np.ndarray, same_rad: float = math.radians(5.0)) -> list[np.ndarray]:
+    """The distinct directions among a contact's normals."""
+    out: list[np.ndarray] = []
+    for n in np.asarray(normals_W, dtype=np.float64):
+        if all(float(m @ n) < math.cos(same_rad) for m in out):
+            out.append(n)
+    return out
