@@ -10,12 +10,14 @@ import numpy as np
 from models.scene import Scene
 from models.transforms import make_pose, rpy_to_R, so3_exp
 
-LAYOUT_REGION_W = ((0.27, 0.63), (-0.30, 0.30))
+LAYOUT_REGION_W = ((0.18, 0.63), (-0.32, 0.32))
 """Where block centres may go (x from, to; y from, to; m): on the table within the arm's easy
 reach around the frame."""
-KEEP_OUT_W = ((0.31, 0.59), (-0.14, 0.14))
-"""No block centre inside the frame's outline grown by a block's half-width (m): blocks start
-outside the frame, leaving its corners free for the task."""
+FRAME_OUTLINE_W = ((0.33, 0.57), (-0.12, 0.12))
+"""The frame's outer faces (x from, to; y from, to; m)."""
+LANE_M = 0.06
+"""Blocks start at least this far outside the frame (between the frame and a block's bounding
+circle): its inside corners are free, and a block can be slid round its outside."""
 MAX_REACH_XY_M = 0.58
 """No block centre further than this from the robot's base axis (m): the wrist keeps ≥ 20 mm
 of reach in hand for grasps from above (the arm reaches 0.635 m from the shoulder)."""
@@ -31,17 +33,21 @@ def _radius_xy(scene: Scene, name: str) -> float:
 
 def random_layout(scene: Scene, seed: int) -> dict[str, np.ndarray]:
     """``X_WO`` for every movable object: standing as in the scene file, turned by a random yaw,
-    at a random place on the table outside the frame, none touching another."""
+    at a random place on the table at least :data:`LANE_M` outside the frame, none touching
+    another."""
     rng = np.random.default_rng(seed)
     (x0, x1), (y0, y1) = LAYOUT_REGION_W
-    (kx0, kx1), (ky0, ky1) = KEEP_OUT_W
+    (fx0, fx1), (fy0, fy1) = FRAME_OUTLINE_W
     placed: dict[str, tuple[np.ndarray, float]] = {}
     out: dict[str, np.ndarray] = {}
     for obj in scene.movable:
         r = _radius_xy(scene, obj.name)
         for _ in range(MAX_TRIES):
             xy = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
-            if (kx0 < xy[0] < kx1 and ky0 < xy[1] < ky1) or np.linalg.norm(xy) > MAX_REACH_XY_M:
+            outside = np.maximum([fx0 - xy[0], fy0 - xy[1]], [xy[0] - fx1, xy[1] - fy1])
+            if np.linalg.norm(np.maximum(outside, 0.0)) < r + LANE_M:
+                continue
+            if np.linalg.norm(xy) > MAX_REACH_XY_M:
                 continue
             if any(np.linalg.norm(xy - c) < r + rc + CLEARANCE_M for c, rc in placed.values()):
                 continue

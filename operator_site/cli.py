@@ -101,6 +101,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument(
         "--json", action="store_true", help="print the result as one JSON line (last line)"
     )
+    demo.add_argument(
+        "--oracle-vision",
+        action="store_true",
+        help="with --scripted: take the blocks' poses from the simulated work site's ground "
+        "truth instead of vision (measures the rest of the chain alone)",
+    )
     return parser
 
 
@@ -207,6 +213,7 @@ def run_scripted_demo(args: argparse.Namespace, connect_given: bool) -> int:
         connect=args.connect if connect_given else None,
         site_id=args.site_id if connect_given else None,
         scene=load_scene(args.scene),
+        oracle=args.oracle_vision,
     )
     if args.json:
         print(json.dumps(result))

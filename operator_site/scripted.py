@@ -81,6 +81,46 @@ def corner_waypoints(
     return [up, above, down, push], goal
 
 
+FRAME_OUTER_W = ((0.33, 0.57), (-0.12, 0.12))
+"""The frame's outer faces (x from, to; y from, to; m): inner opening plus the 20 mm bars."""
+PRESS_M = 0.004
+"""The dragger is held this far into a surface the block should stay against (m)."""
+
+
+def around_corner_waypoints(
+    X_WO: np.ndarray, bbox_O: np.ndarray, corner: int
+) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
+    """Fig. 2 / Fig. 13: the block set down against the outside of the frame's near bar
+    (y = ∓0.12 for ``corner`` 0 / 1), slid along it past the outer corner at x = 0.33, round
+    the corner and along the x = 0.33 face. Returns the waypoints before capturing frame and
+    table, those after, and the ideal end pose (against the x = 0.33 face, on the table)."""
+    (ox0, _), (oy0, oy1) = FRAME_OUTER_W
+    sy = -1.0 if corner == 0 else 1.0  # the side of the frame the block starts on
+    face_y = oy0 if corner == 0 else oy1
+    yaw = _yaw(X_WO[:3, :3])
+    R = rpy_to_R(np.array([0.0, 0.0, round(yaw / (math.pi / 2)) * (math.pi / 2)]))
+    R = R @ rpy_to_R(np.array([0.0, 0.0, -yaw])) @ X_WO[:3, :3]
+    lo, hi = bbox_O
+    V = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
+    half = np.abs(V @ R.T).max(axis=0)
+    z = X_WO[2, 3]
+    along_y = face_y + sy * half[1]  # centre line when touching the y face
+    start_x = ox0 + 0.06
+    up = X_WO.copy()
+    up[2, 3] = z + 0.07
+    above = make_pose(R, (start_x, along_y + sy * 0.02, z + 0.07))
+    down = make_pose(R, (start_x, along_y + sy * 0.02, z - PRESS_M))
+    touch = make_pose(R, (start_x, along_y - sy * PRESS_M, z - PRESS_M))
+    before = [up, above, down, touch]
+    past = make_pose(R, (ox0 - half[0] - 0.01, along_y - sy * PRESS_M, z - PRESS_M))
+    end_y = face_y - sy * 0.05
+    end = make_pose(R, (ox0 - half[0] + PRESS_M, end_y, z - PRESS_M))
+    goal = make_pose(R, (ox0 - half[0], end_y, z))
+    return before, [past, end], goal
+
+
 def drag(session: TaskSession, waypoints: list[np.ndarray]) -> None:
     """Move the dragger through ``waypoints``, each until the block is there or stops."""
     for X in waypoints:
@@ -111,16 +151,21 @@ class _Truth:
     def _on(self, sample) -> None:
         self.latest = decode(sample.payload.to_bytes(), expected=TruthPoses)
 
-    def pose_after(self, t_s: float, name: str, timeout_s: float = 5.0) -> np.ndarray:
+    def latest_after(self, t_s: float, timeout_s: float = 5.0) -> TruthPoses:
+        """The first ground truth stamped at or after ``t_s`` (wall-clock s)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             truth = self.latest
             if truth is not None and truth.stamp_s >= t_s:
-                for o in truth.objects:
-                    if o.name == name:
-                        return o.X_WO
+                return truth
             time.sleep(0.05)
         raise TimeoutError("no ground truth from the work site")
+
+    def pose_after(self, t_s: float, name: str) -> np.ndarray:
+        for o in self.latest_after(t_s).objects:
+            if o.name == name:
+                return o.X_WO
+        raise ValueError(f"the work site's ground truth has no {name!r}")
 
 
 def _wait(predicate: Callable[[], bool], link: WorkSiteLink, timeout_s: float) -> bool:
@@ -156,13 +201,14 @@ def run_scripted(
     scene: Scene | None = None,
     make_program: ProgramMaker = pick_and_place_program,
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+    oracle: bool = False,
 ) -> dict:
     """Run ``task`` with ``seed`` end to end; the result's JSON-ready dict. Starts a work site
-    on loopback (``--seed``-ed) unless ``connect`` names a running one."""
+    on loopback (``--seed``-ed) unless ``connect`` names a running one. ``oracle``: take the
+    blocks' poses from the simulated work site's ground truth instead of vision (to measure
+    the rest of the chain alone)."""
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r} (known: {', '.join(TASKS)})")
-    if task != "corner":
-        raise NotImplementedError(f"task {task!r} is not scripted yet")
     scene = scene or load_scene()
     rng = np.random.default_rng(seed)
     stage_s: dict[str, float] = {}
@@ -190,18 +236,24 @@ def run_scripted(
                 seen.append(r)
             return bool(seen) and (bool(seen[-1].objects) or len(seen) >= VISION_FRAMES)
 
-        if not _wait(recognised, link, VISION_TIMEOUT_S):
-            raise RuntimeError(f"no recognitions within {VISION_TIMEOUT_S:.0f} s")
-        recs = seen[-1]
+        if oracle:
+            X_truth = {o.name: o.X_WO for o in truth.latest_after(time.time()).objects}
+            found = [(n, X, 1.0) for n, X in X_truth.items() if not scene.object(n).fixed]
+            stage_s["vision"] = 0.0
+        else:
+            if not _wait(recognised, link, VISION_TIMEOUT_S):
+                raise RuntimeError(f"no recognitions within {VISION_TIMEOUT_S:.0f} s")
+            recs = seen[-1]
+            found = [(r.model, r.X_WO, r.score) for r in recs.objects]
+            stage_s["vision"] = recs.elapsed_s
         stage_s["vision_wait"] = time.monotonic() - t0
-        stage_s["vision"] = recs.elapsed_s
-        log(f"recognised {[(r.model, round(r.score, 2)) for r in recs.objects]}")
+        log(f"recognised {[(n, round(score, 2)) for n, _, score in found]}")
 
         t0 = time.monotonic()
         model = WorkSiteModel(scene)
-        for r in recs.objects:
-            if r.score >= ACCEPT_SCORE:
-                model.accept(r.model, r.X_WO, r.score)
+        for name, X, score in found:
+            if score >= ACCEPT_SCORE:
+                model.accept(name, X, score)
         corrections = model.make_consistent()
         stage_s["model"] = time.monotonic() - t0
         out["recognised"] = sorted(model.poses)
@@ -218,8 +270,17 @@ def run_scripted(
         session = TaskSession(model.scene())
         session.select(workpiece)
         bbox = scene.object(workpiece).model.bbox_O
-        waypoints, ideal = corner_waypoints(session.X_WO[workpiece], bbox, corner)
-        drag(session, waypoints)
+        if task == "corner":
+            waypoints, ideal = corner_waypoints(session.X_WO[workpiece], bbox, corner)
+            drag(session, waypoints)
+        else:
+            corner %= 2
+            out["corner"] = corner
+            before, after, ideal = around_corner_waypoints(session.X_WO[workpiece], bbox, corner)
+            drag(session, before)
+            for name in ("frame", "table"):
+                session.toggle_capture(name)
+            drag(session, after)
         goal = session.X_WO[workpiece]
         final = session.sim.history[-1]
         stage_s["operator"] = time.monotonic() - t0

@@ -258,7 +258,8 @@ def test_bad_scene_and_camera_files_name_the_problem(tmp_path: Path) -> None:
 
 def test_random_layouts_put_every_block_on_the_table_outside_the_frame_apart() -> None:
     from models.layout import (
-        KEEP_OUT_W,
+        FRAME_OUTLINE_W,
+        LANE_M,
         MAX_REACH_XY_M,
         perturbed_camera_pose,
         random_layout,
@@ -269,9 +270,10 @@ def test_random_layouts_put_every_block_on_the_table_outside_the_frame_apart() -
         layout = random_layout(scene, seed)
         assert set(layout) == {o.name for o in scene.movable}
         centres = {n: X[:3, 3] for n, X in layout.items()}
+        (fx0, fx1), (fy0, fy1) = FRAME_OUTLINE_W
         for name, c in centres.items():
-            (kx0, kx1), (ky0, ky1) = KEEP_OUT_W
-            assert not (kx0 < c[0] < kx1 and ky0 < c[1] < ky1), (seed, name)
+            gap = np.maximum([fx0 - c[0], fy0 - c[1]], [c[0] - fx1, c[1] - fy1])
+            assert np.linalg.norm(np.maximum(gap, 0.0)) >= LANE_M, (seed, name)
             assert np.linalg.norm(c[:2]) <= MAX_REACH_XY_M
             assert c[2] == scene.object(name).X_WO[2, 3]  # resting as in the scene file
         assert random_layout(scene, seed).keys() == layout.keys()

@@ -186,6 +186,13 @@ class LockGrip:
 
 
 @dataclass(frozen=True)
+class Settle:
+    """Hold still ``ticks`` periods."""
+
+    ticks: int
+
+
+@dataclass(frozen=True)
 class VerifyContacts:
     """Fail unless the force along each of ``contacts``' normals reaches CONTACT_VERIFY_N:
     the force now, or ``at_guard`` the one that stopped the guarded move before (which then
@@ -212,6 +219,9 @@ GRASP_TOUCH_N = 3.0
 GRASP_LIFT_M = 0.005
 """After closing, the block is lifted this far and weighed (m)."""
 WEIGH_TICKS = 20
+LOCK_SETTLE_TICKS = 10
+"""After locking the fingers the wrist reads the coupled grip's false force for a few steps
+more (measured: 14.7 N, then a transient of 8.8 N): the lift waits this long."""
 MIN_GRIP_OPENING_M = 0.005
 _UP_W = np.array([0.0, 0.0, 1.0])
 
@@ -270,6 +280,7 @@ def expand(program: MotionProgram, index: int) -> list:
             SetFingers(0.0),
             CheckGrip(MIN_GRIP_OPENING_M),
             LockGrip(),
+            Settle(LOCK_SETTLE_TICKS),
             MoveTo(lifted, GRASP_DESCENT_MPS, limit),
             Weigh(WEIGH_TICKS),
         ]
@@ -292,6 +303,7 @@ class Execution:
         self._fingers_still = 0
         self._fingers_ticks = 0
         self._weighed: list[np.ndarray] = []
+        self._settle_ticks = 0
 
     def tick(self) -> None:
         """One control period: advance the current action; start the next when it is done."""
@@ -326,6 +338,11 @@ class Execution:
                 self._fingers_still < FINGERS_STILL_TICKS
                 and self._fingers_ticks < FINGERS_MAX_TICKS
             ):
+                return
+        elif isinstance(action, Settle):
+            c.tick()
+            self._settle_ticks += 1
+            if self._settle_ticks < action.ticks:
                 return
         elif isinstance(action, Weigh):
             c.tick()
@@ -400,6 +417,9 @@ class Execution:
                 return
             elif isinstance(action, Weigh):
                 self._weighed = []
+                return
+            elif isinstance(action, Settle):
+                self._settle_ticks = 0
                 return
             self._actions.pop(0)
 
