@@ -50,9 +50,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument(
         "name",
-        choices=["sim"],
-        help="sim: the task simulator (issue 3 scenes, "
-        "MuJoCo comparison if installed, knob sweeps)",
+        choices=["sim", "e2e"],
+        help="sim: the task simulator (issue 3 scenes, MuJoCo comparison if installed, knob "
+        "sweeps); e2e: the scripted tasks end to end over --seeds seeds (issue 9)",
+    )
+    bench.add_argument(
+        "--seeds", type=int, default=100, help="e2e: seeds per task (default: %(default)s)"
+    )
+    bench.add_argument(
+        "--oracle-vision",
+        action="store_true",
+        help="e2e: blocks' poses from the work site's ground truth instead of vision",
     )
     bench.add_argument(
         "--out",
@@ -227,6 +235,12 @@ def run_bench(args: argparse.Namespace) -> int:
     """Run benchmark ``args.name``; print its JSON (one line) last."""
     import json
 
+    if args.name == "e2e":
+        from operator_site import e2e_bench
+
+        results = e2e_bench.main(args.out, args.seeds, oracle=args.oracle_vision)
+        print(json.dumps(results))
+        return 0
     from operator_site.simulator import benchmark
 
     results = benchmark.main(args.out, quick=args.quick)

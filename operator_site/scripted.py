@@ -184,10 +184,12 @@ def _free_port() -> int:
         return int(sock.getsockname()[1])
 
 
-def _start_work_site(seed: int, site_id: str, endpoint: str, log_path: Path) -> subprocess.Popen:
+def _start_work_site(
+    seed: int, site_id: str, endpoint: str, log_path: Path, time_scale: float
+) -> subprocess.Popen:
     cmd = [
         sys.executable, "-m", "work_site", "serve", "--listen", endpoint, "--site-id", site_id,
-        "--seed", str(seed), "--vision-rate", "2",
+        "--seed", str(seed), "--vision-rate", "2", "--time-scale", str(time_scale),
     ]  # fmt: skip
     with log_path.open("w") as out:
         return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
@@ -202,11 +204,13 @@ def run_scripted(
     make_program: ProgramMaker = pick_and_place_program,
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
     oracle: bool = False,
+    time_scale: float = 1.0,
 ) -> dict:
     """Run ``task`` with ``seed`` end to end; the result's JSON-ready dict. Starts a work site
     on loopback (``--seed``-ed) unless ``connect`` names a running one. ``oracle``: take the
     blocks' poses from the simulated work site's ground truth instead of vision (to measure
-    the rest of the chain alone)."""
+    the rest of the chain alone). ``time_scale``: how much faster than real time the started
+    work site simulates."""
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r} (known: {', '.join(TASKS)})")
     scene = scene or load_scene()
@@ -218,7 +222,7 @@ def run_scripted(
     if connect is None:
         connect = f"tcp/127.0.0.1:{_free_port()}"
         log_path = Path(tempfile.gettempdir()) / f"telerobot-e2e-{seed}-work-site.log"
-        proc = _start_work_site(seed, site_id, connect, log_path)
+        proc = _start_work_site(seed, site_id, connect, log_path, time_scale)
         log(f"work site started (log: {log_path})")
     link = WorkSiteLink(make_config(connect=[connect]), site_id)
     truth = _Truth(link)

@@ -115,6 +115,14 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         help="physics steps per second of real time (default: %(default)s)",
     )
     parser.add_argument(
+        "--time-scale",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="simulate X seconds per second of wall time (default: 1, real time; more for "
+        "benchmarks, as far as the machine keeps up)",
+    )
+    parser.add_argument(
         "--state-rate",
         type=float,
         default=100.0,
@@ -144,6 +152,7 @@ def serve(args: argparse.Namespace) -> int:
             camera_X_WC = tuple(map(tuple, perturbed_camera_pose(scene.camera.X_WC, args.seed)))
         options = ServerOptions(
             camera_X_WC=camera_X_WC,
+            time_scale=args.time_scale,
             site_id=args.site_id,
             physics_rate_hz=args.physics_rate,
             state_rate_hz=args.state_rate,

@@ -62,6 +62,9 @@ class ServerOptions:
     camera_X_WC: tuple | None = None
     """Where the camera really is (4×4 nested tuples), when not where its calibration says:
     frames are rendered from here, vision still uses the calibrated model."""
+    time_scale: float = 1.0
+    """Simulated seconds per second of wall time: 1 is real time; more runs programs faster
+    (for benchmarks), as far as the machine keeps up."""
     vision_rate_hz: float = 0.0
     """Frames recognised per second at most (0: no vision). Vision runs in its own process,
     on the newest frame whenever it is idle."""
@@ -77,6 +80,8 @@ class ServerOptions:
             raise ValueError("heartbeat_rate_hz must be in (0, 100]")
         if self.camera_supersample < 1:
             raise ValueError("camera_supersample must be ≥ 1")
+        if not 0.1 <= self.time_scale <= 100.0:
+            raise ValueError(f"time_scale must be in [0.1, 100], got {self.time_scale}")
         if not 0.0 <= self.vision_rate_hz <= 100.0:
             raise ValueError(f"vision_rate_hz must be in [0, 100], got {self.vision_rate_hz}")
         if self.vision_rate_hz > 0 and not self.camera:
@@ -153,6 +158,7 @@ class WorkSiteServer:
         controller = TaskController(world, load_robot(self.scene.robot.urdf_path))
         self._controller = controller
         tick_s = controller.steps_per_tick * world.time_step_s
+        wall_tick_s = tick_s / opts.time_scale
         state_every = max(1, round(1.0 / (tick_s * opts.state_rate_hz)))
         camera_period_s = 1.0 / self.scene.camera.frame_rate_hz
         heartbeat_period_s = 1.0 / opts.heartbeat_rate_hz
@@ -171,10 +177,10 @@ class WorkSiteServer:
         try:
             while not stop.is_set():
                 elapsed = time.monotonic() - t0
-                due = int(elapsed / tick_s) - ticks
+                due = int(elapsed / wall_tick_s) - ticks
                 if due > MAX_CATCH_UP_TICKS:
                     self.stats["late_ticks"] += due - MAX_CATCH_UP_TICKS
-                    t0 += (due - MAX_CATCH_UP_TICKS) * tick_s  # drop the backlog: real time
+                    t0 += (due - MAX_CATCH_UP_TICKS) * wall_tick_s  # drop the backlog
                     due = MAX_CATCH_UP_TICKS
                 for _ in range(due):
                     try:
@@ -238,7 +244,7 @@ class WorkSiteServer:
                     )
                     seq_heartbeat += 1
                     next_heartbeat_s += heartbeat_period_s
-                sleep_s = t0 + (ticks + 1) * tick_s - time.monotonic()
+                sleep_s = t0 + (ticks + 1) * wall_tick_s - time.monotonic()
                 if sleep_s > 0:
                     time.sleep(sleep_s)
         finally:
