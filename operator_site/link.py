@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -35,6 +36,12 @@ RATE_WINDOW_S = 2.0
 """Messages are counted over this trailing window to report rates (Hz)."""
 STALE_AFTER_S = 1.0
 """A link whose work site is alive but has sent no robot state for this long is 'stale'."""
+RESEND_AFTER_S = 1.0
+"""A program the work site has not answered is sent again (same id) this often."""
+GIVE_UP_AFTER_S = 30.0
+"""A program still unanswered this long after it was first sent is given up (and logged)."""
+REMEMBERED_REPORTS = 10_000
+FINAL_STATUSES = ("done", "failed", "refused", "stopped")
 
 
 class RateMeter:
@@ -106,6 +113,13 @@ class WorkSiteLink:
         self._last_state_s: float | None = None
         self._last_frame_s: float | None = None
         self._warned: set[str] = set()
+        self._unanswered: dict[str, tuple[bytes, float, float]] = {}
+        """Programs sent but not answered yet: payload, when first and when last sent."""
+        self._unfinished: dict[str, bytes] = {}
+        """Programs answered but not finished: sent again when the work site comes back, which
+        replays their reports (the work site never runs an id twice)."""
+        self._seen_reports: set[tuple] = set()
+        self._seen_order: collections.deque[tuple] = collections.deque()
 
     def _decode(self, sample: zenoh.Sample, expected: type, what: str):
         try:
@@ -122,7 +136,11 @@ class WorkSiteLink:
         now = time.monotonic()
         new_state = new_frame = False
         while (sample := self._sub_alive.try_recv()) is not None:
+            was_alive = self.status.work_site_alive
             self.status.work_site_alive = sample.kind == zenoh.SampleKind.PUT
+            if self.status.work_site_alive and not was_alive:
+                for pid, payload in self._unfinished.items():  # back: ask for what we missed
+                    self._unanswered[pid] = (payload, now, -math.inf)
         while (sample := self._sub_state.try_recv()) is not None:
             if (msg := self._decode(sample, RobotState, "robot state")) is not None:
                 self.robot_state, new_state = msg, True
@@ -135,13 +153,21 @@ class WorkSiteLink:
                 self._last_frame_s = now
         while (sample := self._sub_report.try_recv()) is not None:
             if (msg := self._decode(sample, ExecutionReport, "execution report")) is not None:
-                self.status.reports.append(msg)
-                del self.status.reports[:-100]
+                self._on_report(msg)
         while (sample := self._sub_recognitions.try_recv()) is not None:
             if (msg := self._decode(sample, Recognitions, "recognitions")) is not None:
                 self.recognitions = msg
         while (sample := self._sub_heartbeat.try_recv()) is not None:
             self._decode(sample, Heartbeat, "heartbeat")
+        if self.status.work_site_alive:
+            for pid, (payload, first_s, sent_s) in list(self._unanswered.items()):
+                if now - first_s > GIVE_UP_AFTER_S:
+                    log.warning("program %s: no answer from the work site in %.0f s; given up",
+                                pid, GIVE_UP_AFTER_S)  # fmt: skip
+                    del self._unanswered[pid]
+                elif now - sent_s >= RESEND_AFTER_S:
+                    self._pub_program.put(payload)
+                    self._unanswered[pid] = (payload, first_s, now)
         s = self.status
         s.state_rate_hz = self._state_rate.rate_hz(now)
         s.frame_rate_hz = self._frame_rate.rate_hz(now)
@@ -149,9 +175,35 @@ class WorkSiteLink:
         s.last_frame_age_s = None if self._last_frame_s is None else now - self._last_frame_s
         return new_state, new_frame
 
+    def _on_report(self, msg: ExecutionReport) -> None:
+        """Keep a report once (replays repeat them), and track the program's answer."""
+        ident = (msg.program_id, msg.command_index, msg.status, msg.stamp_s)
+        if ident in self._seen_reports:
+            return
+        self._seen_reports.add(ident)
+        self._seen_order.append(ident)
+        if len(self._seen_order) > REMEMBERED_REPORTS:
+            self._seen_reports.discard(self._seen_order.popleft())
+        self.status.reports.append(msg)
+        del self.status.reports[:-100]
+        pid = msg.program_id
+        if pid in self._unanswered:
+            self._unfinished[pid] = self._unanswered.pop(pid)[0]
+        if msg.command_index == -1 and msg.status in FINAL_STATUSES:
+            self._unfinished.pop(pid, None)
+
     def send_program(self, program: MotionProgram) -> None:
-        """Publish a motion program to the work site."""
-        self._pub_program.put(encode(program))
+        """Publish a motion program to the work site; sent again (same id) every
+        :data:`RESEND_AFTER_S` until the work site answers, and again whenever it comes back
+        before the program has finished. The work site runs each id at most once."""
+        payload = encode(program)
+        self._pub_program.put(payload)
+        now = time.monotonic()
+        self._unanswered[program.program_id] = (payload, now, now)
+
+    def pending_programs(self) -> list[str]:
+        """Ids of programs sent and not finished (answered or not)."""
+        return sorted({*self._unanswered, *self._unfinished})
 
     def send_stop(self, reason: str) -> None:
         """Publish a stop to the work site."""

@@ -55,6 +55,8 @@ def work_site(tmp_path: Path) -> Iterator[Callable[..., WorkSiteProcess]]:
         endpoint = f"tcp/127.0.0.1:{free_port()}"
         if not vision and "--vision-rate" not in extra:
             extra = (*extra, "--vision-rate", "0")
+        if "--journal" not in extra:  # each test its own: program ids repeat across tests
+            extra = (*extra, "--journal", str(tmp_path / f"journal_{len(started)}.jsonl"))
         log_path = tmp_path / f"work_site_{len(started)}.log"
         with log_path.open("w") as log:
             proc = subprocess.Popen(

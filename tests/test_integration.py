@@ -220,12 +220,23 @@ def test_a_program_runs_reports_in_order_and_a_stop_halts_it(work_site, link_to)
     X_WF = link.robot_state.X_WF
     X_WG = ROBOT.tcp_pose_W(link.robot_state.q)
     assert np.linalg.norm(X_WG[:3, 3] - [0.45, -0.1, 0.12]) < 1e-3, X_WF
-    # The same id again is refused (a replay), without motion.
+    # The same id again (a re-send) is not run again: its reports are replayed, and this link
+    # keeps each once.
+    q_done = link.robot_state.q.copy()
     link.send_program(program)
+    time.sleep(1.0)
+    link.poll()
+    assert [(r.command_index, r.status) for r in reports_of(link, "two_moves")] == statuses
+    np.testing.assert_allclose(link.robot_state.q, q_done, atol=1e-4)
+    # A new operator process asking again gets the whole history, in order.
+    other = link_to(ws)
+    assert wait_until(lambda: (other.poll(), other.status.label == "connected")[1], 10.0)
+    other.send_program(program)
     assert wait_until(
-        lambda: (link.poll(), any(r.status == "refused" for r in reports_of(link, "two_moves")))[1],
-        10.0,
-    )
+        lambda: (other.poll(), len(reports_of(other, "two_moves")) == len(statuses))[1], 10.0
+    ), reports_of(other, "two_moves")
+    assert [(r.command_index, r.status) for r in reports_of(other, "two_moves")] == statuses
+    assert other.pending_programs() == []
     # A slow long move, stopped on the way: the arm holds short of the goal.
     slow = MotionProgram(
         program_id="slow", X_GP=np.eye(4), commands=(move(0.30, 0.1, 0.25, speed=0.02),)
@@ -296,3 +307,31 @@ def test_drag_confirm_send_and_the_robot_does_it(work_site, link_to) -> None:
         np.testing.assert_allclose(X_WG[:2, 3], goal[:2, 3], atol=2e-3)
     finally:
         page.close()
+
+
+def test_a_work_site_restarted_mid_program_never_runs_it_twice(work_site, link_to, tmp_path):
+    journal = tmp_path / "programs.jsonl"
+    ws = work_site("--no-camera", "--journal", str(journal))
+    link = link_to(ws)
+    assert wait_until(lambda: (link.poll(), link.status.label == "connected")[1], 20.0), ws.log()
+    slow = MotionProgram(
+        program_id="slow", X_GP=np.eye(4), commands=(move(0.30, 0.1, 0.25, speed=0.02),)
+    )
+    link.send_program(slow)
+    assert wait_until(
+        lambda: (link.poll(), any(r.status == "started" for r in reports_of(link, "slow")))[1], 10
+    )
+    os.killpg(ws.proc.pid, signal.SIGKILL)  # no goodbye: a crash
+    ws.proc.wait()
+    assert wait_until(lambda: (link.poll(), not link.status.work_site_alive)[1], 15.0)
+    assert link.pending_programs() == ["slow"]
+    # The same site comes back on the same endpoint with its journal; the link asks again.
+    again = work_site("--no-camera", "--journal", str(journal), "--listen", ws.endpoint)
+    assert wait_until(
+        lambda: (link.poll(), any(r.status == "failed" for r in reports_of(link, "slow")))[1], 30
+    ), again.log()
+    statuses = [(r.command_index, r.status) for r in reports_of(link, "slow")]
+    assert statuses == [(-1, "accepted"), (0, "started"), (-1, "failed")], statuses
+    assert "restarted during this program" in reports_of(link, "slow")[-1].message
+    assert link.pending_programs() == []
+    assert "program slow received again" in again.log()

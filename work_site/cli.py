@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import os
 import signal
 import sys
 import threading
@@ -48,6 +49,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="directory for CSV files (default: %(default)s)",
     )
     return parser
+
+
+def default_journal(site_id: str) -> Path:
+    """``$XDG_STATE_HOME/telerobot/<site_id>-programs.jsonl`` (``~/.local/state/…``)."""
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "telerobot" / f"{site_id}-programs.jsonl"
 
 
 DEFAULT_VISION_RATE_HZ = 1.0
@@ -115,6 +122,14 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         help="physics steps per second of real time (default: %(default)s)",
     )
     parser.add_argument(
+        "--journal",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="append every program id and report here, so that a program re-sent after a "
+        "restart is never run twice (default: $XDG_STATE_HOME/telerobot/SITE_ID-programs.jsonl)",
+    )
+    parser.add_argument(
         "--time-scale",
         type=float,
         default=1.0,
@@ -153,6 +168,7 @@ def serve(args: argparse.Namespace) -> int:
         options = ServerOptions(
             camera_X_WC=camera_X_WC,
             time_scale=args.time_scale,
+            journal=args.journal or default_journal(args.site_id),
             site_id=args.site_id,
             physics_rate_hz=args.physics_rate,
             state_rate_hz=args.state_rate,

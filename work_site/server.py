@@ -8,11 +8,15 @@ and validated first, and nothing that arrives can stop this loop.
 
 from __future__ import annotations
 
+import collections
+import json
 import logging
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
+import numpy as np
 import zenoh
 
 from models.robot import load_robot
@@ -47,6 +51,54 @@ MAX_CATCH_UP_TICKS = 5
 """Control periods (10 physics steps each) run back to back at most before the loop yields;
 beyond that it falls behind real time (and counts it) rather than starving the publishers."""
 INBOX_CAPACITY = 64
+REMEMBERED_PROGRAMS = 100
+"""Program ids (and their reports) kept to answer re-sends."""
+FINAL_STATUSES = ("done", "failed", "refused", "stopped")
+
+
+def read_journal(
+    path: Path,
+) -> tuple[collections.OrderedDict[str, list[bytes]], list[tuple[str, bytes]]]:
+    """The programs and reports of a journal (the newest REMEMBERED_PROGRAMS), and the closing
+    "failed" reports added for programs a restart interrupted. Unreadable lines are skipped
+    (a crash may leave the last one half written)."""
+    reports: collections.OrderedDict[str, list[bytes]] = collections.OrderedDict()
+    added: list[tuple[str, bytes]] = []
+    if not path.exists():
+        return reports, added
+    for line in path.read_text(errors="replace").splitlines():
+        try:
+            entry = json.loads(line)
+            pid, payload = str(entry["program_id"]), bytes.fromhex(entry["report"])
+        except (ValueError, KeyError, TypeError):
+            continue
+        reports.setdefault(pid, []).append(payload)
+        reports.move_to_end(pid)
+    while len(reports) > REMEMBERED_PROGRAMS:
+        reports.popitem(last=False)
+    for pid, payloads in reports.items():
+        try:
+            last = decode(payloads[-1], expected=ExecutionReport)
+        except ProtocolError:
+            continue
+        if not (last.command_index == -1 and last.status in FINAL_STATUSES):
+            closing = encode(
+                ExecutionReport(
+                    program_id=pid,
+                    command_index=-1,
+                    status="failed",
+                    wrench_S=np.zeros(6),
+                    message="interrupted: the work site restarted during this program",
+                    stamp_s=time.time(),
+                )
+            )
+            payloads.append(closing)
+            added.append((pid, closing))
+    return reports, added
+
+
+def _journal_line(program_id: str, payload: bytes) -> str:
+    return json.dumps({"program_id": program_id, "report": payload.hex()}) + "\n"
 
 
 @dataclass(frozen=True)
@@ -65,6 +117,9 @@ class ServerOptions:
     time_scale: float = 1.0
     """Simulated seconds per second of wall time: 1 is real time; more runs programs faster
     (for benchmarks), as far as the machine keeps up."""
+    journal: Path | None = None
+    """Where every program id and its reports are appended (JSON lines), so that a program
+    re-sent after a restart of this server is not run again; None keeps them in memory."""
     vision_rate_hz: float = 0.0
     """Frames recognised per second at most (0: no vision). Vision runs in its own process,
     on the newest frame whenever it is idle."""
@@ -99,7 +154,16 @@ class WorkSiteServer:
         self._zenoh_config = zenoh_config
         self.stats = {"states": 0, "frames": 0, "recognitions": 0, "refused": 0, "late_ticks": 0}
         self._execution: Execution | None = None
-        self._seen_programs: set[str] = set()
+        self._reports: collections.OrderedDict[str, list[bytes]] = collections.OrderedDict()
+        """Every report sent for each program id received (the newest REMEMBERED_PROGRAMS),
+        encoded: a program re-sent with the same id is not run again, its reports are."""
+        self._journal = None
+        if self.options.journal is not None:
+            self.options.journal.parent.mkdir(parents=True, exist_ok=True)
+            self._reports, added = read_journal(self.options.journal)
+            self._journal = self.options.journal.open("a")
+            self._journal.writelines(_journal_line(pid, payload) for pid, payload in added)
+            self._journal.flush()
         self._faults_logged: set[str] = set()
 
     def run(self, stop: threading.Event, ready: threading.Event | None = None) -> None:
@@ -121,6 +185,8 @@ class WorkSiteServer:
             if camera is not None:
                 camera.close()
             world.close()
+            if self._journal is not None:
+                self._journal.close()
 
     def _serve(
         self,
@@ -265,8 +331,7 @@ class WorkSiteServer:
         if result.error:
             log.warning("vision failed on frame %d: %s", result.seq, result.error)
         objects = tuple(
-            Recognition(model=name, X_WO=X, score=score)
-            for name, X, score in result.objects
+            Recognition(model=name, X_WO=X, score=score) for name, X, score in result.objects
         )
         self._pub_recognitions.put(
             encode(
@@ -311,19 +376,28 @@ class WorkSiteServer:
             log.exception("could not stop cleanly after the fault")
 
     def _report(self, program_id: str, command_index: int, status: str, message: str) -> None:
-        self._pub_report.put(
-            encode(
-                ExecutionReport(
-                    program_id=program_id,
-                    command_index=command_index,
-                    status=status,
-                    wrench_S=self._controller.world.robot_snapshot().wrench_S,
-                    message=message[:4096],
-                    stamp_s=time.time(),
-                )
+        payload = encode(
+            ExecutionReport(
+                program_id=program_id,
+                command_index=command_index,
+                status=status,
+                wrench_S=self._controller.world.robot_snapshot().wrench_S,
+                message=message[:4096],
+                stamp_s=time.time(),
             )
         )
+        if program_id in self._reports:
+            self._reports[program_id].append(payload)
+            if self._journal is not None:
+                self._journal.write(_journal_line(program_id, payload))
+                self._journal.flush()
+        self._pub_report.put(payload)
         log.info("program %s command %d: %s %s", program_id, command_index, status, message)
+
+    def _remember(self, program_id: str) -> None:
+        self._reports[program_id] = []
+        while len(self._reports) > REMEMBERED_PROGRAMS:
+            self._reports.popitem(last=False)
 
     def _handle_inbox(
         self, inbox_program: zenoh.Subscriber, inbox_stop: zenoh.Subscriber, world: World
@@ -352,17 +426,25 @@ class WorkSiteServer:
                 self._report("invalid", -1, "refused", f"program refused: {e}")
                 continue
             pid = program.program_id
-            if pid in self._seen_programs:
-                reason = "a program with this id was already received"
-            elif running:
+            if pid in self._reports:
+                # A re-send (the operator missed our answer, or reconnected): never run twice;
+                # replay every report so far, in order.
+                for payload in self._reports[pid]:
+                    self._pub_report.put(payload)
+                self.stats["duplicates"] = self.stats.get("duplicates", 0) + 1
+                log.info(
+                    "program %s received again: %d reports replayed", pid, len(self._reports[pid])
+                )
+                continue
+            if running:
                 reason = f"busy with program {self._execution.program.program_id}"
             else:
                 reason = check_program(program, self._controller)
+            self._remember(pid)
             if reason:
                 self.stats["refused"] += 1
                 self._report(pid, -1, "refused", reason)
                 continue
-            self._seen_programs.add(pid)
             self._report(pid, -1, "accepted", f"{len(program.commands)} commands")
             self._execution = Execution(program, self._controller, self._report)
             running = True
