@@ -100,12 +100,13 @@ class VisionProcess:
         return None
 
     def close(self) -> None:
-        """Stop the vision process."""
-        try:
-            self._conn.send(None)
-        except (BrokenPipeError, OSError):
-            pass
-        self._proc.join(timeout=5)
+        """Stop the vision process (at once: nothing it computes needs saving)."""
+        if self.ready and not self.busy:
+            try:
+                self._conn.send(None)
+            except (BrokenPipeError, OSError):
+                pass
+            self._proc.join(timeout=1)
         if self._proc.is_alive():
             self._proc.terminate()
             self._proc.join(timeout=5)
