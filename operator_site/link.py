@@ -176,8 +176,13 @@ class WorkSiteLink:
         return new_state, new_frame
 
     def _on_report(self, msg: ExecutionReport) -> None:
-        """Keep a report once (replays repeat them), and track the program's answer."""
-        ident = (msg.program_id, msg.command_index, msg.status, msg.stamp_s)
+        """Track the program's answer, and keep the report once (replays repeat them)."""
+        pid = msg.program_id
+        if pid in self._unanswered:
+            self._unfinished[pid] = self._unanswered.pop(pid)[0]
+        if msg.command_index == -1 and msg.status in FINAL_STATUSES:
+            self._unfinished.pop(pid, None)
+        ident = (pid, msg.command_index, msg.status, msg.stamp_s)
         if ident in self._seen_reports:
             return
         self._seen_reports.add(ident)
@@ -186,11 +191,6 @@ class WorkSiteLink:
             self._seen_reports.discard(self._seen_order.popleft())
         self.status.reports.append(msg)
         del self.status.reports[:-100]
-        pid = msg.program_id
-        if pid in self._unanswered:
-            self._unfinished[pid] = self._unanswered.pop(pid)[0]
-        if msg.command_index == -1 and msg.status in FINAL_STATUSES:
-            self._unfinished.pop(pid, None)
 
     def send_program(self, program: MotionProgram) -> None:
         """Publish a motion program to the work site; sent again (same id) every
