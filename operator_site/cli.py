@@ -50,9 +50,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument(
         "name",
-        choices=["sim", "e2e"],
+        choices=["sim", "deform", "e2e"],
         help="sim: the task simulator (issue 3 scenes, MuJoCo comparison if installed, knob "
-        "sweeps); e2e: the scripted tasks end to end over --seeds seeds (issue 9)",
+        "sweeps); deform: the program generator's path deformation (issue 6); e2e: the "
+        "scripted tasks end to end over --seeds seeds (issue 9)",
     )
     bench.add_argument(
         "--seeds", type=int, default=100, help="e2e: seeds per task (default: %(default)s)"
@@ -235,6 +236,10 @@ def run_bench(args: argparse.Namespace) -> int:
     """Run benchmark ``args.name``; print its JSON (one line) last."""
     import json
 
+    if args.name == "deform":
+        from operator_site.program import benchmark as deform_bench
+
+        return deform_bench.main(args)
     if args.name == "e2e":
         from operator_site import e2e_bench
 

@@ -1,9 +1,53 @@
 """The program generator (§VI): from the operator's simulated task to a robot motion program.
 
-Today: :func:`pick_and_place`, the straight program (grasp, lift, carry, lower, release) with
-no path deformation and no contact states; the deformation of §VI-A comes with issue 6.
+:func:`generate_program` runs it end to end: the simulator's history becomes a
+:class:`WorkpiecePath` with its required contacts marked (:mod:`.path`), the path is deformed
+after Quinlan (:mod:`.deform`, moving each node with the contact step of :mod:`.contact_step`),
+fitted with few spatially-linear moves (:mod:`.commands`) and swept against the model before
+sending (:mod:`.check`). :func:`pick_and_place` is the straight program without deformation.
 """
 
+from operator_site.program.check import CheckResult, Sweeper, check_program
+from operator_site.program.commands import (
+    CommandParams,
+    build_program,
+    fit_targets,
+    program_to_json,
+    target_bias,
+)
+from operator_site.program.deform import Deformer, DeformParams, DeformResult
+from operator_site.program.generate import Generated, ProgramRefusedError, generate_program
+from operator_site.program.path import (
+    NodeContact,
+    PathNode,
+    WorkpiecePath,
+    lost_contact_nodes,
+    path_from_history,
+    unwanted_contact_nodes,
+)
 from operator_site.program.pick_place import choose_grasp_yaw, pick_and_place
 
-__all__ = ["choose_grasp_yaw", "pick_and_place"]
+__all__ = [
+    "CheckResult",
+    "CommandParams",
+    "DeformParams",
+    "DeformResult",
+    "Deformer",
+    "Generated",
+    "NodeContact",
+    "PathNode",
+    "ProgramRefusedError",
+    "Sweeper",
+    "WorkpiecePath",
+    "build_program",
+    "check_program",
+    "choose_grasp_yaw",
+    "fit_targets",
+    "generate_program",
+    "lost_contact_nodes",
+    "path_from_history",
+    "pick_and_place",
+    "program_to_json",
+    "target_bias",
+    "unwanted_contact_nodes",
+]

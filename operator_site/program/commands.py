@@ -1,0 +1,305 @@
+"""Robot motion commands from a settled workpiece path (§VI-B).
+
+The path becomes as few spatially-linear moves as fit it: from each target, the next is the
+furthest node such that every node between lies within the tolerance of the straight move
+(centre position and rotation), no fixed node (path end, end of a required stretch) is skipped,
+and the move passes the sweep of :mod:`operator_site.program.check`. Each target carries its
+contact state (object names and normals). The program is a guarded grasp at the start, the
+moves (``contact_move`` at a slow speed where the target is in contact; moves leaving a contact
+are slow too), a release at the goal and a departure straight up that leaves the gripper clear
+of the workpiece (Fig. 12: the deformed path already approaches the goal from its open side
+and from above, so the last move does not snag).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+
+from operator_site.program.check import Sweeper
+from operator_site.program.contact_step import away_normal
+from operator_site.program.path import NodeContact, PathNode, WorkpiecePath
+from operator_site.program.poses import interpolate, log_batch
+from protocol import ContactState, MotionCommand, MotionProgram
+from protocol.messages import MAX_CONTACT_NORMALS, MAX_CONTACTS
+
+REFINE_STEP_M = 0.002
+"""Point travel per contact step when a move in contact is refined round a corner (m)."""
+MAX_REFINE_STEPS = 200
+REFINE_FORCE_N = 10.0
+"""Pull towards the segment's end while refining (N): each step goes its full length."""
+REFINE_HOLD_N = 0.5
+"""Holding force onto each contact kept along the segment (N)."""
+
+
+@dataclass(frozen=True)
+class CommandParams:
+    """How a settled path becomes commands (SI)."""
+
+    position_tol_m: float = 0.002
+    """Every node lies within this of the move that replaces it (centre of mass)."""
+    angle_tol_rad: float = 0.02
+    """… and its rotation within this angle of the move's."""
+    free_speed_mps: float = 0.1
+    contact_speed_mps: float = 0.01
+    """Speed of moves ending in or leaving contact (§VI-B: "the robot's speed is lowered")."""
+    force_limit_n: float = 10.0
+    """Force limit of moves in free space and of the grasp (N)."""
+    contact_force_per_direction_n: float = 5.0
+    """A move in contact may meet this much force per distinct contact normal, plus
+    ``force_limit_n`` (N): the impedance presses each contact with about stiffness × d, and
+    the work site verifies each by a force along it."""
+    departure_m: float = 0.06
+    """After the release the gripper rises this far (clears the 30 mm frame bars)."""
+    target_bias_m: float = 0.005
+    """d of §VI-B: the impedance target is biased this far into each contact normal (the work
+    site applies its own d; :func:`program_to_json` shows the bias for reference)."""
+
+
+def target_bias(normals_W: np.ndarray, d_m: float) -> np.ndarray:
+    """Δp (3,) with n_i·Δp ≈ −d for each contact normal (rows of ``normals_W``, pointing into
+    the workpiece): the least-squares, least-norm solution of N Δp = −d·1 (§VI-B)."""
+    N = np.asarray(normals_W, dtype=np.float64).reshape(-1, 3)
+    if len(N) == 0:
+        return np.zeros(3)
+    return np.linalg.lstsq(N, -d_m * np.ones(len(N)), rcond=None)[0]
+
+
+def contact_states(node: PathNode) -> tuple[ContactState, ...]:
+    """The protocol's contact states of a node (distinct normals per object, ≤ 16 of each)."""
+    out = []
+    for contact in node.contacts[:MAX_CONTACTS]:
+        normals = np.unique(np.round(contact.normals_W, 6), axis=0)[:MAX_CONTACT_NORMALS]
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        out.append(ContactState(object=contact.object, normals_W=normals))
+    return tuple(out)
+
+
+SAME_DIRECTION_RAD = np.radians(5.0)
+"""Contact normals of one object closer than this are one contact direction."""
+
+
+def contact_direction_count(contacts: tuple[ContactState, ...]) -> int:
+    """Distinct (object, normal) directions among ``contacts``."""
+    count = 0
+    for c in contacts:
+        kept: list[np.ndarray] = []
+        for n in np.asarray(c.normals_W):
+            if all(float(m @ n) < np.cos(SAME_DIRECTION_RAD) for m in kept):
+                kept.append(n)
+        count += len(kept)
+    return count
+
+
+def _force_limit(contacts: tuple[ContactState, ...], params: CommandParams) -> float:
+    n = contact_direction_count(contacts)
+    return params.force_limit_n + params.contact_force_per_direction_n * n
+
+
+def _fits(path: WorkpiecePath, a: int, b: int, params: CommandParams) -> bool:
+    """Whether every node strictly between ``a`` and ``b`` is within tolerance of the move."""
+    if b - a < 2:
+        return True
+    X = path.poses[a : b + 1]
+    C = path.centres_W[a : b + 1]
+    chord = C[-1] - C[0]
+    L2 = float(chord @ chord)
+    if L2 > 1e-18:
+        t = np.clip((C[1:-1] - C[0]) @ chord / L2, 0.0, 1.0)
+    else:  # a turn on the spot: parameter by angle
+        angles = np.linalg.norm(log_batch(X[1:-1, :3, :3] @ X[0, :3, :3].T), axis=1)
+        total = max(float(np.linalg.norm(log_batch((X[-1, :3, :3] @ X[0, :3, :3].T)[None]))), 1e-12)
+        t = np.clip(angles / total, 0.0, 1.0)
+    Y = interpolate(X[0], X[-1], t, path.c_O)
+    C_fit = Y[:, :3, :3] @ path.c_O + Y[:, :3, 3]
+    if np.max(np.linalg.norm(C[1:-1] - C_fit, axis=1)) > params.position_tol_m:
+        return False
+    dR = Y[:, :3, :3] @ np.swapaxes(X[1:-1, :3, :3], -1, -2)
+    return bool(np.max(np.linalg.norm(log_batch(dR), axis=1)) <= params.angle_tol_rad)
+
+
+def fit_targets(
+    path: WorkpiecePath, params: CommandParams | None = None, sweeper: Sweeper | None = None
+) -> list[int]:
+    """Indices of the nodes that become move targets (the first and last always are)."""
+    params = params or CommandParams()
+    n = len(path)
+    targets = [0]
+    while targets[-1] < n - 1:
+        a = targets[-1]
+        b = a + 1
+        while b + 1 < n and not path.nodes[b].fixed and _fits(path, a, b + 1, params):
+            b += 1
+        while (
+            sweeper is not None
+            and b > a + 1
+            and not _sweep_ok(path.nodes[a], path.nodes[b], sweeper)
+        ):
+            b -= 1
+        targets.append(b)
+    return targets
+
+
+def _objects(node: PathNode) -> frozenset[str]:
+    return frozenset(c.object for c in node.contacts)
+
+
+def _sweep_ok(a: PathNode, b: PathNode, sweeper: Sweeper) -> bool:
+    at_a, at_b = _objects(a), _objects(b)
+    return sweeper.segment(a.X_WO, b.X_WO, at_a | at_b, at_a & at_b).ok
+
+
+def _node_at(sweeper: Sweeper, X_WO: np.ndarray, required: frozenset[str]) -> PathNode:
+    """A node at ``X_WO`` with its contact state (objects within ε_c, or ε_o if required)."""
+    st = sweeper.stepper
+    probe = st.probe(X_WO)
+    names, _, N, _ = st.contacts(X_WO, probe, required)
+    contacts = []
+    for name in dict.fromkeys(names):
+        rows = [k for k, m in enumerate(names) if m == name]
+        contacts.append(NodeContact(name, N[rows], probe.distance_m(name)))
+    return PathNode(X_WO, tuple(contacts), required)
+
+
+def refine_segment(
+    a: PathNode, b: PathNode, sweeper: Sweeper, step_m: float = REFINE_STEP_M
+) -> list[PathNode] | None:
+    """Waypoints from ``a`` to ``b`` (``b`` last) whose moves all pass the sweep, found by
+    dragging the workpiece from ``a`` towards ``b`` with the contact step, so that it slides
+    round what it touches (a straight move round a corner in contact cuts the corner); the
+    waypoints are then merged as far as the sweep allows. None if the drag gets stuck."""
+    st = sweeper.stepper
+    kept = _objects(a) & _objects(b)
+    X, probe = a.X_WO, st.probe(a.X_WO)
+    c_b = b.X_WO[:3, :3] @ st.c_O + b.X_WO[:3, 3]
+    poses = []
+    for _ in range(MAX_REFINE_STEPS):
+        c = X[:3, :3] @ st.c_O + X[:3, 3]
+        turn = log_batch((b.X_WO[:3, :3] @ X[:3, :3].T)[None])[0]
+        e = np.concatenate([c_b - c, st.params.char_length_m * turn])
+        norm = float(np.linalg.norm(e))
+        if norm < step_m:
+            break
+        f = REFINE_FORCE_N * e[:3] / norm
+        m = REFINE_FORCE_N * e[3:] / norm * st.params.char_length_m
+        for name in kept:
+            pair = probe.nearest.get(name)
+            if pair is not None:
+                f = f - REFINE_HOLD_N * away_normal(pair)
+        X, probe, moved = st.displace(X, probe, f, m, kept, step_m)
+        if moved == 0.0:
+            return None
+        poses.append(X)
+    else:
+        return None
+    chain = [a, *(_node_at(sweeper, X, kept) for X in poses), b]
+    out, i = [], 0
+    while i < len(chain) - 1:
+        j = i + 1
+        while j + 1 < len(chain) and _sweep_ok(chain[i], chain[j + 1], sweeper):
+            j += 1
+        if not _sweep_ok(chain[i], chain[j], sweeper):
+            return None
+        out.append(chain[j])
+        i = j
+    return out
+
+
+def plan_targets(
+    path: WorkpiecePath, params: CommandParams | None = None, sweeper: Sweeper | None = None
+) -> list[PathNode]:
+    """The move targets after the start: :func:`fit_targets`, with any move between adjacent
+    nodes that fails the sweep replaced by :func:`refine_segment`'s waypoints (kept as they are
+    when that fails too: the check then refuses the program)."""
+    indices = fit_targets(path, params, sweeper)
+    out: list[PathNode] = []
+    for a, b in itertools.pairwise(indices):
+        na, nb = path.nodes[a], path.nodes[b]
+        if sweeper is not None and b == a + 1 and not _sweep_ok(na, nb, sweeper):
+            waypoints = refine_segment(na, nb, sweeper)
+            if waypoints is not None:
+                out += waypoints
+                continue
+        out.append(nb)
+    return out
+
+
+def build_program(
+    program_id: str,
+    path: WorkpiecePath,
+    X_GP: np.ndarray,
+    params: CommandParams | None = None,
+    sweeper: Sweeper | None = None,
+) -> MotionProgram:
+    """The motion program for a settled ``path`` with grasp ``X_GP`` (workpiece in gripper)."""
+    params = params or CommandParams()
+    first = path.nodes[0]
+    commands = [
+        MotionCommand(
+            kind="guarded_grasp",
+            X_WP=first.X_WO,
+            speed_mps=params.contact_speed_mps,
+            force_limit_n=params.force_limit_n,
+            contacts=contact_states(first),
+        )
+    ]
+    prev = first
+    for node in plan_targets(path, params, sweeper):
+        contacts = contact_states(node)
+        slow = bool(contacts) or bool(prev.contacts)
+        commands.append(
+            MotionCommand(
+                kind="contact_move" if contacts else "move",
+                X_WP=node.X_WO,
+                speed_mps=params.contact_speed_mps if slow else params.free_speed_mps,
+                force_limit_n=_force_limit(contacts, params),
+                contacts=contacts,
+            )
+        )
+        prev = node
+    last = path.nodes[-1]
+    up = last.X_WO.copy()
+    up[2, 3] += params.departure_m
+    commands += [
+        MotionCommand("release", last.X_WO, 0.0, params.force_limit_n, contact_states(last)),
+        MotionCommand("move", up, params.free_speed_mps, params.force_limit_n, ()),
+    ]
+    X_GP = np.asarray(X_GP, dtype=np.float64)
+    return MotionProgram(program_id=program_id, X_GP=X_GP, commands=tuple(commands))
+
+
+def program_to_json(
+    program: MotionProgram, target_bias_m: float = CommandParams.target_bias_m
+) -> dict:
+    """A readable JSON form of ``program``: poses as position (m) and rotation matrix, contact
+    normals per object, and each target's impedance bias Δp (§VI-B) for reference."""
+
+    def pose(X: np.ndarray) -> dict:
+        X = np.asarray(X)
+        return {"p_m": np.round(X[:3, 3], 6).tolist(), "R": np.round(X[:3, :3], 9).tolist()}
+
+    commands = []
+    for cmd in program.commands:
+        normals = [c.normals_W for c in cmd.contacts]
+        N = np.vstack(normals) if normals else np.zeros((0, 3))
+        commands.append(
+            {
+                "kind": cmd.kind,
+                "X_WP": pose(cmd.X_WP),
+                "speed_mps": cmd.speed_mps,
+                "force_limit_n": cmd.force_limit_n,
+                "contacts": [
+                    {"object": c.object, "normals_W": np.round(c.normals_W, 6).tolist()}
+                    for c in cmd.contacts
+                ],
+                "target_bias_m": np.round(target_bias(N, target_bias_m), 6).tolist(),
+            }
+        )
+    return {
+        "type": program.TYPE,
+        "program_id": program.program_id,
+        "X_GP": pose(program.X_GP),
+        "commands": commands,
+    }

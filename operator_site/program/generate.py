@@ -1,0 +1,62 @@
+"""The program generator end to end (§VI): history → path → deformation → commands → check."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.geometry import ConvexPart
+from models.scene import Scene
+from operator_site.program.check import CheckResult, Sweeper
+from operator_site.program.commands import CommandParams, build_program
+from operator_site.program.deform import Deformer, DeformParams, DeformResult
+from operator_site.program.path import WorkpiecePath, path_from_history
+from operator_site.simulator import SimParams, StepResult
+from protocol import MotionProgram
+
+
+class ProgramRefusedError(ValueError):
+    """The generated program failed the check; ``check`` says where and why."""
+
+    def __init__(self, check: CheckResult) -> None:
+        super().__init__(f"program refused: {check.reason}")
+        self.check = check
+
+
+@dataclass(frozen=True, eq=False)
+class Generated:
+    """A checked program with what it was made from."""
+
+    program: MotionProgram
+    raw: WorkpiecePath
+    deformed: DeformResult
+    check: CheckResult
+
+
+def generate_program(
+    program_id: str,
+    scene: Scene,
+    workpiece: str,
+    history: Sequence[StepResult],
+    X_GP: np.ndarray,
+    attached_O: tuple[ConvexPart, ...] = (),
+    sim_params: SimParams | None = None,
+    deform_params: DeformParams | None = None,
+    command_params: CommandParams | None = None,
+    X_WO: dict[str, np.ndarray] | None = None,
+) -> Generated:
+    """The motion program for the task in ``history``; raises :class:`ProgramRefusedError` if its
+    sweep finds a collision or a lost contact. ``X_WO`` overrides the scene's object poses, as
+    for the simulator (pass the task session's ``X_WO``: the poses the simulation used)."""
+    c_O = scene.object(workpiece).model.com_O
+    raw = path_from_history(history, workpiece, c_O)
+    deformer = Deformer(scene, workpiece, deform_params, sim_params, attached_O, X_WO)
+    deformed = deformer.deform(raw)
+    sweeper = Sweeper(scene, workpiece, sim_params, attached_O, X_WO=X_WO)
+    program = build_program(program_id, deformed.path, X_GP, command_params, sweeper)
+    check = sweeper.program(program)
+    if not check.ok:
+        raise ProgramRefusedError(check)
+    return Generated(program, raw, deformed, check)
