@@ -27,7 +27,7 @@ from models.scene import Scene, load_scene
 from models.transforms import make_pose, rpy_to_R, so3_log
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import WorkSiteModel
-from operator_site.program import choose_grasp_yaw, pick_and_place
+from operator_site.program import choose_grasp_yaw, generate_program, pick_and_place
 from operator_site.task import TaskSession
 from protocol import MotionProgram, TruthPoses, decode, key, make_config
 
@@ -137,10 +137,25 @@ ProgramMaker = Callable[[TaskSession, str], MotionProgram]
 
 
 def pick_and_place_program(session: TaskSession, program_id: str) -> MotionProgram:
-    """The simple program: lift, carry, set down where the task ended."""
+    """The simple program: lift, carry, set down where the task ended (no contacts)."""
     name = session.workpiece
     start, goal = session.start_X_WO, session.X_WO[name]
     return pick_and_place(program_id, start, goal, choose_grasp_yaw(start, session.X_GP))
+
+
+def generated_program(session: TaskSession, program_id: str) -> MotionProgram:
+    """The program generator's program (§VI): deformed path, contact moves, checked."""
+    return generate_program(
+        program_id,
+        session.scene,
+        session.workpiece,
+        session.sim.history,
+        choose_grasp_yaw(session.start_X_WO, session.X_GP),
+        attached_O=session.fingers_O,
+        sim_params=session.params,
+        X_WO=session.X_WO,
+        start_X_WO=session.start_X_WO,
+    ).program
 
 
 class _Truth:
@@ -201,7 +216,7 @@ def run_scripted(
     connect: str | None = None,
     site_id: str | None = None,
     scene: Scene | None = None,
-    make_program: ProgramMaker = pick_and_place_program,
+    make_program: ProgramMaker = generated_program,
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
     oracle: bool = False,
     time_scale: float = 1.0,

@@ -23,7 +23,7 @@ from models.scene import Scene
 from models.transforms import R_to_quat_wxyz, make_pose, quat_wxyz_to_R
 from operator_site.link import LinkStatus, WorkSiteLink
 from operator_site.model_editor import WorkSiteModel
-from operator_site.program import choose_grasp_yaw, pick_and_place
+from operator_site.program import choose_grasp_yaw, generate_program
 from operator_site.task import TaskSession
 from operator_site.ui.overlay import draw_wireframes
 from operator_site.ui.taskfile import TaskFile, load_task, save_task
@@ -484,27 +484,47 @@ class OperatorPage:
         self.task_md.content = f"loaded `{path}` ({len(task.path)} steps replayed)"
 
     def on_make_program(self) -> None:
-        """Turn the task (the block from where it was picked to where it is now) into a robot
-        program, and show it for confirmation."""
+        """Turn the task into a robot program (§VI: the dragged path deformed, fitted with few
+        moves keeping its required contacts, checked), and show it for confirmation."""
         self.progress.visible = True
         self.progress.value = 10.0
+        self.send_button.disabled = True
         with self._lock:
             name = self.session.workpiece
-            if name is None or self.session.start_X_WO is None:
+            sim = self.session.sim
+            if name is None or sim is None or len(sim.history) < 2:
                 self.program_md.content = "Pick a block and move it first."
                 self.progress.visible = False
                 return
-            start, goal = self.session.start_X_WO, self.session.X_WO[name]
-            raw = np.array([r.X_WO[:3, 3] for r in self.session.sim.history] or [start[:3, 3]])
             self._programs_made += 1
             program_id = f"{name}-{int(time.time())}-{self._programs_made}"
-            X_GP = choose_grasp_yaw(start, self.session.X_GP)
-            self.pending_program = pick_and_place(program_id, start, goal, X_GP)
+            X_GP = choose_grasp_yaw(self.session.start_X_WO, self.session.X_GP)
+            try:
+                made = generate_program(
+                    program_id,
+                    self.session.scene,
+                    name,
+                    sim.history,
+                    X_GP,
+                    attached_O=self.session.fingers_O,
+                    sim_params=self.session.params,
+                    X_WO=self.session.X_WO,
+                    start_X_WO=self.session.start_X_WO,
+                )
+            except ValueError as e:  # ProgramRefusedError says which command and why
+                self.pending_program = None
+                self.program_md.content = f"⚠ no program: {e}"
+                self.progress.visible = False
+                return
+            self.pending_program = made.program
         self.progress.value = 100.0
-        targets = np.array([c.X_WP[:3, 3] for c in self.pending_program.commands])
-        self._show_path(raw, np.vstack([start[:3, 3], targets]))
-        lines = [f"**program `{program_id}`**, {len(self.pending_program.commands)} commands:"]
-        for i, c in enumerate(self.pending_program.commands):
+        self._show_path(made.raw.centres_W, made.deformed.path.centres_W)
+        lines = [
+            f"**program `{program_id}`**, {len(made.program.commands)} commands; path "
+            f"{made.raw.length_m() * 1e3:.0f} → {made.deformed.path.length_m() * 1e3:.0f} mm "
+            f"(grey: as dragged, green: as the robot will go):"
+        ]
+        for i, c in enumerate(made.program.commands):
             p = c.X_WP[:3, 3]
             contacts = f" keeping {', '.join(x.object for x in c.contacts)}" if c.contacts else ""
             lines.append(

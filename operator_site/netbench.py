@@ -1,0 +1,746 @@
+"""``operator-site bench net``: round trips and camera frames over zenoh, beside plain TCP.
+
+What is measured (all round trips sequential ping-pong: send, wait for the answer, repeat; the
+kinds interleaved sample by sample so they share the same conditions):
+
+- ``raw_zenoh_rtt``: bare zenoh, a put on ``bench/raw/ping`` answered by the same bytes on
+  ``bench/raw/pong`` by another process (no codec).
+- ``zenoh_rtt``: our command path: an encoded :class:`~protocol.Stop` on ``key(site, "stop")``
+  (priority REAL_TIME, as ``operator_site.link`` sends it), decoded and validated by an echo
+  process that answers with an encoded :class:`~protocol.ExecutionReport` on
+  ``key(site, "report")`` (priority INTERACTIVE_HIGH, as the work site does), decoded and checked
+  here. The work site itself has no reply to a stop, and its reply to a program waits for its
+  10 ms control tick, so the echo process stands in for it; ``site_program_reply_ms_*`` is that
+  real work-site round trip (a program refused as unsafe), for reference.
+- ``tcp_rtt``: the same Stop bytes, length-prefixed, echoed over one plain TCP connection
+  (TCP_NODELAY both ends).
+- ``frame_fps``, ``frame_latency_ms_median``: a real ``work-site serve`` (camera on) on loopback;
+  latency from the render request (the image's capture time) to the decoded frame here.
+- ``command_delay_by_images_ms``: how much later a command's answer comes while the echo process
+  also publishes raw camera frames (the scene camera's size and rate, DROP, DATA_LOW: as the work
+  site does) over the same session: median round trip with images minus without.
+- ``link_*``: the same over the emulated link of ``deploy/netns.py`` (default 50 ms each way,
+  1 % loss each way): echo process in the work namespace, client in the operator namespace.
+
+zenoh's shared memory is off (``make_config``'s default), as between two machines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import importlib.util
+import json
+import os
+import signal
+import socket
+import statistics
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from protocol import (
+    CameraFrame,
+    ExecutionReport,
+    MotionCommand,
+    MotionProgram,
+    Stop,
+    decode,
+    encode,
+    key,
+    make_config,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+RAW_PING, RAW_PONG, CONTROL = "bench/raw/ping", "bench/raw/pong", "bench/control"
+SITE_ID = "bench"
+LENGTH = struct.Struct("!I")
+READY_TIMEOUT_S = 60.0
+ZEROS6 = np.zeros(6)
+
+
+def _percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def _summary(values: list[float]) -> tuple[float, float]:
+    return (statistics.median(values) if values else float("nan")), _percentile(values, 99)
+
+
+# ------------------------------------------------------------------------ the echo process
+
+
+def _recv_exact(conn: socket.socket, n: int) -> bytes:
+    buf = bytearray()
+    while len(buf) < n:
+        chunk = conn.recv(n - len(buf))
+        if not chunk:
+            raise ConnectionError("peer closed")
+        buf += chunk
+    return bytes(buf)
+
+
+def _tcp_echo(server: socket.socket) -> None:
+    while True:
+        conn, _ = server.accept()
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        threading.Thread(target=_tcp_echo_conn, args=(conn,), daemon=True).start()
+
+
+def _tcp_echo_conn(conn: socket.socket) -> None:
+    with conn:
+        try:
+            while True:
+                (n,) = LENGTH.unpack(_recv_exact(conn, LENGTH.size))
+                conn.sendall(LENGTH.pack(n) + _recv_exact(conn, n))
+        except (ConnectionError, OSError):
+            return
+
+
+def _camera_frames(session: zenoh.Session, stop: threading.Event, spec: list[str]) -> None:
+    """Publish raw frames of ``spec = [width, height, rate_hz]`` until ``stop`` is set."""
+    width, height, rate_hz = int(spec[0]), int(spec[1]), float(spec[2])
+    pub = session.declare_publisher(
+        key(SITE_ID, "camera"),
+        congestion_control=zenoh.CongestionControl.DROP,
+        priority=zenoh.Priority.DATA_LOW,
+    )
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (height, width), dtype=np.uint8)
+    K = np.array([[500.0, 0, width / 2], [0, 500.0, height / 2], [0, 0, 1]])
+    seq, next_s = 0, time.monotonic()
+    while not stop.is_set():
+        pub.put(
+            encode(
+                CameraFrame(
+                    seq=seq, stamp_s=time.time(), X_WC=np.eye(4), K=K, dist=np.zeros(5), image=image
+                )
+            )
+        )
+        seq += 1
+        next_s += 1.0 / rate_hz
+        stop.wait(max(0.0, next_s - time.monotonic()))
+    pub.undeclare()
+
+
+def _config(listen: list[str], connect: list[str]) -> zenoh.Config:
+    """Our session config; with several endpoints (one link per priority range, see
+    :func:`split_endpoints`) the transport must admit that many links."""
+    conf = make_config(listen=listen, connect=connect)
+    if max(len(listen), len(connect)) > 1:
+        conf.insert_json5("transport/unicast/max_links", json.dumps(max(len(listen), len(connect))))
+    return conf
+
+
+def split_endpoints(host: str, ports: tuple[int, int], split: bool) -> list[str]:
+    """One endpoint, or two: priorities 0-5 (control to data: commands, reports, state) on
+    ``ports[0]`` and 6-7 (data_low, background: camera frames) on ``ports[1]``, so that the
+    image stream's bytes queued in one TCP connection never hold a command back."""
+    if not split:
+        return [f"tcp/{host}:{ports[0]}"]
+    return [f"tcp/{host}:{ports[0]}?prio=0-5", f"tcp/{host}:{ports[1]}?prio=6-7"]
+
+
+def serve_echo(zenoh_listen: list[str], tcp_port: int) -> int:
+    """The echo process: raw pong, Stop→ExecutionReport echo, TCP echo, camera on demand."""
+    server = socket.create_server(("0.0.0.0", tcp_port))
+    threading.Thread(target=_tcp_echo, args=(server,), daemon=True).start()
+    with zenoh.open(_config(zenoh_listen, [])) as session:
+        fifo = zenoh.handlers.FifoChannel
+        remote = zenoh.Locality.REMOTE
+        raw_in = session.declare_subscriber(RAW_PING, fifo(1024), allowed_origin=remote)
+        raw_out = session.declare_publisher(RAW_PONG, priority=zenoh.Priority.REAL_TIME)
+        stop_in = session.declare_subscriber(
+            key(SITE_ID, "stop"), fifo(1024), allowed_origin=remote
+        )
+        report_out = session.declare_publisher(
+            key(SITE_ID, "report"), priority=zenoh.Priority.INTERACTIVE_HIGH
+        )
+        control = session.declare_subscriber(CONTROL, fifo(16), allowed_origin=remote)
+
+        def raw_loop() -> None:
+            for sample in raw_in.handler:  # ends with an error when the session closes
+                raw_out.put(sample.payload)
+
+        def stop_loop() -> None:
+            # Blocking receive on our own thread, never work inside zenoh's callback.
+            for sample in stop_in.handler:
+                msg = decode(sample.payload.to_bytes(), expected=Stop)
+                report = ExecutionReport(
+                    program_id="bench",
+                    command_index=-1,
+                    status="stopped",
+                    wrench_S=ZEROS6,
+                    message=msg.reason,
+                    stamp_s=time.time(),
+                )
+                report_out.put(encode(report))
+
+        camera_stop = threading.Event()
+        done = threading.Event()
+
+        def control_loop() -> None:
+            nonlocal camera_stop
+            for sample in control.handler:
+                words = sample.payload.to_bytes().decode().split()
+                camera_stop.set()
+                if words[:2] == ["camera", "on"]:
+                    camera_stop = threading.Event()
+                    threading.Thread(
+                        target=_camera_frames, args=(session, camera_stop, words[2:]), daemon=True
+                    ).start()
+                elif words == ["quit"]:
+                    done.set()
+
+        for loop in (raw_loop, stop_loop, control_loop):
+            threading.Thread(target=_quietly, args=(loop,), daemon=True).start()
+        signal.signal(signal.SIGTERM, lambda *_: done.set())
+        print("netbench: ready", flush=True)
+        # The main thread only waits (with a timeout, so that SIGTERM's handler gets to run).
+        while not done.wait(0.2):
+            pass
+        camera_stop.set()
+        time.sleep(0.1)  # the camera thread undeclares its publisher before the session closes
+    return 0
+
+
+def _quietly(loop: Any) -> None:
+    try:
+        loop()
+    except Exception:  # the session closed under a blocking receive: the process is ending
+        return
+
+
+# ----------------------------------------------------------------------------- the client
+
+
+class _Client:
+    """The measuring side: one zenoh session and one TCP connection to the echo process."""
+
+    def __init__(self, zenoh_connect: list[str], tcp_addr: str) -> None:
+        self.session = zenoh.open(_config([], zenoh_connect))
+        s = self.session
+        fifo, remote = zenoh.handlers.FifoChannel, zenoh.Locality.REMOTE
+        self.raw_out = s.declare_publisher(RAW_PING, priority=zenoh.Priority.REAL_TIME)
+        self.raw_in = s.declare_subscriber(RAW_PONG, fifo(1024), allowed_origin=remote)
+        self.stop_out = s.declare_publisher(key(SITE_ID, "stop"), priority=zenoh.Priority.REAL_TIME)
+        self.report_in = s.declare_subscriber(
+            key(SITE_ID, "report"), fifo(1024), allowed_origin=remote
+        )
+        self.control = s.declare_publisher(CONTROL)
+        host, port = tcp_addr.rsplit(":", 1)
+        self.sock = socket.create_connection((host, int(port)), timeout=30.0)
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.payload = encode(Stop(reason="bench 000000", stamp_s=time.time()))
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        while not (
+            self.raw_out.matching_status.matching and self.stop_out.matching_status.matching
+        ):
+            if time.monotonic() > deadline:
+                raise TimeoutError("the echo process's subscribers never matched")
+            time.sleep(0.05)
+        time.sleep(0.5)  # and the echo's publishers have our subscribers too
+
+    def raw_rtt(self) -> float:
+        t = time.perf_counter()
+        self.raw_out.put(self.payload)
+        self.raw_in.handler.recv()
+        return (time.perf_counter() - t) * 1000.0
+
+    def command_rtt(self, seq: int) -> float:
+        t = time.perf_counter()
+        self.stop_out.put(encode(Stop(reason=f"bench {seq:06d}", stamp_s=time.time())))
+        while True:  # an answer to an earlier, timed-out command is skipped
+            report = decode(self.report_in.handler.recv().payload.to_bytes(), ExecutionReport)
+            if report.message == f"bench {seq:06d}":
+                return (time.perf_counter() - t) * 1000.0
+
+    def tcp_rtt(self) -> float:
+        t = time.perf_counter()
+        self.sock.sendall(LENGTH.pack(len(self.payload)) + self.payload)
+        _recv_exact(self.sock, LENGTH.size + len(self.payload))
+        return (time.perf_counter() - t) * 1000.0
+
+    def close(self) -> None:
+        self.sock.close()
+        self.session.close()
+
+
+def run_client(args: argparse.Namespace) -> dict[str, Any]:
+    """Measure round trips (and with ``--frame``, the image phase); returns raw samples."""
+    client = _Client(args.zenoh_connect.split(","), args.tcp)
+    out: dict[str, Any] = {"raw": [], "command": [], "tcp": []}
+    try:
+        for i in range(args.warmup):
+            client.raw_rtt(), client.command_rtt(-1 - i), client.tcp_rtt()
+        for i in range(args.count):
+            out["raw"].append(client.raw_rtt())
+            out["command"].append(client.command_rtt(i))
+            out["tcp"].append(client.tcp_rtt())
+        if args.frame:
+            out.update(_image_phase(client, args))
+    finally:
+        client.close()
+    return out
+
+
+def _image_phase(client: _Client, args: argparse.Namespace) -> dict[str, Any]:
+    latencies_ms: list[float] = []
+    seqs: list[int] = []
+    sub = client.session.declare_subscriber(
+        key(SITE_ID, "camera"), zenoh.handlers.RingChannel(1), allowed_origin=zenoh.Locality.REMOTE
+    )
+
+    def frames() -> None:
+        for sample in sub.handler:
+            frame = decode(sample.payload.to_bytes(), CameraFrame)
+            latencies_ms.append((time.time() - frame.stamp_s) * 1000.0)
+            seqs.append(frame.seq)
+
+    threading.Thread(target=_quietly, args=(frames,), daemon=True).start()
+    width, height, rate = args.frame.split(":")
+    client.control.put(f"camera on {width} {height} {rate}".encode())
+    time.sleep(2.0)  # let the stream reach its steady state
+    n0, t0 = len(seqs), time.monotonic()
+    with_images = [client.command_rtt(1_000_000 + i) for i in range(args.image_count)]
+    elapsed_s = time.monotonic() - t0
+    n1 = len(seqs)
+    client.control.put(b"camera off")
+    time.sleep(1.0)
+    without = [client.command_rtt(2_000_000 + i) for i in range(args.image_count)]
+    sub.undeclare()
+    return {
+        "command_with_images": with_images,
+        "command_without_images": without,
+        "frame_fps": (n1 - n0) / elapsed_s,
+        "frame_latency_ms": latencies_ms[n0:n1],
+        "frames_sent_span": (seqs[n1 - 1] - seqs[n0] + 1) if n1 > n0 else 0,
+    }
+
+
+# ----------------------------------------------------------------------- the orchestrator
+
+
+def _load_netns() -> ModuleType:
+    """``deploy/netns.py`` (a tool beside the package, not part of it)."""
+    spec = importlib.util.spec_from_file_location("_telerobot_netns", REPO / "deploy" / "netns.py")
+    if spec is None or spec.loader is None:
+        raise ImportError("deploy/netns.py not found")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _self_argv(*args: str) -> list[str]:
+    return [sys.executable, "-m", "operator_site.netbench", *args]
+
+
+def _start_echo(argv: list[str]) -> subprocess.Popen:
+    proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, text=True)
+    line = proc.stdout.readline() if proc.stdout else ""
+    if "ready" not in line:
+        proc.kill()
+        proc.wait()
+        raise RuntimeError(f"netbench echo process did not start ({line.strip()!r})")
+    return proc
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    if proc.stdout is not None:
+        proc.stdout.close()
+
+
+def _run_client(argv: list[str], timeout_s: float) -> dict[str, Any]:
+    done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=timeout_s)
+    if done.returncode != 0:
+        raise RuntimeError(f"netbench client failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _client_args(zenoh_ep: str, tcp: str, count: int, frame: str, image_count: int) -> list[str]:
+    return [
+        "--role=client",
+        f"--zenoh-connect={zenoh_ep}",
+        f"--tcp={tcp}",
+        f"--count={count}",
+        f"--frame={frame}",
+        f"--image-count={image_count}",
+    ]
+
+
+def measure_pair(
+    echo_prefix: list[str],
+    client_prefix: list[str],
+    host: str,
+    count: int,
+    frame: str,
+    image_count: int,
+    timeout_s: float,
+    split: bool = False,
+) -> dict[str, Any]:
+    """Start the echo process (``echo_prefix`` e.g. ``ip netns exec``) and run the client;
+    ``split``: one zenoh link per priority range (:func:`split_endpoints`)."""
+    endpoints = ",".join(split_endpoints(host, (_free_port(), _free_port()), split))
+    tport = _free_port()
+    echo = _start_echo(
+        [
+            *echo_prefix,
+            *_self_argv("--role=echo", f"--zenoh-listen={endpoints}", f"--tcp-port={tport}"),
+        ]
+    )
+    try:
+        client_args = _client_args(endpoints, f"{host}:{tport}", count, frame, image_count)
+        return _run_client([*client_prefix, *_self_argv(*client_args)], timeout_s)
+    finally:
+        _stop(echo)
+
+
+def measure_work_site(seconds: float, program_samples: int) -> dict[str, Any]:
+    """A real ``work-site serve`` on loopback: camera frames, and a program's refusal round trip."""
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "work_site", "serve", "--listen", endpoint, "--site-id", SITE_ID],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    try:
+        with zenoh.open(make_config(connect=[endpoint])) as session:
+            ring, fifo = zenoh.handlers.RingChannel, zenoh.handlers.FifoChannel
+            cam = session.declare_subscriber(key(SITE_ID, "camera"), ring(1))
+            reports = session.declare_subscriber(key(SITE_ID, "report"), fifo(256))
+            pub = session.declare_publisher(
+                key(SITE_ID, "program"), priority=zenoh.Priority.INTERACTIVE_HIGH
+            )
+            deadline = time.monotonic() + READY_TIMEOUT_S
+            while cam.try_recv() is None:  # the first frame: rendering is warm
+                if time.monotonic() > deadline:
+                    raise TimeoutError("the work site sent no camera frame")
+                time.sleep(0.01)
+            latencies: list[float] = []
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < seconds:
+                frame = decode(cam.handler.recv().payload.to_bytes(), CameraFrame)
+                latencies.append((time.time() - frame.stamp_s) * 1000.0)
+            fps = len(latencies) / (time.monotonic() - t0)
+            # Unsafe (the gripper would go to the robot's base): refused, never run.
+            command = MotionCommand(
+                kind="move", X_WP=np.eye(4), speed_mps=0.05, force_limit_n=10.0, contacts=()
+            )
+            replies: list[float] = []
+            for i in range(program_samples):
+                pid = f"bench-{os.getpid()}-{i}"
+                program = MotionProgram(program_id=pid, X_GP=np.eye(4), commands=(command,))
+                payload = encode(program)
+                t = time.perf_counter()
+                pub.put(payload)
+                while decode(reports.handler.recv().payload.to_bytes(), ExecutionReport) \
+                        .program_id != pid:  # fmt: skip
+                    pass
+                replies.append((time.perf_counter() - t) * 1000.0)
+            cam.undeclare()
+            reports.undeclare()
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    return {"frame_fps": fps, "frame_latency_ms": latencies, "site_program_reply_ms": replies}
+
+
+def codec_cpu_us_per_round_trip(n: int = 5000) -> float:
+    """CPU time (µs) of the codec work in one command round trip, in-process: encode a Stop,
+    decode it, build and encode the ExecutionReport, decode that."""
+
+    def cycle() -> None:
+        stop = decode(encode(Stop(reason="bench 000001", stamp_s=time.time())), Stop)
+        report = ExecutionReport(
+            program_id="bench",
+            command_index=-1,
+            status="stopped",
+            wrench_S=ZEROS6,
+            message=stop.reason,
+            stamp_s=time.time(),
+        )
+        decode(encode(report), ExecutionReport)
+
+    for _ in range(n // 10):
+        cycle()
+    t = time.perf_counter()
+    for _ in range(n):
+        cycle()
+    return (time.perf_counter() - t) / n * 1e6
+
+
+def _frame_spec(args: argparse.Namespace) -> str:
+    from models.scene import load_scene
+
+    cam = load_scene().camera
+    w, h = (args.net_frame_size or f"{cam.width}x{cam.height}").split("x")
+    return f"{int(w)}:{int(h)}:{cam.frame_rate_hz}"
+
+
+def run(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, list[float]]]:
+    """All measurements; returns (summary, samples by series name)."""
+    frame = _frame_spec(args)
+    samples: dict[str, list[float]] = {}
+    summary: dict[str, Any] = {"frame_spec_w_h_hz": frame, "count": args.net_count}
+    print(f"netbench: loopback round trips ({args.net_count} of each kind)...", flush=True)
+    lo = measure_pair([], [], "127.0.0.1", args.net_count, frame, args.net_image_count, 900)
+    for name in ("raw", "command", "tcp", "command_with_images", "command_without_images"):
+        samples[f"loopback_{name}"] = lo[name]
+    summary["raw_zenoh_rtt_ms_median"], summary["raw_zenoh_rtt_ms_p99"] = _summary(lo["raw"])
+    summary["zenoh_rtt_ms_median"], summary["zenoh_rtt_ms_p99"] = _summary(lo["command"])
+    summary["tcp_rtt_ms_median"], summary["tcp_rtt_ms_p99"] = _summary(lo["tcp"])
+    summary["zenoh_over_tcp_rtt_ratio_median"] = (
+        summary["zenoh_rtt_ms_median"] / summary["tcp_rtt_ms_median"]
+    )
+    summary["codec_overhead_over_raw_zenoh_ms_median"] = (
+        summary["zenoh_rtt_ms_median"] - summary["raw_zenoh_rtt_ms_median"]
+    )
+    summary["codec_cpu_us_per_round_trip"] = codec_cpu_us_per_round_trip()
+    summary["command_delay_by_images_ms"] = statistics.median(
+        lo["command_with_images"]
+    ) - statistics.median(lo["command_without_images"])
+    print("netbench: a real work site's camera and program replies...", flush=True)
+    ws = measure_work_site(args.net_frame_seconds, 50)
+    samples["loopback_frame_latency"] = ws["frame_latency_ms"]
+    samples["loopback_site_program_reply"] = ws["site_program_reply_ms"]
+    summary["frame_fps"] = ws["frame_fps"]
+    summary["frame_latency_ms_median"], summary["frame_latency_ms_p99"] = _summary(
+        ws["frame_latency_ms"]
+    )
+    summary["site_program_reply_ms_median"], summary["site_program_reply_ms_p99"] = _summary(
+        ws["site_program_reply_ms"]
+    )
+    if args.net_no_link:
+        summary["link"] = "skipped (--net-no-link)"
+        return summary, samples
+    netns = _load_netns()
+    reason = netns.unavailable_reason()
+    if reason is not None:
+        print(f"netbench: emulated link skipped: {reason}", flush=True)
+        summary["link"] = f"skipped: {reason}"
+        return summary, samples
+    link_params = {
+        "delay_ms": args.net_link_delay_ms,
+        "loss": args.net_link_loss,
+        "seed": args.net_link_seed,
+    }
+    summary["link"] = link_params
+    print(f"netbench: emulated link {link_params} ({args.net_link_count} of each)...", flush=True)
+    with netns.emulated_link(prefix="trbench", **link_params) as link:
+        pair = link.pair
+        ln = measure_pair(
+            ["ip", "netns", "exec", pair.work],
+            ["ip", "netns", "exec", pair.ops],
+            netns.WORK_ADDR,
+            args.net_link_count,
+            frame,
+            args.net_link_image_count,
+            3600,
+        )
+        split = None
+        if not args.net_no_split:
+            print("netbench: the same with one zenoh link per priority range...", flush=True)
+            split = measure_pair(
+                ["ip", "netns", "exec", pair.work],
+                ["ip", "netns", "exec", pair.ops],
+                netns.WORK_ADDR,
+                args.net_link_count // 5,
+                frame,
+                args.net_link_image_count,
+                3600,
+                split=True,
+            )
+    summary["link_relay_counters"] = link.counters
+    if split is not None:
+        for name in ("command", "command_with_images", "command_without_images"):
+            samples[f"link_split_{name}"] = split[name]
+        samples["link_split_frame_latency"] = split["frame_latency_ms"]
+        s_with, s_with_p99 = _summary(split["command_with_images"])
+        s_without, s_without_p99 = _summary(split["command_without_images"])
+        summary["link_split_zenoh_rtt_ms_median"] = _summary(split["command"])[0]
+        summary["link_split_command_rtt_with_images_ms_median"] = s_with
+        summary["link_split_command_rtt_with_images_ms_p99"] = s_with_p99
+        summary["link_split_command_delay_by_images_ms"] = s_with - s_without
+        summary["link_split_command_delay_by_images_ms_p99"] = s_with_p99 - s_without_p99
+        summary["link_split_frame_fps"] = split["frame_fps"]
+        summary["link_split_frame_latency_ms_median"] = _summary(split["frame_latency_ms"])[0]
+    for name in ("raw", "command", "tcp", "command_with_images", "command_without_images"):
+        samples[f"link_{name}"] = ln[name]
+    samples["link_frame_latency"] = ln["frame_latency_ms"]
+    summary["link_raw_zenoh_rtt_ms_median"], summary["link_raw_zenoh_rtt_ms_p99"] = _summary(
+        ln["raw"]
+    )
+    summary["link_zenoh_rtt_ms_median"], summary["link_zenoh_rtt_ms_p99"] = _summary(ln["command"])
+    summary["link_tcp_rtt_ms_median"], summary["link_tcp_rtt_ms_p99"] = _summary(ln["tcp"])
+    summary["link_zenoh_over_tcp_ratio_median"] = (
+        summary["link_zenoh_rtt_ms_median"] / summary["link_tcp_rtt_ms_median"]
+    )
+    summary["link_zenoh_over_tcp_ratio_p99"] = (
+        summary["link_zenoh_rtt_ms_p99"] / summary["link_tcp_rtt_ms_p99"]
+    )
+    with_med, with_p99 = _summary(ln["command_with_images"])
+    without_med, without_p99 = _summary(ln["command_without_images"])
+    summary["link_command_rtt_with_images_ms_median"] = with_med
+    summary["link_command_rtt_with_images_ms_p99"] = with_p99
+    summary["link_command_rtt_without_images_ms_median"] = without_med
+    summary["link_command_delay_by_images_ms"] = with_med - without_med
+    summary["link_command_delay_by_images_ms_p99"] = with_p99 - without_p99
+    summary["link_frame_fps"] = ln["frame_fps"]
+    summary["link_frame_latency_ms_median"], summary["link_frame_latency_ms_p99"] = _summary(
+        ln["frame_latency_ms"]
+    )
+    return summary, samples
+
+
+def write_outputs(out: Path, summary: dict[str, Any], samples: dict[str, list[float]]) -> None:
+    """``net.json`` (summary), ``net_samples.csv`` (every sample), ``net_rtt.png`` (CDFs)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "net.json").write_text(json.dumps(summary, indent=2) + "\n")
+    with (out / "net_samples.csv").open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["series", "index", "ms"])
+        for name, values in samples.items():
+            writer.writerows((name, i, f"{v:.4f}") for i, v in enumerate(values))
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("netbench: matplotlib missing (pip install -e '.[bench]'): no plot", flush=True)
+        return
+    panels = [
+        ("loopback", ["loopback_raw", "loopback_command", "loopback_tcp",
+                      "loopback_command_with_images"]),
+        ("emulated link", ["link_raw", "link_command", "link_tcp", "link_command_with_images",
+                           "link_split_command_with_images"]),
+    ]  # fmt: skip
+    panels = [(t, [s for s in names if samples.get(s)]) for t, names in panels]
+    panels = [(t, names) for t, names in panels if names]
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4), squeeze=False)
+    for ax, (title, names) in zip(axes[0], panels, strict=True):
+        for name in names:
+            v = np.sort(samples[name])
+            ax.plot(v, np.arange(1, len(v) + 1) / len(v), label=name.split("_", 1)[1])
+        ax.set_xscale("log")
+        ax.set_xlabel("round trip (ms)")
+        ax.set_ylabel("fraction ≤")
+        ax.set_title(f"round trips, {title}")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "net_rtt.png", dpi=100)
+    plt.close(fig)
+
+
+def _has_option(parser: argparse.ArgumentParser, option: str) -> bool:
+    return option in parser._option_string_actions
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``bench net``'s options (``--out`` only if the parser has none yet)."""
+    if not _has_option(parser, "--out"):
+        parser.add_argument(
+            "--out",
+            type=Path,
+            default=Path("docs/bench"),
+            help="directory for net.json, net_samples.csv, net_rtt.png (default: %(default)s)",
+        )
+    g = parser.add_argument_group("bench net")
+    g.add_argument("--net-count", type=int, default=2000, help="loopback round trips per kind")
+    g.add_argument(
+        "--net-image-count",
+        type=int,
+        default=500,
+        help="loopback command round trips with and without images",
+    )
+    g.add_argument(
+        "--net-frame-size",
+        default=None,
+        metavar="WxH",
+        help="size of the echo's raw frames (default: the scene camera's)",
+    )
+    g.add_argument(
+        "--net-frame-seconds", type=float, default=5.0, help="seconds of real work-site frames"
+    )
+    g.add_argument("--net-no-link", action="store_true", help="skip the emulated link")
+    g.add_argument("--net-link-delay-ms", type=float, default=50.0, help="one-way delay (ms)")
+    g.add_argument("--net-link-loss", type=float, default=0.01, help="loss fraction each way")
+    g.add_argument("--net-link-seed", type=int, default=1, help="link schedule seed")
+    g.add_argument(
+        "--net-no-split",
+        action="store_true",
+        help="skip the run with one zenoh link per priority range (commands apart from images)",
+    )
+    g.add_argument(
+        "--net-link-count", type=int, default=500, help="round trips per kind over the link"
+    )
+    g.add_argument(
+        "--net-link-image-count",
+        type=int,
+        default=200,
+        help="link command round trips with and without images",
+    )
+    # The roles of the helper processes this benchmark starts (not for users).
+    parser.add_argument("--role", choices=["echo", "client"], help=argparse.SUPPRESS)
+    parser.add_argument("--zenoh-listen", help=argparse.SUPPRESS)
+    parser.add_argument("--zenoh-connect", help=argparse.SUPPRESS)
+    parser.add_argument("--tcp-port", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--tcp", help=argparse.SUPPRESS)
+    parser.add_argument("--count", type=int, default=1000, help=argparse.SUPPRESS)
+    parser.add_argument("--warmup", type=int, default=20, help=argparse.SUPPRESS)
+    parser.add_argument("--frame", default="", help=argparse.SUPPRESS)
+    parser.add_argument("--image-count", type=int, default=200, help=argparse.SUPPRESS)
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the benchmark (or a helper role); print the figures and the JSON summary last."""
+    if args.role == "echo":
+        return serve_echo(args.zenoh_listen.split(","), args.tcp_port)
+    if args.role == "client":
+        print(json.dumps(run_client(args)), flush=True)
+        return 0
+    summary, samples = run(args)
+    write_outputs(args.out, summary, samples)
+    for name, value in summary.items():
+        if isinstance(value, float):
+            print(f"  {name:48s} {value:10.3f}")
+    print(f"netbench: wrote {args.out}/net.json, net_samples.csv, net_rtt.png", flush=True)
+    print(json.dumps(summary), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    _parser = argparse.ArgumentParser(
+        prog="operator-site bench net", description=__doc__.split("\n\n")[0]
+    )
+    add_arguments(_parser)
+    sys.exit(main(_parser.parse_args()))
