@@ -149,12 +149,11 @@ def generated_program(session: TaskSession, program_id: str) -> MotionProgram:
         program_id,
         session.scene,
         session.workpiece,
-        session.sim.history,
+        session.path_history(),
         choose_grasp_yaw(session.start_X_WO, session.X_GP),
         attached_O=session.fingers_O,
         sim_params=session.params,
         X_WO=session.X_WO,
-        start_X_WO=session.start_X_WO,
     ).program
 
 

@@ -6,6 +6,8 @@ browser; the page calls these methods from its callbacks, under its lock.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from models.robot import load_robot
@@ -52,6 +54,28 @@ class TaskSession:
             self.scene, name, self.params, X_WO=self.X_WO, attached_O=self.fingers_O
         )
         self.start_X_WO = self.X_WO[name].copy()
+        self._start_step = self._start_state()
+
+    def _start_state(self) -> StepResult:
+        """The workpiece where the simulator starts it, with its contacts there."""
+        st = self.sim.state
+        return StepResult(
+            time_s=0.0,
+            X_WO=st.X_WO.copy(),
+            contacts=st.contacts,
+            s_fraction=0.0,
+            queries=0,
+            min_distance_m=math.inf,
+            speed_limited=False,
+        )
+
+    def path_history(self) -> list[StepResult]:
+        """The start state and every step since: the simulator's history records the pose
+        after each step, so on its own the path would begin a step (up to 20 mm) away from
+        where the block really is, and where the robot grasps it."""
+        if self.sim is None:
+            return []
+        return [self._start_step, *self.sim.history]
 
     def set_target(self, X_WD: np.ndarray) -> None:
         """Where the dragger is (the spring's far end), for the selected workpiece."""
@@ -100,3 +124,4 @@ class TaskSession:
         )
         for other in captured:
             self.sim.capture(other)
+        self._start_step = self._start_state()

@@ -46,15 +46,12 @@ def generate_program(
     deform_params: DeformParams | None = None,
     command_params: CommandParams | None = None,
     X_WO: dict[str, np.ndarray] | None = None,
-    start_X_WO: np.ndarray | None = None,
 ) -> Generated:
     """The motion program for the task in ``history``; raises :class:`ProgramRefusedError` if its
     sweep finds a collision or a lost contact. ``X_WO`` overrides the scene's object poses, as
-    for the simulator (pass the task session's ``X_WO``: the poses the simulation used);
-    ``start_X_WO`` is where the workpiece was before the history's first step (where the
-    robot will grasp it)."""
+    for the simulator (pass the task session's ``X_WO``: the poses the simulation used)."""
     c_O = scene.object(workpiece).model.com_O
-    raw = path_from_history(history, workpiece, c_O, start_X_WO)
+    raw = path_from_history(history, workpiece, c_O)
     deformer = Deformer(scene, workpiece, deform_params, sim_params, attached_O, X_WO)
     deformed = deformer.deform(raw)
     sweeper = Sweeper(scene, workpiece, sim_params, attached_O, X_WO=X_WO)

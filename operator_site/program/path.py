@@ -8,7 +8,6 @@ contact state (the task's goal), and every stretch where the operator held a cap
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -102,14 +101,10 @@ def mark_fixed(nodes: Sequence[PathNode]) -> tuple[PathNode, ...]:
 
 
 def path_from_history(
-    history: Sequence[StepResult],
-    workpiece: str,
-    c_O: np.ndarray,
-    start_X_WO: np.ndarray | None = None,
+    history: Sequence[StepResult], workpiece: str, c_O: np.ndarray
 ) -> WorkpiecePath:
-    """The workpiece path of a simulation ``history`` (a :attr:`Simulator.history`), from
-    ``start_X_WO`` if given (the history holds the poses *after* each step, so without it the
-    path starts one step late: up to 20 mm off the block's real place, where it is grasped).
+    """The workpiece path of a simulation ``history`` (a :attr:`Simulator.history`; put the
+    start state first, as ``TaskSession.path_history`` does, or the path starts one step late).
 
     Steps that did not move the workpiece are dropped; a node's required contacts are its
     captured ones, and the last node's whole contact state is required (the goal).
@@ -117,8 +112,6 @@ def path_from_history(
     if not history:
         raise ValueError("the simulator's history is empty: the operator has not moved anything")
     kept: list[StepResult] = []
-    if start_X_WO is not None:
-        kept.append(dataclasses.replace(history[0], X_WO=np.asarray(start_X_WO), contacts=()))
     for step in history:
         if kept and np.max(np.abs(step.X_WO - kept[-1].X_WO)) <= SAME_POSE_TOL_M:
             kept[-1] = step  # same pose: keep the latest contact state

@@ -481,7 +481,9 @@ class OperatorPage:
                 X = self.session.X_WO[task.workpiece]
                 _set_pose(self.dragger, X)
                 _set_pose(self.object_frames[task.workpiece], X)
-        self.task_md.content = f"loaded `{path}` ({len(task.path)} steps replayed)"
+        # As the message, so that the live task text (rewritten every step) keeps it.
+        self.message = f"loaded `{path}` ({len(task.path)} steps replayed)"
+        self.task_md.content = self.message
 
     def on_make_program(self) -> None:
         """Turn the task into a robot program (§VI: the dragged path deformed, fitted with few
@@ -504,12 +506,11 @@ class OperatorPage:
                     program_id,
                     self.session.scene,
                     name,
-                    sim.history,
+                    self.session.path_history(),
                     X_GP,
                     attached_O=self.session.fingers_O,
                     sim_params=self.session.params,
                     X_WO=self.session.X_WO,
-                    start_X_WO=self.session.start_X_WO,
                 )
             except ValueError as e:  # ProgramRefusedError says which command and why
                 self.pending_program = None
