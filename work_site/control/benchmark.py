@@ -159,6 +159,25 @@ def corner_grasp_GP() -> np.ndarray:
     return invert_pose(X_OG)
 
 
+def _set_down(
+    X_WP_start: np.ndarray, X_WP_goal: np.ndarray, out_m: tuple, table: ContactState
+) -> tuple[MotionCommand, ...]:
+    """Grasp at the start, lift 6 cm, carry over to ``out_m`` away from the goal and 6 cm up,
+    and set the block down there with a guarded move (the table verified)."""
+    lifted = X_WP_start.copy()
+    lifted[2, 3] += 0.06
+    near = X_WP_goal.copy()
+    near[:3, 3] += out_m
+    above = near.copy()
+    above[2, 3] += 0.06
+    return (
+        _cmd("guarded_grasp", X_WP_start, 0.1),
+        _cmd("move", lifted, 0.1),
+        _cmd("move", above, 0.1),
+        _cmd("guarded_move", near, 0.02, (table,), PLACE_GUARD_N),
+    )
+
+
 def corner_program(X_WP_start: np.ndarray) -> tuple[MotionProgram, np.ndarray]:
     """The cube from ``X_WP_start`` into the frame's (−x, −y) inside corner, and the goal pose.
 
@@ -168,17 +187,8 @@ def corner_program(X_WP_start: np.ndarray) -> tuple[MotionProgram, np.ndarray]:
     goal = make_pose(np.eye(3), (x0 + CUBE_HALF_M, y0 + CUBE_HALF_M, CUBE_HALF_M))
     table = ContactState(object="table", normals_W=np.array([[0.0, 0.0, 1.0]]))
     walls = ContactState(object="frame", normals_W=np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
-    lifted = X_WP_start.copy()
-    lifted[2, 3] += 0.06
-    near = goal.copy()
-    near[:3, 3] += (0.01, 0.01, 0.0)
-    above = near.copy()
-    above[2, 3] += 0.06
     commands = (
-        _cmd("guarded_grasp", X_WP_start, 0.1),
-        _cmd("move", lifted, 0.1),
-        _cmd("move", above, 0.1),
-        _cmd("guarded_move", near, 0.02, (table,), PLACE_GUARD_N),
+        *_set_down(X_WP_start, goal, (0.01, 0.01, 0.0), table),
         _cmd("contact_move", goal, 0.01, (table, walls)),
         _cmd("release", goal, 0.01),
         _cmd("move", goal @ make_pose(np.eye(3), (0.0, 0.0, 0.06)), 0.05),
@@ -225,21 +235,11 @@ def slide() -> dict:
     wall = ContactState(object="frame", normals_W=np.array([[1.0, 0.0, 0.0]]))
     on_wall = make_pose(np.eye(3), (x0 + CUBE_HALF_M, start_y, CUBE_HALF_M))
     slid = make_pose(np.eye(3), (x0 + CUBE_HALF_M, end_y, CUBE_HALF_M))
-    near = on_wall.copy()
-    near[0, 3] += 0.01
-    above = near.copy()
-    above[2, 3] += 0.06
-    X_start = world.object_pose("cube")
-    lifted = X_start.copy()
-    lifted[2, 3] += 0.06
     program = MotionProgram(
         program_id="slide",
         X_GP=corner_grasp_GP(),
         commands=(
-            _cmd("guarded_grasp", X_start, 0.1),
-            _cmd("move", lifted, 0.1),
-            _cmd("move", above, 0.1),
-            _cmd("guarded_move", near, 0.02, (table,), PLACE_GUARD_N),
+            *_set_down(world.object_pose("cube"), on_wall, (0.01, 0.0, 0.0), table),
             _cmd("contact_move", on_wall, 0.01, (table, wall)),
             _cmd("contact_move", slid, 0.01, (table, wall)),
         ),
