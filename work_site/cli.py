@@ -19,6 +19,7 @@ from models.layout import perturbed_camera_pose, random_layout
 from models.scene import DEFAULT_SCENE, load_scene
 from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError, make_config
 from protocol.keys import check_site_id
+from work_site.vision import cli as vision_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,14 +41,19 @@ def build_parser() -> argparse.ArgumentParser:
         description="Prints a JSON summary as its last line and writes CSV files into --out.",
     )
     bench.add_argument(
-        "name", choices=["control"], help="control: the arm's execution of moves (issue 5)"
+        "name",
+        choices=["control", "vision"],
+        help="control: the arm's execution of moves (issue 5); vision: recognition and pose "
+        "accuracy, speed and their trades on rendered scenes (issue 4)",
     )
     bench.add_argument(
         "--out",
         type=Path,
         default=Path("docs/bench"),
-        help="directory for CSV files (default: %(default)s)",
+        help="directory for CSV and PNG files (default: %(default)s)",
     )
+    vision_cli.add_bench_arguments(bench)
+    vision_cli.register(sub)  # recognize, render-dataset, calibrate
     return parser
 
 
@@ -217,10 +223,15 @@ def main(argv: list[str]) -> int:
     if args.command == "bench":
         import json
 
+        if args.name == "vision":
+            print(json.dumps(vision_cli.bench_main(args)))
+            return 0
         from work_site.control import benchmark
 
         print(json.dumps(benchmark.main(args.out)))
         return 0
+    if hasattr(args, "func"):  # recognize, render-dataset, calibrate
+        return args.func(args)
     parser.print_help()
     return 2
 

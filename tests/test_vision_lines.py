@@ -1,0 +1,82 @@
+"""Line extraction: sub-pixel straight edges from grey images, and sane output on bad ones."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from work_site.vision.lines import LineParams, check_grey_image, detect_lines
+
+SCALE = 8
+
+
+def _polygon_image(corners_px: np.ndarray, shape=(240, 320), fg=200, bg=60) -> np.ndarray:
+    """A filled polygon drawn 8× larger and averaged down: exact area coverage at its edges."""
+    h, w = shape
+    big = np.full((h * SCALE, w * SCALE), bg, np.uint8)
+    pts = np.round(((corners_px + 0.5) * SCALE - 0.5) * 16).astype(np.int32)
+    cv2.fillPoly(big, [pts], fg, lineType=cv2.LINE_8, shift=4)
+    return cv2.resize(big, (w, h), interpolation=cv2.INTER_AREA)
+
+
+def _edge_errors(segs: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Perpendicular distances (px) of detected end points from the nearest true edge line."""
+    errs = []
+    for s in segs:
+        best = None
+        for a, b in zip(corners, np.roll(corners, -1, axis=0), strict=True):
+            u = (b - a) / np.linalg.norm(b - a)
+            n = np.array([-u[1], u[0]])
+            v = s[2:] - s[:2]
+            if abs(u @ v) / np.linalg.norm(v) < np.cos(np.deg2rad(3)):
+                continue
+            d = np.abs([(s[:2] - a) @ n, (s[2:] - a) @ n])
+            if best is None or d.max() < best.max():
+                best = d
+        assert best is not None, f"segment {s} lies on no edge"
+        errs.extend(best)
+    return np.array(errs)
+
+
+def test_edges_of_a_polygon_are_found_to_a_tenth_of_a_pixel() -> None:
+    rng = np.random.default_rng(0)
+    corners = np.array([[60.3, 50.7], [250.2, 70.1], [230.8, 190.4], [80.6, 170.9]])
+    image = _polygon_image(corners)
+    noisy = np.clip(image + rng.normal(0, 1.0, image.shape), 0, 255).astype(np.uint8)
+    segs = detect_lines(noisy)
+    assert len(segs) == 4  # one per side: fragments merged, nothing spurious
+    errs = _edge_errors(segs, corners)
+    assert np.median(errs) < 0.1
+    assert errs.max() < 0.3
+    lengths = np.linalg.norm(segs[:, 2:] - segs[:, :2], axis=1)
+    perimeter = np.linalg.norm(corners - np.roll(corners, -1, axis=0), axis=1).sum()
+    assert lengths.sum() > 0.9 * perimeter  # LSD stops short of corners by a pixel or two
+
+
+def test_refinement_is_more_accurate_than_lsd_alone() -> None:
+    rng = np.random.default_rng(1)
+    errs = {True: [], False: []}
+    for _ in range(5):
+        c = np.array([[60, 50], [250, 70], [230, 190], [80, 170]]) + rng.uniform(-8, 8, (4, 2))
+        image = _polygon_image(c)
+        image = np.clip(image + rng.normal(0, 1.0, image.shape), 0, 255).astype(np.uint8)
+        for refine in (True, False):
+            errs[refine].extend(_edge_errors(detect_lines(image, LineParams(refine=refine)), c))
+    assert np.mean(errs[True]) < np.mean(errs[False])
+
+
+@pytest.mark.parametrize(
+    "image",
+    [np.zeros((1, 1), np.uint8), np.zeros((480, 640), np.uint8), np.full((50, 50), 255, np.uint8)],
+    ids=["1x1", "black", "white"],
+)
+def test_featureless_images_give_no_lines(image: np.ndarray) -> None:
+    assert detect_lines(image).shape == (0, 4)
+
+
+def test_bad_arrays_are_refused() -> None:
+    with pytest.raises(ValueError, match="8-bit"):
+        check_grey_image(np.zeros((10, 10), np.float32))
+    with pytest.raises(ValueError, match="2-D"):
+        check_grey_image(np.zeros((2, 3, 5, 7), np.uint8))

@@ -1,0 +1,42 @@
+"""Model-based vision (§IV): recognise and locate the blocks in one grey camera image.
+
+``Recognizer(...).recognise(image, camera)`` → list of :class:`Recognition` (model name, pose
+``X_WO``, score). Lines (:mod:`.lines`) → groups and the model index (:mod:`.index`) →
+Lowe's pose fit (:mod:`.pose`) → verification (:mod:`.recognizer`). Rendered test scenes with
+ground truth: :mod:`.dataset`; scoring: :mod:`.evaluate`; calibration: :mod:`.calibration`.
+"""
+
+from work_site.vision.index import GroupParams, IndexParams
+from work_site.vision.lines import LineParams, detect_lines
+from work_site.vision.pose import PoseFit, fit_pose
+from work_site.vision.recognizer import Recognition, Recognizer, RecognizerParams
+
+__all__ = [
+    "GroupParams",
+    "IndexParams",
+    "LineParams",
+    "PoseFit",
+    "Recognition",
+    "Recognizer",
+    "RecognizerParams",
+    "detect_lines",
+    "fit_pose",
+    "recognise",
+]
+
+
+def recognise(image, camera, recognizer: Recognizer | None = None) -> list[tuple]:
+    """``(model name, X_WO (4, 4), score)`` for each object found in ``image`` (grey uint8) seen
+    by ``camera``. Builds a default :class:`Recognizer` (index cached on disk) if none is
+    given; keep one for repeated calls."""
+    rec = recognizer or _default()
+    return [(r.model, r.X_WO, r.score) for r in rec.recognise(image, camera)]
+
+
+_DEFAULT: list[Recognizer] = []
+
+
+def _default() -> Recognizer:
+    if not _DEFAULT:
+        _DEFAULT.append(Recognizer())
+    return _DEFAULT[0]

@@ -1,0 +1,307 @@
+"""Vision commands of ``work-site``: ``recognize``, ``render-dataset`` and ``bench vision``.
+
+work-site recognize IMAGE.png --camera CAMERA.json [--models DIR] [--scene FILE] [--json]
+work-site render-dataset --n N --seed S --out DIR [--supersample K] [--noise SIGMA]
+
+Also runnable before it is wired into ``work-site``:
+``python -m work_site.vision.cli recognize …`` / ``render-dataset …`` / ``bench …``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from models.errors import ModelError
+from models.scene import DEFAULT_SCENE, load_camera, load_object, load_scene
+
+
+def add_recognize_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("image", type=Path, help="8-bit grey (or colour) image file, e.g. PNG")
+    parser.add_argument("--camera", type=Path, required=True, help="camera JSON (DESIGN.md format)")
+    parser.add_argument(
+        "--models",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="directory of object URDFs to look for (default: the scene's movable objects)",
+    )
+    parser.add_argument(
+        "--scene",
+        type=Path,
+        default=DEFAULT_SCENE,
+        help="scene JSON for the fixed environment and work area (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="where the model index is cached (default: ~/.cache/telerobot/vision)",
+    )
+    parser.add_argument("--json", action="store_true", help="print the recognitions JSON")
+
+
+def add_render_dataset_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--n", type=int, required=True, help="number of scenes")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
+    parser.add_argument("--out", type=Path, required=True, help="output directory")
+    parser.add_argument(
+        "--supersample",
+        type=int,
+        default=4,
+        metavar="K",
+        help="render K× larger and average down, for sub-pixel edges (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--noise",
+        type=float,
+        default=1.0,
+        metavar="SIGMA",
+        help="Gaussian image noise, grey levels (default: %(default)s)",
+    )
+
+
+def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, required=True, help="camera JSON to write")
+    parser.add_argument(
+        "--camera",
+        type=Path,
+        default=None,
+        help="camera JSON with the rough pose to start from (default: the scene's camera)",
+    )
+    parser.add_argument(
+        "--scene",
+        type=Path,
+        default=DEFAULT_SCENE,
+        help="scene JSON: its frame is the calibration feature (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--image",
+        type=Path,
+        default=None,
+        help="camera image of the work site for the pose (default: render one)",
+    )
+    parser.add_argument(
+        "--views", type=int, default=15, help="chessboard views for the intrinsics (default: 15)"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+
+
+def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``bench vision`` (harmless for other benchmarks sharing the parser)."""
+    parser.add_argument(
+        "--scenes", type=int, default=200, help="vision: scenes in the main run (default: 200)"
+    )
+    parser.add_argument(
+        "--sweep-scenes",
+        type=int,
+        default=30,
+        help="vision: scenes per point of each sweep (default: 30)",
+    )
+    parser.add_argument("--seed", type=int, default=1, help="vision: dataset seed (default: 1)")
+    parser.add_argument(
+        "--dataset",
+        type=Path,
+        default=None,
+        help="vision: rendered dataset directory (default: under ~/.cache/telerobot/vision, "
+        "rendered if missing)",
+    )
+    parser.add_argument(
+        "--no-sweeps", action="store_true", help="vision: only the main run, no sweeps"
+    )
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``recognize`` and ``render-dataset`` to a ``work-site`` sub-command set."""
+    rec = subparsers.add_parser(
+        "recognize",
+        help="recognise and locate the blocks in one camera image",
+        description="Print the objects recognised in IMAGE with their poses X_WO and scores.",
+    )
+    add_recognize_arguments(rec)
+    rec.set_defaults(func=recognize_main)
+    ren = subparsers.add_parser(
+        "render-dataset",
+        help="render random block layouts with ground truth, for tests and benchmarks",
+        description="Write N grey PNG scenes, camera.json and per-scene ground-truth JSON "
+        "(poses X_WO and visible fraction of every block).",
+    )
+    add_render_dataset_arguments(ren)
+    ren.set_defaults(func=render_dataset_main)
+    cal = subparsers.add_parser(
+        "calibrate",
+        help="calibrate the camera: intrinsics from a chessboard, pose from the frame",
+        description="Render chessboard views for the intrinsics (OpenCV), fit the camera pose "
+        "to the puzzle frame's edges starting from --camera, print the residuals and write "
+        "the camera JSON.",
+    )
+    add_calibrate_arguments(cal)
+    cal.set_defaults(func=calibrate_main)
+
+
+def _read_image(path: Path) -> np.ndarray:
+    """An 8-bit grey image from a file; ValueError naming the problem."""
+    import cv2
+
+    if not path.is_file():
+        raise ValueError(f"{path}: image file does not exist")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{path}: not an image file OpenCV can read")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    if img.dtype != np.uint8 or img.ndim != 2:
+        raise ValueError(f"{path}: expected an 8-bit grey image, got {img.dtype} {img.shape}")
+    return img
+
+
+def recognize_main(args: argparse.Namespace) -> int:
+    """Run recognition on one image file; prints JSON or a table; returns the exit code."""
+    from work_site.vision.recognizer import Recognizer
+
+    try:
+        image = _read_image(args.image)
+        camera = load_camera(args.camera)
+        if image.shape != (camera.height, camera.width):
+            raise ValueError(
+                f"{args.image}: image is {image.shape[1]}×{image.shape[0]} but camera "
+                f"{args.camera} is {camera.width}×{camera.height}"
+            )
+        scene = load_scene(args.scene)
+        models = None
+        if args.models is not None:
+            if not args.models.is_dir():
+                raise ValueError(f"{args.models}: models directory does not exist")
+            urdfs = sorted(args.models.glob("*.urdf"))
+            if not urdfs:
+                raise ValueError(f"{args.models}: no .urdf object models in it")
+            fixed = {o.model.urdf_path for o in scene.objects if o.fixed}
+            models = [load_object(u) for u in urdfs if u.resolve() not in fixed]
+        recognizer = Recognizer(models, scene=scene, cache_dir=args.cache_dir)
+        t0 = time.perf_counter()
+        found = recognizer.recognise(image, camera)
+        elapsed = time.perf_counter() - t0
+    except (ModelError, ValueError) as e:
+        print(f"work-site recognize: {e}", file=sys.stderr)
+        return 2
+    doc = {
+        "objects": [
+            {"model": r.model, "X_WO": r.X_WO.tolist(), "score": round(r.score, 4)} for r in found
+        ],
+        "elapsed_s": round(elapsed, 4),
+    }
+    if args.json:
+        print(json.dumps(doc))
+    else:
+        for r in found:
+            x, y, z = r.X_WO[:3, 3]
+            print(f"{r.model:12s} score {r.score:.2f}  at x {x:.4f} y {y:.4f} z {z:.4f} m")
+        print(f"{len(found)} object(s) in {elapsed * 1000:.0f} ms")
+    return 0
+
+
+def render_dataset_main(args: argparse.Namespace) -> int:
+    """Render the dataset; returns the exit code."""
+    from work_site.vision.dataset import write_dataset
+
+    if args.n < 1:
+        print("work-site render-dataset: --n must be ≥ 1", file=sys.stderr)
+        return 2
+    if not 1 <= args.supersample <= 8:
+        print("work-site render-dataset: --supersample must be in 1..8", file=sys.stderr)
+        return 2
+    if not 0 <= args.noise <= 64:
+        print("work-site render-dataset: --noise must be in [0, 64]", file=sys.stderr)
+        return 2
+    paths = write_dataset(args.out, args.n, args.seed, args.supersample, args.noise)
+    print(f"wrote {len(paths)} scenes to {args.out}")
+    return 0
+
+
+def calibrate_main(args: argparse.Namespace) -> int:
+    """Calibrate intrinsics and pose in simulation; write the camera JSON; exit code."""
+    from work_site.vision.calibration import (
+        calibrate_extrinsics,
+        calibrate_intrinsics,
+        calibrated_camera,
+        frame_object,
+        render_board_views,
+    )
+    from work_site.vision.dataset import SceneRenderer
+
+    try:
+        if not 4 <= args.views <= 200:
+            raise ValueError("--views must be in 4..200")
+        scene = load_scene(args.scene)
+        guess = load_camera(args.camera) if args.camera is not None else scene.camera
+        # The simulated camera is the scene's: render through it, estimate from the images.
+        intr = calibrate_intrinsics(render_board_views(scene.camera, args.views, args.seed))
+        if args.image is not None:
+            image = _read_image(args.image)
+        else:
+            renderer = SceneRenderer(scene, supersample=3)
+            try:
+                image, _ = renderer.render(renderer.random_layout(np.random.default_rng(args.seed)))
+            finally:
+                renderer.close()
+        with_k = calibrated_camera(guess, intr, None)
+        extr = calibrate_extrinsics(image, with_k, frame_object(scene))
+    except (ModelError, ValueError) as e:
+        print(f"work-site calibrate: {e}", file=sys.stderr)
+        return 2
+    camera = calibrated_camera(guess, intr, extr.X_WC)
+    args.out.write_text(json.dumps(camera.to_json(), indent=1))
+    print(
+        f"intrinsics: {intr.views} chessboard views, RMS reprojection {intr.rms_px:.3f} px; "
+        f"fx {intr.K[0, 0]:.2f} fy {intr.K[1, 1]:.2f} cx {intr.K[0, 2]:.2f} cy {intr.K[1, 2]:.2f}"
+    )
+    print(
+        f"pose: {extr.edges} frame edges, line RMS {extr.rms_px:.3f} px, corner RMS "
+        f"{extr.corner_rms_px:.3f} px; camera at {np.round(extr.X_WC[:3, 3], 4).tolist()} m"
+    )
+    print(f"wrote {args.out}")
+    return 0
+
+
+def bench_main(args: argparse.Namespace) -> dict:
+    """``bench vision``: run the benchmark, write CSV + PNG into ``args.out``; the summary."""
+    from work_site.vision import bench
+
+    return bench.main(
+        args.out,
+        n_scenes=args.scenes,
+        sweep_scenes=args.sweep_scenes,
+        seed=args.seed,
+        dataset=args.dataset,
+        sweeps=not args.no_sweeps,
+    )
+
+
+def main(argv: list[str]) -> int:
+    """``python -m work_site.vision.cli COMMAND …`` for use before wiring into work-site."""
+    parser = argparse.ArgumentParser(prog="work-site", description="Vision commands.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    register(sub)
+    bench = sub.add_parser("bench", help="run the vision benchmark")
+    bench.add_argument("name", choices=["vision"])
+    bench.add_argument("--out", type=Path, default=Path("docs/bench"))
+    add_bench_arguments(bench)
+    args = parser.parse_args(argv)
+    if args.command == "bench":
+        print(json.dumps(bench_main(args)))
+        return 0
+    if not hasattr(args, "func"):
+        parser.print_help()
+        return 2
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

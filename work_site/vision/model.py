@@ -1,0 +1,260 @@
+"""What vision needs of an object model: edges, convex parts as half-spaces, symmetries.
+
+All geometry is float64 in metres, in the object frame O unless a name says otherwise. Camera
+frame C follows OpenCV (x right, y down, z forward), ``K`` is the 3×3 intrinsic matrix (px).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.scene import ObjectModel
+
+EDGE_SAMPLES = 12
+"""Points per model edge at which visibility is tested (ray casting against the parts)."""
+VISIBILITY_EPS_M = 2e-5
+"""A surface point counts as hidden only if a part is entered this far (m) before reaching it."""
+
+
+@dataclass(frozen=True, eq=False)
+class VisionModel:
+    """One object as vision sees it.
+
+    ``edges_O``: (m, 2, 3) feature edges. ``planes_O``: one (k, 4) array per convex part, rows
+    ``(n, d)`` with ``n·x ≤ d`` inside. ``vertices_O``: (v, 3) all part vertices.
+    ``symmetries``: (s, 3, 3) rotations ``R`` with ``R·shape = shape`` (identity first).
+    """
+
+    name: str
+    edges_O: np.ndarray
+    planes_O: tuple[np.ndarray, ...]
+    vertices_O: np.ndarray
+    symmetries: np.ndarray
+    parts_vertices_O: tuple[np.ndarray, ...]
+
+    @property
+    def size_m(self) -> float:
+        """Bounding-box diagonal (m)."""
+        return float(np.linalg.norm(self.vertices_O.max(0) - self.vertices_O.min(0)))
+
+
+def _candidate_rotations() -> np.ndarray:
+    """The 24 rotations of the cube plus the 12 rotations of the hexagonal prism about z."""
+    Rs = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            R = np.zeros((3, 3))
+            for i, j in enumerate(perm):
+                R[i, j] = signs[i]
+            if np.linalg.det(R) > 0:
+                Rs.append(R)
+    for k in range(6):
+        a = k * np.pi / 3
+        Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+        Rs.append(Rz)
+        for flip in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])):
+            Rs.append(Rz @ flip)
+    return np.array(Rs)
+
+
+def shape_symmetries(vertices_O: np.ndarray, tol_m: float = 1e-6) -> np.ndarray:
+    """Rotations about O's origin (among cube and hexagonal-prism symmetries) that map the
+    vertex set onto itself, (s, 3, 3), identity first and no duplicates."""
+    out = [np.eye(3)]
+    for R in _candidate_rotations():
+        if any(np.allclose(R, Q, atol=1e-9) for Q in out):
+            continue
+        moved = vertices_O @ R.T
+        d = np.linalg.norm(moved[:, None, :] - vertices_O[None, :, :], axis=2)
+        if np.all(d.min(axis=1) < tol_m):
+            out.append(R)
+    return np.array(out)
+
+
+def vision_model(model: ObjectModel) -> VisionModel:
+    """The :class:`VisionModel` of a loaded object model."""
+    planes = tuple(np.column_stack([p.normals_O, p.offsets_m]) for p in model.parts)
+    V = np.vstack([p.vertices_O for p in model.parts])
+    # The union's outer vertices (drop points shared by parts or buried in another part).
+    V = np.unique(np.round(V, 9), axis=0)
+    return VisionModel(
+        name=model.name,
+        edges_O=np.asarray(model.feature_edges_O, dtype=np.float64),
+        planes_O=planes,
+        vertices_O=V,
+        # The union's true corners are the feature edges' ends (part vertices include points
+        # where parts touch, which need not be symmetric).
+        symmetries=shape_symmetries(
+            np.unique(np.round(model.feature_edges_O.reshape(-1, 3), 9), axis=0)
+        ),
+        parts_vertices_O=tuple(p.vertices_O for p in model.parts),
+    )
+
+
+def project(p_C: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pinhole projection of points (..., 3) in C to pixels (..., 2)."""
+    z = p_C[..., 2:3]
+    uv = p_C[..., :2] / z
+    return uv @ K[:2, :2].T + K[:2, 2]
+
+
+def transform(X_AB: np.ndarray, p_B: np.ndarray) -> np.ndarray:
+    """Points (..., 3) in B expressed in A."""
+    return p_B @ X_AB[:3, :3].T + X_AB[:3, 3]
+
+
+def planes_in(X_CO: np.ndarray, planes_O: np.ndarray) -> np.ndarray:
+    """Half-space rows ``(n, d)`` (k, 4) moved from O into C."""
+    n_C = planes_O[:, :3] @ X_CO[:3, :3].T
+    d_C = planes_O[:, 3] + n_C @ X_CO[:3, 3]
+    return np.column_stack([n_C, d_C])
+
+
+def occluded(points_C: np.ndarray, occluders_C: list[np.ndarray]) -> np.ndarray:
+    """For points (n, 3) in C: is the ray from the camera centre to the point blocked by any of
+    the convex parts (each (k, 4) half-spaces in C) before it gets there? (n,) bool."""
+    hidden = np.zeros(len(points_C), dtype=bool)
+    dist = np.linalg.norm(points_C, axis=1)
+    eps_t = VISIBILITY_EPS_M / np.maximum(dist, 1e-9)
+    for planes in occluders_C:
+        # Ray x(t) = t·p for t in [0, 1]; inside where t·(n·p) ≤ d for every face.
+        den = points_C @ planes[:, :3].T  # (n, k)
+        num = np.broadcast_to(planes[:, 3], den.shape)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = num / den
+        t_enter = np.max(np.where(den < 0, t, 0.0), axis=1)
+        t_exit = np.min(np.where(den > 0, t, np.inf), axis=1)
+        parallel_out = np.any((den == 0) & (num < 0), axis=1)
+        hit = (t_enter < t_exit - eps_t) & (t_enter < 1.0 - eps_t) & ~parallel_out
+        hidden |= hit
+    return hidden
+
+
+def visible_edges(
+    model: VisionModel,
+    X_CO: np.ndarray,
+    K: np.ndarray,
+    occluders_C: list[np.ndarray] | None = None,
+    min_fraction: float = 0.3,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Projected visible parts of the model's edges under pose ``X_CO``.
+
+    Returns ``(edge_ids (e,), segments_px (e, 4), visible_fraction (e,))`` for edges at least
+    ``min_fraction`` visible; each segment spans the edge's visible samples (hidden-edge removal by
+    ray casting against the model's own parts and ``occluders_C``).
+    """
+    edges_C = transform(X_CO, model.edges_O)  # (m, 2, 3)
+    ts = (np.arange(EDGE_SAMPLES) + 0.5) / EDGE_SAMPLES
+    samples = (
+        edges_C[:, 0, None, :] + ts[None, :, None] * (edges_C[:, 1] - edges_C[:, 0])[:, None, :]
+    )
+    flat = samples.reshape(-1, 3)
+    occ = [planes_in(X_CO, P) for P in model.planes_O] + list(occluders_C or [])
+    vis = ~occluded(flat, occ)
+    vis &= flat[:, 2] > 1e-3
+    vis = vis.reshape(len(edges_C), EDGE_SAMPLES)
+    frac = vis.mean(axis=1)
+    keep = np.flatnonzero(frac >= min_fraction)
+    if len(keep) == 0:
+        return keep, np.zeros((0, 4)), np.zeros(0)
+    half = 0.5 / EDGE_SAMPLES
+    segs = []
+    for i in keep:
+        idx = np.flatnonzero(vis[i])
+        t0 = 0.0 if idx[0] == 0 else ts[idx[0]] - half
+        t1 = 1.0 if idx[-1] == EDGE_SAMPLES - 1 else ts[idx[-1]] + half
+        a, b = edges_C[i, 0], edges_C[i, 1]
+        segs.append(np.concatenate([project(a + t0 * (b - a), K), project(a + t1 * (b - a), K)]))
+    return keep, np.array(segs), frac[keep]
+
+
+def convex_overlap_depth(
+    A: np.ndarray,
+    B: np.ndarray,
+    normals_A: np.ndarray | None = None,
+    normals_B: np.ndarray | None = None,
+) -> float:
+    """Penetration depth (m) of the convex hulls of two vertex sets (0 if they are apart).
+
+    Separating-axis test over both hulls' facet normals and the cross products of their edge
+    directions (the edge directions of a hull are among the cross products of its facet normals,
+    and extra axes never create a false overlap). Pass the facet normals if known: finding
+    them is the slow part.
+    """
+    na, nb = (
+        _unique_dirs([n for n, _ in hull_facets(A)]),
+        _unique_dirs([n for n, _ in hull_facets(B)]),
+    )
+    ea = _unique_dirs([np.cross(a, b) for a, b in itertools.combinations(na, 2)])
+    eb = _unique_dirs([np.cross(a, b) for a, b in itertools.combinations(nb, 2)])
+    axes = na + nb + _unique_dirs([np.cross(a, b) for a in ea for b in eb])
+    depth = np.inf
+    for n in axes:
+        pa, pb = A @ n, B @ n
+        overlap = min(pa.max(), pb.max()) - max(pa.min(), pb.min())
+        if overlap <= 0:
+            return 0.0
+        depth = min(depth, overlap)
+    return float(depth)
+
+
+def _unique_dirs(vs: list[np.ndarray]) -> list[np.ndarray]:
+    out: list[np.ndarray] = []
+    for v in vs:
+        norm = np.linalg.norm(v)
+        if norm < 1e-9:
+            continue
+        v = v / norm
+        if not any(abs(v @ m) > 1 - 1e-9 for m in out):
+            out.append(v)
+    return out
+
+
+def hull_facets(V: np.ndarray) -> list[tuple[np.ndarray, float]]:
+    """Facets of the convex hull of ``V`` as (outward unit normal, offset), brute force."""
+    out: list[tuple[np.ndarray, float]] = []
+    c = V.mean(0)
+    for i, j, k in itertools.combinations(range(len(V)), 3):
+        n = np.cross(V[j] - V[i], V[k] - V[i])
+        norm = np.linalg.norm(n)
+        if norm < 1e-12:
+            continue
+        n = n / norm
+        s = (V - V[i]) @ n
+        if np.all(s <= 1e-9) or np.all(s >= -1e-9):
+            if (c - V[i]) @ n > 0:
+                n = -n
+            if not any(n @ m > 1 - 1e-9 for m, _ in out):
+                out.append((n, float(n @ V[i])))
+    return out
+
+
+def containments(A: VisionModel, B: VisionModel, tol_m: float = 1e-9) -> list[np.ndarray]:
+    """Poses ``X_BA`` that put all of ``A`` inside one convex part of ``B`` with faces on the
+    part's faces (A rotated by one of the cube's 24 rotations, then pushed into a corner of the
+    part's bounding box). A found object may really be part of a bigger one: an L block's bar
+    looks like a tall block lying down, its end like a cube."""
+    out: list[np.ndarray] = []
+    rots = _candidate_rotations()[:24]
+    for V_P, planes in zip(B.parts_vertices_O, B.planes_O, strict=True):
+        lo, hi = V_P.min(0), V_P.max(0)
+        for R in rots:
+            V = A.vertices_O @ R.T
+            mn, mx = V.min(0), V.max(0)
+            if np.any(mx - mn > hi - lo + tol_m):
+                continue
+            for corner in itertools.product((0, 1), repeat=3):
+                c = np.array(corner, dtype=bool)
+                t = np.where(c, hi - mx, lo - mn)
+                W = V + t
+                if np.max(W @ planes[:, :3].T - planes[:, 3]) > 1e-7:
+                    continue
+                X = np.eye(4)
+                X[:3, :3] = R
+                X[:3, 3] = t
+                if not any(np.allclose(X, Y, atol=1e-9) for Y in out):
+                    out.append(X)
+    return out
