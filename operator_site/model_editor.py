@@ -95,13 +95,13 @@ class WorkSiteModel:
         most nearly up: vision cannot tell a box from itself upside down, but grasps from
         above are planned in the block's frame."""
         best = X_WO.copy()
-        for S in self._symmetries(name):
+        for S in self.symmetries(name):
             R = X_WO[:3, :3] @ S
             if R[2, 2] > best[2, 2] + 1e-9:
                 best = make_pose(R, X_WO[:3, 3])
         return best
 
-    def _symmetries(self, name: str) -> list[np.ndarray]:
+    def symmetries(self, name: str) -> list[np.ndarray]:
         """The quarter-turn rotations (about O's axes) that map ``name``'s shape onto itself."""
         if name not in self._symmetry_cache:
             V = np.vstack([p.vertices_O for p in self.base.object(name).model.parts])

@@ -332,7 +332,11 @@ def run_scripted(
 
         X = truth.pose_after(time.time() + 0.3, workpiece)
         error_mm = float(np.linalg.norm(X[:3, 3] - goal[:3, 3]) * 1e3)
-        error_deg = math.degrees(float(np.linalg.norm(so3_log(goal[:3, :3].T @ X[:3, :3]))))
+        # Modulo the block's symmetries: a cube turned a quarter turn is the same cube.
+        error_deg = min(
+            math.degrees(float(np.linalg.norm(so3_log((goal[:3, :3] @ S).T @ X[:3, :3]))))
+            for S in model.symmetries(workpiece)
+        )
         out |= {"final_error_mm": error_mm, "final_error_deg": error_deg}
         out["success"] = bool(
             reports[-1].status == "done"

@@ -93,7 +93,11 @@ class RenderRequest:
 
 
 def _render_worker(
-    scene_path: str, supersample: int, X_WC: np.ndarray | None, conn: Connection
+    scene_path: str,
+    supersample: int,
+    X_WC: np.ndarray | None,
+    noise_grey: float,
+    conn: Connection,
 ) -> None:
     from work_site.world import World  # imported in the child: it owns its own client
 
@@ -112,6 +116,10 @@ def _render_worker(
                 world.set_object_pose(name, X_WO)
             world.set_robot_joint_positions(request.q, request.fingers_m)
             image = render_grey(world.cid, world.scene.camera, supersample)
+            if noise_grey > 0:  # a real sensor's noise, seeded by the frame
+                rng = np.random.default_rng(request.seq)
+                noisy = image + rng.normal(0.0, noise_grey, image.shape)
+                image = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
             conn.send((request.seq, request.stamp_s, image))
     except (EOFError, KeyboardInterrupt):
         return
@@ -123,14 +131,20 @@ class CameraProcess:
     """Renders in a child process; at most one request is in flight at a time."""
 
     def __init__(
-        self, scene_path: Path, supersample: int = 1, X_WC: np.ndarray | None = None
+        self,
+        scene_path: Path,
+        supersample: int = 1,
+        X_WC: np.ndarray | None = None,
+        noise_grey: float = 0.0,
     ) -> None:
-        """``X_WC``: where the camera really is, if not where the scene file says."""
+        """``X_WC``: where the camera really is, if not where the scene file says;
+        ``noise_grey``: standard deviation of the sensor noise added to each pixel (grey
+        levels)."""
         ctx = mp.get_context("spawn")  # never fork a process that runs zenoh threads
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
             target=_render_worker,
-            args=(str(scene_path), supersample, X_WC, child),
+            args=(str(scene_path), supersample, X_WC, noise_grey, child),
             name="camera-renderer",
             daemon=True,
         )

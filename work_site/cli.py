@@ -100,9 +100,18 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--camera-supersample",
         type=int,
-        default=1,
+        default=2,
         metavar="N",
-        help="render N× larger and average down, for realistic edges (cost ≈ N²)",
+        help="render N× larger and average down, for realistic anti-aliased edges (cost ≈ N²; "
+        "default: %(default)s)",
+    )
+    parser.add_argument(
+        "--camera-noise",
+        type=float,
+        default=1.0,
+        metavar="GREY",
+        help="sensor noise added to each pixel, standard deviation in grey levels "
+        "(default: %(default)s)",
     )
     parser.add_argument(
         "--seed",
@@ -180,6 +189,7 @@ def serve(args: argparse.Namespace) -> int:
             state_rate_hz=args.state_rate,
             camera=not args.no_camera,
             camera_supersample=args.camera_supersample,
+            camera_noise_grey=args.camera_noise,
             vision_rate_hz=(
                 args.vision_rate
                 if args.vision_rate is not None

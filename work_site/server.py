@@ -110,7 +110,11 @@ class ServerOptions:
     state_rate_hz: float = 100.0
     heartbeat_rate_hz: float = 1.0
     camera: bool = True
-    camera_supersample: int = 1
+    camera_supersample: int = 2
+    """Render this many times larger and average down: a real camera's anti-aliased edges
+    (vision finds nothing in aliased 1× renders; see docs/benchmarks.md)."""
+    camera_noise_grey: float = 1.0
+    """Sensor noise added to each pixel (standard deviation, grey levels)."""
     camera_X_WC: tuple | None = None
     """Where the camera really is (4×4 nested tuples), when not where its calibration says:
     frames are rendered from here, vision still uses the calibrated model."""
@@ -135,6 +139,8 @@ class ServerOptions:
             raise ValueError("heartbeat_rate_hz must be in (0, 100]")
         if self.camera_supersample < 1:
             raise ValueError("camera_supersample must be ≥ 1")
+        if not 0.0 <= self.camera_noise_grey <= 64.0:
+            raise ValueError(f"camera_noise_grey must be in [0, 64], got {self.camera_noise_grey}")
         if not 0.1 <= self.time_scale <= 100.0:
             raise ValueError(f"time_scale must be in [0.1, 100], got {self.time_scale}")
         if not 0.0 <= self.vision_rate_hz <= 100.0:
@@ -171,7 +177,9 @@ class WorkSiteServer:
         opts = self.options
         world = World(self.scene, time_step_s=1.0 / opts.physics_rate_hz)
         camera = (
-            CameraProcess(self.scene.path, opts.camera_supersample, opts.camera_X_WC)
+            CameraProcess(
+                self.scene.path, opts.camera_supersample, opts.camera_X_WC, opts.camera_noise_grey
+            )
             if opts.camera
             else None
         )
