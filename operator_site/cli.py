@@ -96,6 +96,14 @@ def build_parser() -> argparse.ArgumentParser:
             metavar="ENDPOINT",
             help="zenoh endpoint of the work site or a router (default: %(default)s)",
         )
+        p.add_argument(
+            "--initial-model",
+            choices=["empty", "scene"],
+            default="empty",
+            help="what the page's model holds at first: empty (the table and the frame: "
+            "accept the blocks the work site's vision recognises) or scene (the scene file's "
+            "layout) (default: %(default)s)",
+        )
         p.add_argument("-v", "--verbose", action="store_true", help="log more")
     demo.add_argument(
         "--scripted",
@@ -146,7 +154,9 @@ def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         _install_stop_signals(stop)
     link = WorkSiteLink(config, args.site_id)
     try:
-        page = OperatorPage(scene, link, host=args.host, port=args.port)
+        page = OperatorPage(
+            scene, link, host=args.host, port=args.port, initial_model=args.initial_model
+        )
         try:
             print(
                 f"operator-site: open {page.url} in a web browser (work site "

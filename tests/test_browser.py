@@ -115,8 +115,11 @@ def test_page_shows_scene_camera_and_connected_status(tmp_path: Path) -> None:
                 page.screenshot(path=str(shot))
                 shutil.copy(shot, SCREENSHOT_DIR / shot.name)
                 assert shot.stat().st_size > 10_000
-                # Vision's answers are listed (the demo's work site runs vision).
-                page.get_by_text(re.compile(r"^frame \d+")).first.wait_for(timeout=120_000)
+                # The demo's page starts with an empty model; the work site's vision lists
+                # what it recognised; accepting builds the model.
+                page.get_by_text("score").first.wait_for(timeout=120_000)
+                page.get_by_role("button", name="accept the recognised blocks").click()
+                page.get_by_text(re.compile(r"^model: [1-6] blocks")).wait_for(timeout=30_000)
                 # The confirm path: load a task (the cube dragged 6 cm along the table, saved
                 # by the same page code), make its program, send it; the work site runs it.
                 task_file = tmp_path / "cube_task.json"

@@ -586,10 +586,11 @@ class OperatorPage:
         self.recognitions_md.content = "\n".join(lines)
 
     def _camera_view(self) -> np.ndarray:
-        """The latest frame, with the recognitions of that frame outlined."""
+        """The latest frame, with the latest recognitions outlined (vision runs slower than
+        the camera: they may be of a frame or two before)."""
         frame = self.link.camera_frame
         recs = self.link.recognitions
-        if recs is None or recs.seq != frame.seq or not recs.objects:
+        if recs is None or not recs.objects:
             return frame.image
         known = {o.name: o.model for o in self.scene.movable}
         objects = [
