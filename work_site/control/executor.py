@@ -47,9 +47,13 @@ TARGET_BIAS_M = 0.005
 """d of §VI-B: how far past each contact a contact move aims (the paper's ≈ 5 mm)."""
 TARGET_BIAS_MAX_M = 2 * TARGET_BIAS_M
 """Bound on |Δp|: nearly parallel normals would otherwise ask for a long bias."""
-CONTACT_VERIFY_N = 2.0
+CONTACT_VERIFY_N = 1.0
 """A contact is verified when the force along its normal reaches this (N); the impedance
-presses each with about stiffness × d = 5 N."""
+presses each with about stiffness × d = 5 N when the model is right. End to end, a model built
+by vision through a camera 2 mm off its calibration put a wall 3 mm off, leaving 2.0 N on it
+(measured, `demo --scripted corner --seed 4`); a contact that is not there reads 0.0 N (the wrist
+force pointed 0.3 N away from it, tests/test_control_force.py). A larger d instead turned the
+block in its grip (4° with 8 mm)."""
 GUARD_OVERTRAVEL_M = 0.01
 """A guarded move aims this far past its target (which is where contact is expected), so that
 the guard, not the target, ends it; a contact further off than this fails the command."""
