@@ -46,10 +46,16 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 
 # Every benchmark; figures land in docs/bench/ (CSV, PNG) and docs/benchmarks.md shows them.
+# e2e: E2E_SEEDS seeds per task (each runs the robot in real time, about a minute); the issue's
+# 100 seeds: `make bench E2E_SEEDS=100`.
+E2E_SEEDS ?= 10
 bench: $(BENCH_STAMP)
 	$(VENV)/bin/operator-site bench sim --out docs/bench
+	$(VENV)/bin/operator-site bench deform --out docs/bench
 	$(VENV)/bin/work-site bench control --out docs/bench
+	$(VENV)/bin/work-site bench vision --out docs/bench
 	$(PY) bench/bench_lcp.py > docs/bench/lcp.json
+	$(VENV)/bin/operator-site bench e2e --seeds $(E2E_SEEDS) --out docs/bench
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis
