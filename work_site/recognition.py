@@ -24,6 +24,41 @@ class VisionResult:
     elapsed_s: float
     objects: tuple[tuple[str, np.ndarray, float], ...]
     error: str = ""
+    note: str = ""
+    """Something to log once, such as the camera pose calibrated from the first frame."""
+
+
+CALIBRATION_MAX_RMS_PX = 1.0
+"""A camera pose fitted to the frame's edges with a larger line residual is not trusted (the
+calibrated model is kept)."""
+
+
+def _calibrated(image: np.ndarray, scene):
+    """The scene's camera with its pose fitted to the frame's edges in ``image``, and a note
+    saying how well it fitted (or why the calibrated pose is kept)."""
+    from models.transforms import so3_log
+    from work_site.vision.calibration import (
+        calibrate_extrinsics,
+        calibrated_camera,
+        frame_object,
+    )
+
+    try:
+        ext = calibrate_extrinsics(image, scene.camera, frame_object(scene))
+    except ValueError as e:
+        return scene.camera, f"camera pose not calibrated from the frame ({e}): file pose kept"
+    if not ext.rms_px <= CALIBRATION_MAX_RMS_PX:
+        return scene.camera, (
+            f"camera pose fit to the frame rejected (line RMS {ext.rms_px:.2f} px > "
+            f"{CALIBRATION_MAX_RMS_PX} px): file pose kept"
+        )
+    shift_mm = float(np.linalg.norm(ext.X_WC[:3, 3] - scene.camera.X_WC[:3, 3])) * 1e3
+    turn = float(np.linalg.norm(so3_log(scene.camera.X_WC[:3, :3].T @ ext.X_WC[:3, :3])))
+    return calibrated_camera(scene.camera, None, ext.X_WC), (
+        f"camera pose calibrated from the frame's {ext.edges} edges: {shift_mm:.1f} mm and "
+        f"{np.degrees(turn):.2f}° from the file's, line RMS {ext.rms_px:.2f} px, corner RMS "
+        f"{ext.corner_rms_px:.2f} px"
+    )
 
 
 def _vision_worker(scene_path: str, conn) -> None:
@@ -37,6 +72,7 @@ def _vision_worker(scene_path: str, conn) -> None:
         conn.send(VisionResult(-1, 0.0, 0.0, (), f"vision could not start: {e}"))
         return
     conn.send(VisionResult(-1, 0.0, 0.0, ()))  # ready
+    camera, note = scene.camera, None
     try:
         while True:
             request = conn.recv()
@@ -44,13 +80,18 @@ def _vision_worker(scene_path: str, conn) -> None:
                 return
             seq, stamp_s, image = request
             t0 = time.perf_counter()
+            if note is None:  # §IV-B: the camera's pose from the frame, on the first image
+                camera, note = _calibrated(image, scene)
             try:
-                found = recognizer.recognise(image, scene.camera)
+                found = recognizer.recognise(image, camera)
                 objects = tuple((r.model, r.X_WO, float(r.score)) for r in found)
                 error = ""
             except Exception as e:  # one bad frame must not end vision
                 objects, error = (), f"{type(e).__name__}: {e}"
-            conn.send(VisionResult(seq, stamp_s, time.perf_counter() - t0, objects, error))
+            conn.send(
+                VisionResult(seq, stamp_s, time.perf_counter() - t0, objects, error, note)
+            )
+            note = ""
     except (EOFError, KeyboardInterrupt):
         return
 

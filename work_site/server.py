@@ -338,6 +338,8 @@ class WorkSiteServer:
     def _publish_recognitions(self, result: VisionResult) -> None:
         if result.error:
             log.warning("vision failed on frame %d: %s", result.seq, result.error)
+        if result.note:
+            log.info("vision: %s", result.note)
         objects = tuple(
             Recognition(model=name, X_WO=X, score=score) for name, X, score in result.objects
         )
