@@ -146,6 +146,10 @@ def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) ->
     )
     page.update()
     assert "cube: score 0.90 (not accepted)" in page.recognitions_md.content
+    assert set(page._rec_buttons) == {"cube", "plank", "wedge"}  # one "add" button each
+    assert page.on_accept_one("wedge")  # a click on one adds just that block
+    assert set(page.model.poses) == {"wedge"} and set(page._rec_buttons) == {"cube", "plank"}
+    page.on_remove("wedge")
     assert page.on_accept_recognitions() == 2
     assert set(page.model.poses) == {"cube", "plank"}
     assert page.object_frames["cube"].visible and not page.object_frames["wedge"].visible

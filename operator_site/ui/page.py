@@ -181,6 +181,8 @@ class OperatorPage:
         with gui.add_folder("Model"):
             gui.add_markdown(MODEL_HELP)
             self.recognitions_md = gui.add_markdown("no recognitions yet")
+            self._rec_folder = gui.add_folder("recognised, not in the model: click to add")
+            self._rec_buttons: dict[str, object] = {}
             self.accept_button = gui.add_button("accept the recognised blocks")
             self.scene_layout_button = gui.add_button("use the scene file's layout (no vision)")
             self.remove_mode = gui.add_checkbox("remove mode", False)
@@ -295,6 +297,7 @@ class OperatorPage:
             if c.moved_mm >= 0.05 or c.turned_deg >= 0.05
         ]
         self.model_md.content = "  \n".join(lines)
+        self._recognitions_shown = None  # the list says what is in the model: redraw it
 
     def on_accept_recognitions(self, min_score: float = ACCEPT_SCORE) -> int:
         """Accept every recognition scoring at least ``min_score`` into the model, then make
@@ -318,6 +321,26 @@ class OperatorPage:
                 return accepted
             self._model_changed(corrections)
         return accepted
+
+    def on_accept_one(self, name: str) -> bool:
+        """Accept the latest recognition of ``name`` into the model (made consistent); False
+        if vision has no such object now."""
+        recs = self.link.recognitions
+        found = [r for r in (recs.objects if recs else ()) if r.model == name]
+        if not found:
+            self.model_md.content = f"{name} is not among the latest recognitions"
+            return False
+        with self._lock:
+            self.model.accept(name, found[0].X_WO, found[0].score)
+            try:
+                corrections = self.model.make_consistent(self.session.params)
+            except ValueError as e:
+                self.model.remove(name)
+                self.model_md.content = f"⚠ {name} not added: {e}"
+                return False
+            self._model_changed(corrections)
+        self._show_recognitions()
+        return True
 
     def on_use_scene_layout(self) -> None:
         """The model from the scene file's layout: every block where the file puts it."""
@@ -584,6 +607,22 @@ class OperatorPage:
             state = "in the model" if r.model in self.model.poses else "not accepted"
             lines.append(f"- {r.model}: score {r.score:.2f} ({state})")
         self.recognitions_md.content = "\n".join(lines)
+        self._show_add_buttons(
+            {r.model: r.score for r in recs.objects if r.model not in self.model.poses}
+        )
+
+    def _show_add_buttons(self, scores: dict[str, float]) -> None:
+        """One "add" button per recognised block not in the model."""
+        for name in [n for n in self._rec_buttons if n not in scores]:
+            self._rec_buttons.pop(name).remove()
+        known = {o.name for o in self.scene.movable}
+        with self._rec_folder:
+            for name, score in scores.items():
+                if name in self._rec_buttons or name not in known:
+                    continue
+                button = self.server.gui.add_button(f"add {name} ({score:.2f})")
+                button.on_click(lambda _, n=name: self.on_accept_one(n))
+                self._rec_buttons[name] = button
 
     def _camera_view(self) -> np.ndarray:
         """The latest frame, with the latest recognitions outlined (vision runs slower than
