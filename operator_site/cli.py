@@ -50,9 +50,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument(
         "name",
-        choices=["sim", "deform", "e2e"],
+        choices=["sim", "deform", "net", "e2e"],
         help="sim: the task simulator (issue 3 scenes, MuJoCo comparison if installed, knob "
-        "sweeps); deform: the program generator's path deformation (issue 6); e2e: the "
+        "sweeps); deform: the program generator's path deformation (issue 6); net: round trips "
+        "and frames over zenoh against plain TCP, on loopback and an emulated link (issue 8); "
+        "e2e: the "
         "scripted tasks end to end over --seeds seeds (issue 9)",
     )
     bench.add_argument(
@@ -70,6 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="directory for CSV and PNG files (default: %(default)s)",
     )
     bench.add_argument("--quick", action="store_true", help="skip the sweeps")
+    from operator_site import netbench
+
+    netbench.add_arguments(bench)
     bench.add_argument("-v", "--verbose", action="store_true", help="log more")
     for p in (serve, demo):
         p.add_argument(
@@ -246,6 +251,10 @@ def run_bench(args: argparse.Namespace) -> int:
     """Run benchmark ``args.name``; print its JSON (one line) last."""
     import json
 
+    if args.name == "net":
+        from operator_site import netbench
+
+        return netbench.main(args)
     if args.name == "deform":
         from operator_site.program import benchmark as deform_bench
 

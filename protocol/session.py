@@ -9,7 +9,10 @@ retrying in the background rather than failing ``zenoh.open``; always ``close()`
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import zenoh
 
@@ -29,17 +32,102 @@ def _endpoints(name: str, endpoints: Sequence[str]) -> list[str]:
     return result
 
 
+@dataclass(frozen=True)
+class TlsFiles:
+    """PEM files of one site for zenoh's ``tls/`` endpoints.
+
+    ``certificate``/``private_key`` identify this site both when it listens and when it
+    connects; ``root_ca_certificate`` is the CA that the other side's certificate must chain to.
+    ``mutual``: mutual TLS (zenoh's ``enable_mtls``; it must be true on BOTH sides, else the
+    handshake fails with "peer sent no certificates"). The peer's certificate common name is
+    the identity that :func:`operator_only_access_control` matches.
+    """
+
+    root_ca_certificate: str | Path
+    certificate: str | Path
+    private_key: str | Path
+    mutual: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("root_ca_certificate", "certificate", "private_key"):
+            path = Path(getattr(self, name))
+            if not path.is_file():
+                raise ProtocolError(f"tls.{name}: no such file {str(path)!r}")
+
+
+def operator_only_access_control(
+    site_id: str, operators: Sequence[str] = ("operator",)
+) -> dict[str, Any]:
+    """zenoh ``access_control`` for a work site: only peers whose TLS certificate common name is
+    in ``operators`` may put on ``telerobot/<site_id>/{program,stop,heartbeat}``; every
+    authenticated peer may subscribe and receive what the work site publishes.
+
+    Default deny: a message kind not listed is refused (zenoh 1.10 rule/subject/policy schema).
+    """
+    if isinstance(operators, str) or not operators:
+        raise ProtocolError("operators: expected a non-empty sequence of common names")
+    site = f"telerobot/{site_id}"
+    observe = [
+        "declare_subscriber",
+        "declare_liveliness_subscriber",
+        "liveliness_token",
+        "liveliness_query",
+    ]
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": [
+            {
+                "id": "observe",
+                "permission": "allow",
+                "flows": ["ingress", "egress"],
+                "messages": observe,
+                "key_exprs": [f"{site}/**"],
+            },
+            {
+                "id": "telemetry",
+                "permission": "allow",
+                "flows": ["egress"],
+                "messages": ["put", "delete"],
+                "key_exprs": [f"{site}/**"],
+            },
+            {
+                "id": "command",
+                "permission": "allow",
+                "flows": ["ingress"],
+                "messages": ["put"],
+                "key_exprs": [f"{site}/program", f"{site}/stop", f"{site}/heartbeat"],
+            },
+        ],
+        "subjects": [
+            {"id": "operators", "cert_common_names": list(operators)},
+            {"id": "tls-peers", "link_protocols": ["tls"]},
+        ],
+        "policies": [
+            {"id": "operators-command", "rules": ["command"], "subjects": ["operators"]},
+            {"id": "peers-observe", "rules": ["observe", "telemetry"], "subjects": ["tls-peers"]},
+        ],
+    }
+
+
 def make_config(
     mode: str = "peer",
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     multicast_scouting: bool = False,
     shared_memory: bool = False,
+    *,
+    tls: TlsFiles | None = None,
+    access_control: Mapping[str, Any] | None = None,
+    lease_ms: int | None = None,
 ) -> zenoh.Config:
     """A zenoh config: ``mode``, the exact ``listen``/``connect`` endpoints, scouting and SHM.
 
     An empty ``listen`` means the session listens nowhere (zenoh's default would be every
-    interface on a random port).
+    interface on a random port). Optional: ``tls`` (certificates for ``tls/`` endpoints, see
+    :class:`TlsFiles`), ``access_control`` (zenoh's ``access_control`` section, e.g.
+    :func:`operator_only_access_control`), ``lease_ms`` (link lease: a silent peer, e.g. behind a
+    cut link, is declared gone after this long; zenoh's default is 10 s).
     """
     if mode not in MODES:
         raise ProtocolError(f"mode: must be one of {list(MODES)}, got {mode!r}")
@@ -49,6 +137,26 @@ def make_config(
     conf.insert_json5("connect/endpoints", json.dumps(_endpoints("connect", connect)))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(bool(shared_memory)))
+    if tls is not None:
+        files = {
+            "root_ca_certificate": tls.root_ca_certificate,
+            "listen_certificate": tls.certificate,
+            "listen_private_key": tls.private_key,
+            "connect_certificate": tls.certificate,
+            "connect_private_key": tls.private_key,
+        }
+        for name, path in files.items():
+            conf.insert_json5(f"transport/link/tls/{name}", json.dumps(str(path)))
+        conf.insert_json5("transport/link/tls/enable_mtls", json.dumps(bool(tls.mutual)))
+    if access_control is not None:
+        try:
+            conf.insert_json5("access_control", json.dumps(dict(access_control)))
+        except Exception as e:  # zenoh checks the schema here
+            raise ProtocolError(f"access_control: {e}") from None
+    if lease_ms is not None:
+        if not (isinstance(lease_ms, int) and 100 <= lease_ms <= 3_600_000):
+            raise ProtocolError(f"lease_ms: expected an int in [100, 3600000], got {lease_ms!r}")
+        conf.insert_json5("transport/link/tx/lease", json.dumps(lease_ms))
     return conf
 
 

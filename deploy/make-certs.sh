@@ -1,0 +1,75 @@
+#!/usr/bin/env bash
+# make-certs.sh: a test certificate authority and the certificates of a deployment, for zenoh's
+# TLS (tls/ endpoints) with mutual authentication (enable_mtls: true on both sides).
+#
+#   deploy/make-certs.sh OUT_DIR [SAN ...]
+#
+# Writes into OUT_DIR (created, mode 700):
+#   ca.pem, ca.key                    the test CA (10 years; keep ca.key off the sites)
+#   work-site.pem, work-site.key      CN=work-site; SANs: localhost, 127.0.0.1, 10.77.0.2
+#                                     (the netns work address) and every extra SAN given,
+#                                     e.g. DNS:robot.example.org or IP:192.0.2.10
+#   operator.pem, operator.key        CN=operator: the identity access control lets command
+#   viewer.pem, viewer.key            CN=viewer: authenticated, but not allowed to command
+#   rogue-ca.pem, intruder.pem/.key   CN=operator signed by ANOTHER CA: must be refused
+# Access control matches the client certificate's common name (CN), so the CN is the role.
+# These are TEST certificates: for a real deployment use your organisation's CA and keep each
+# private key only on its own machine.
+set -euo pipefail
+
+if [[ $# -lt 1 || $1 == -h || $1 == --help ]]; then
+  sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'
+  exit $(( $# < 1 ? 2 : 0 ))
+fi
+out=$1
+shift
+extra_sans=""
+for san in "$@"; do
+  case $san in
+    DNS:*|IP:*) extra_sans+=",${san}" ;;
+    *) echo "make-certs: SAN must look like DNS:name or IP:address, got '$san'" >&2; exit 2 ;;
+  esac
+done
+
+mkdir -p "$out"
+chmod 700 "$out"
+cd "$out"
+days=3650
+
+# ca NAME: a self-signed CA (EC P-256, PKCS#8 keys: what rustls reads).
+ca() {
+  openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out "$1.key" 2>/dev/null
+  openssl req -x509 -new -key "$1.key" -sha256 -days $days -subj "/CN=telerobot test $1" \
+    -addext "basicConstraints=critical,CA:TRUE" \
+    -addext "keyUsage=critical,keyCertSign,cRLSign" -out "$1.pem" 2>/dev/null
+}
+
+# leaf NAME CN SANS CA: a certificate for both TLS server and client use, signed by CA.
+leaf() {
+  local name=$1 cn=$2 sans=$3 ca=$4
+  openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out "$name.key" 2>/dev/null
+  openssl req -new -key "$name.key" -subj "/CN=$cn" -out "$name.csr" 2>/dev/null
+  cat > "$name.ext" <<EOF
+basicConstraints=critical,CA:FALSE
+keyUsage=critical,digitalSignature,keyEncipherment
+extendedKeyUsage=serverAuth,clientAuth
+subjectAltName=$sans
+EOF
+  openssl x509 -req -in "$name.csr" -CA "$ca.pem" -CAkey "$ca.key" -CAcreateserial \
+    -days $days -sha256 -extfile "$name.ext" -out "$name.pem" 2>/dev/null
+  rm -f "$name.csr" "$name.ext"
+  chmod 600 "$name.key"
+}
+
+ca ca
+ca rogue-ca
+leaf work-site work-site "DNS:work-site,DNS:localhost,IP:127.0.0.1,IP:10.77.0.2${extra_sans}" ca
+leaf operator operator "DNS:operator" ca
+leaf viewer viewer "DNS:viewer" ca
+leaf intruder operator "DNS:operator" rogue-ca
+rm -f ./*.srl rogue-ca.key
+chmod 600 ca.key
+for name in work-site operator viewer; do
+  openssl verify -CAfile ca.pem "$name.pem" >/dev/null
+done
+echo "make-certs: wrote $(pwd)/{ca,work-site,operator,viewer,intruder,rogue-ca}.pem and keys"

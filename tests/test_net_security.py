@@ -1,0 +1,200 @@
+"""A work site behind mutual TLS and zenoh access control: only the authenticated operator can
+make it move. The work site is a real process (deploy/serve_work_site.py: the server of
+``work-site serve`` with TLS certificates and access control)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.transforms import make_pose, rpy_to_R
+from operator_site.link import WorkSiteLink
+from protocol import MotionCommand, MotionProgram, make_config
+from protocol.session import TlsFiles, operator_only_access_control
+from tests.conftest import free_port, wait_until
+
+pytestmark = pytest.mark.integration
+
+REPO = Path(__file__).resolve().parents[1]
+SITE = "secure"
+STARTUP_TIMEOUT_S = 20.0
+REFUSED_WINDOW_S = 3.0
+"""How long an intruder is given to get through (its attempts are repeated meanwhile)."""
+DOWN = rpy_to_R(np.array([np.pi, 0.0, np.pi]))
+
+
+def program(
+    program_id: str, speed_mps: float = 0.05, p_WP: tuple = (0.40, -0.1, 0.15)
+) -> MotionProgram:
+    """A valid, reachable one-move program: it would run if it got through."""
+    command = MotionCommand(
+        kind="move",
+        X_WP=make_pose(DOWN, p_WP),
+        speed_mps=speed_mps,
+        force_limit_n=10.0,
+        contacts=(),
+    )
+    return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=(command,))
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    if shutil.which("openssl") is None:
+        print("skipping TLS tests: no openssl")
+        pytest.skip("openssl is needed to make test certificates")
+    out = tmp_path_factory.mktemp("certs")
+    subprocess.run(
+        [str(REPO / "deploy" / "make-certs.sh"), str(out)], check=True, capture_output=True
+    )
+    return out
+
+
+@pytest.fixture
+def secure_work_site(certs: Path, tmp_path: Path) -> Iterator[str]:
+    """A work site on ``tls/localhost:<port>`` with mutual TLS and operator-only commands."""
+    endpoint = f"tls/localhost:{free_port()}"
+    log_path = tmp_path / "work_site.log"
+    with log_path.open("w") as log:
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                str(REPO / "deploy" / "serve_work_site.py"),
+                "--listen",
+                endpoint,
+                "--site-id",
+                SITE,
+                "--no-camera",
+                "--certs",
+                str(certs),
+                "--operators",
+                "operator",
+            ],
+            cwd=REPO,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+    try:
+        yield endpoint
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        print(log_path.read_text(errors="replace")[-3000:])
+
+
+@pytest.fixture
+def links() -> Iterator[Callable[..., WorkSiteLink]]:
+    opened: list[WorkSiteLink] = []
+
+    def open_link(config) -> WorkSiteLink:
+        link = WorkSiteLink(config, SITE)
+        opened.append(link)
+        return link
+
+    yield open_link
+    for link in opened:
+        link.close()
+
+
+def tls_config(endpoint: str, certs: Path, name: str, ca: str = "ca.pem"):
+    return make_config(
+        connect=[endpoint],
+        tls=TlsFiles(certs / ca, certs / f"{name}.pem", certs / f"{name}.key"),
+    )
+
+
+def connected(link: WorkSiteLink, timeout_s: float) -> bool:
+    return wait_until(lambda: (link.poll(), link.status.label == "connected")[1], timeout_s)
+
+
+def reports_of(link: WorkSiteLink, program_id: str) -> list[str]:
+    link.poll()
+    return [r.status for r in link.status.reports if r.program_id == program_id]
+
+
+def try_to_command(link: WorkSiteLink, program_id: str) -> None:
+    """Keep sending a valid program and a stop for :data:`REFUSED_WINDOW_S`."""
+    deadline = time.monotonic() + REFUSED_WINDOW_S
+    while time.monotonic() < deadline:
+        link.send_program(program(program_id))
+        link.send_stop("intruder")
+        link.poll()
+        time.sleep(0.2)
+
+
+def test_access_control_config_is_accepted_by_zenoh() -> None:
+    conf = make_config(access_control=operator_only_access_control("site1", ["op-a", "op-b"]))
+    assert '"cert_common_names":["op-a","op-b"]' in conf.get_json("access_control")
+
+
+def test_unauthenticated_peers_cannot_connect_or_command(
+    secure_work_site: str, certs: Path, links
+) -> None:
+    endpoint = secure_work_site
+    operator = links(tls_config(endpoint, certs, "operator"))
+    assert connected(operator, STARTUP_TIMEOUT_S), "the operator could not connect"
+    q_home = operator.robot_state.q.copy()
+
+    tcp_port = endpoint.rsplit(":", 1)[1]
+    no_client_cert = make_config(connect=[endpoint])
+    no_client_cert.insert_json5(
+        "transport/link/tls/root_ca_certificate", f'"{certs / "ca.pem"}"'
+    )  # server verified, but no certificate of its own: not authenticated
+    intruders = {
+        "plain-tcp": make_config(connect=[f"tcp/localhost:{tcp_port}"]),
+        "no-client-cert": no_client_cert,
+        "other-ca": tls_config(endpoint, certs, "intruder"),  # CN=operator from a rogue CA
+    }
+    for name, config in intruders.items():
+        intruder = links(config)
+        try_to_command(intruder, f"from-{name}")
+        assert not intruder.status.work_site_alive, f"{name} got a session"
+        assert intruder.robot_state is None, f"{name} received robot state"
+        assert reports_of(operator, f"from-{name}") == [], name
+    # Nothing ran: no report of any kind, and the arm is where it was.
+    operator.poll()
+    assert operator.status.reports == []
+    np.testing.assert_allclose(operator.robot_state.q, q_home, atol=1e-4)
+
+
+def test_only_the_operator_may_command(secure_work_site: str, certs: Path, links) -> None:
+    endpoint = secure_work_site
+    operator = links(tls_config(endpoint, certs, "operator"))
+    viewer = links(tls_config(endpoint, certs, "viewer"))
+    assert connected(operator, STARTUP_TIMEOUT_S)
+    # The viewer is authenticated and may watch: it gets the robot's state...
+    assert connected(viewer, STARTUP_TIMEOUT_S)
+    q_home = operator.robot_state.q.copy()
+    # ...but its programs and stops are dropped by access control before the work site sees them.
+    try_to_command(viewer, "from-viewer")
+    assert reports_of(operator, "from-viewer") == []
+    np.testing.assert_allclose(operator.robot_state.q, q_home, atol=1e-4)
+
+    # The operator's program runs, and the viewer's stop cannot interrupt it.
+    operator.send_program(program("from-operator", speed_mps=0.05))
+    assert wait_until(lambda: "started" in reports_of(operator, "from-operator"), 10.0)
+    for _ in range(5):
+        viewer.send_stop("viewer tries to stop")
+        time.sleep(0.1)
+    assert wait_until(lambda: "done" in reports_of(operator, "from-operator"), 30.0), reports_of(
+        operator, "from-operator"
+    )
+    statuses = reports_of(operator, "from-operator")
+    assert "stopped" not in statuses and statuses[0] == "accepted"
+    assert np.linalg.norm(operator.robot_state.q - q_home) > 0.05  # it really moved
+    # And the operator's own stop is obeyed.
+    operator.send_program(program("slow", speed_mps=0.01, p_WP=(0.30, 0.1, 0.25)))
+    assert wait_until(lambda: "started" in reports_of(operator, "slow"), 10.0)
+    operator.send_stop("operator stops")
+    assert wait_until(lambda: "stopped" in reports_of(operator, "slow"), 5.0)
