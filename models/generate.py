@@ -119,8 +119,20 @@ CAMERA_FOCAL_PX = 580.0
 CAMERA_FRAME_RATE_HZ = 5.0
 
 
-def _fmt(values) -> str:
-    return " ".join(f"{float(v):.9g}" for v in values)
+COM_RESOLUTION_M = 1e-12
+INERTIA_RESOLUTION_KG_M2 = 1e-15
+"""Mass properties are written rounded to these: below them the sums are round-off, which
+differs between numpy builds and would make the committed files differ from a fresh run."""
+
+
+def _fmt(values, resolution: float = 0.0) -> str:
+    return " ".join(f"{_rounded(v, resolution):.9g}" for v in values)
+
+
+def _rounded(value: float, resolution: float) -> float:
+    if resolution <= 0.0:
+        return float(value)
+    return round(float(value) / resolution) * resolution + 0.0  # + 0.0: no "-0"
 
 
 def object_urdf(
@@ -140,7 +152,7 @@ def object_urdf(
             f'<color rgba="{_fmt(rgba)}"/></material></visual>'
         )
         shapes.append(f"    <collision>{geom}</collision>")
-    i = inertia
+    i = np.vectorize(lambda v: _rounded(v, INERTIA_RESOLUTION_KG_M2))(inertia)
     return "\n".join(
         [
             '<?xml version="1.0"?>',
@@ -148,7 +160,7 @@ def object_urdf(
             f'<robot name="{name}">',
             '  <link name="base">',
             "    <inertial>",
-            f'      <origin xyz="{_fmt(com_O)}" rpy="0 0 0"/>',
+            f'      <origin xyz="{_fmt(com_O, COM_RESOLUTION_M)}" rpy="0 0 0"/>',
             f'      <mass value="{mass_kg:.9g}"/>',
             f'      <inertia ixx="{i[0, 0]:.9g}" ixy="{i[0, 1]:.9g}" ixz="{i[0, 2]:.9g}" '
             f'iyy="{i[1, 1]:.9g}" iyz="{i[1, 2]:.9g}" izz="{i[2, 2]:.9g}"/>',
