@@ -29,7 +29,7 @@ from models.scene import load_scene  # noqa: E402
 from operator_site.grasp import top_grasp  # noqa: E402
 from operator_site.link import WorkSiteLink  # noqa: E402
 from operator_site.program import choose_grasp_yaw, pick_and_place  # noqa: E402
-from protocol.session import TlsFiles, make_config  # noqa: E402
+from protocol.session import TlsFiles, link_endpoints, make_config  # noqa: E402
 
 FINAL = ("done", "failed", "stopped")
 """How a program ends (after "accepted"); a re-sent copy's "refused" is not its end."""
@@ -41,9 +41,8 @@ def _link(args: argparse.Namespace) -> WorkSiteLink:
         tls = TlsFiles(
             args.certs / "ca.pem", args.certs / "operator.pem", args.certs / "operator.key"
         )
-    return WorkSiteLink(
-        make_config(connect=[args.connect], tls=tls, lease_ms=args.lease_ms), args.site_id
-    )
+    connect, _ = link_endpoints([args.connect], args.single_link)
+    return WorkSiteLink(make_config(connect=connect, tls=tls, lease_ms=args.lease_ms), args.site_id)
 
 
 def _wait(link: WorkSiteLink, predicate, timeout_s: float) -> bool:
@@ -132,6 +131,11 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--site-id", default="site1")
         p.add_argument("--certs", type=Path, help="mutual TLS with DIR/operator.{pem,key}")
         p.add_argument("--lease-ms", type=int, help="zenoh link lease (ms)")
+        p.add_argument(
+            "--single-link",
+            action="store_true",
+            help="one link for all priorities (default: two, PORT and PORT+1, as the sites do)",
+        )
     p_prog.add_argument("--block", default="cube")
     p_prog.add_argument("--dx", type=float, default=-0.08, help="goal offset along x (m)")
     p_prog.add_argument("--dy", type=float, default=0.0, help="goal offset along y (m)")

@@ -26,7 +26,12 @@ if str(REPO) not in sys.path:  # run as a script from anywhere
 
 from models.scene import load_scene  # noqa: E402
 from protocol import DEFAULT_WORK_SITE_ENDPOINT  # noqa: E402
-from protocol.session import TlsFiles, make_config, operator_only_access_control  # noqa: E402
+from protocol.session import (  # noqa: E402
+    TlsFiles,
+    link_endpoints,
+    make_config,
+    operator_only_access_control,
+)
 from work_site.cli import add_serve_arguments  # noqa: E402
 
 
@@ -56,7 +61,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     from work_site.server import ServerOptions, WorkSiteServer
 
-    listen = args.listen if args.listen is not None else [DEFAULT_WORK_SITE_ENDPOINT]
+    listen, links_note = link_endpoints(
+        args.listen if args.listen is not None else [DEFAULT_WORK_SITE_ENDPOINT], args.single_link
+    )
     tls = None
     if args.certs is not None:
         tls = TlsFiles(
@@ -86,7 +93,10 @@ def main(argv: list[str] | None = None) -> int:
     security = ("; mutual TLS" if tls else "") + (
         "; commands only from " + ", ".join(args.operators) if acl else ""
     )
-    print(f"serve_work_site: site {args.site_id!r} on {', '.join(listen)}{security}", flush=True)
+    print(
+        f"serve_work_site: site {args.site_id!r} on {', '.join(listen)} ({links_note}){security}",
+        flush=True,
+    )
     WorkSiteServer(load_scene(args.scene), config, options).run(stop)
     return 0
 

@@ -1,6 +1,7 @@
 """``operator-site``: the operator's web page, connected to a work site over zenoh.
 
 operator-site serve [--connect ENDPOINT] [--port 8080]   # the page, for a running work site
+                    [--single-link]                      # (default: two links, PORT and PORT+1)
 operator-site demo                                       # both sites on this machine
 operator-site demo --scripted corner --seed 3 --json     # the whole chain, no person
 """
@@ -19,6 +20,7 @@ from models.errors import ModelError
 from models.scene import DEFAULT_SCENE, load_scene
 from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError, make_config
 from protocol.keys import check_site_id
+from protocol.session import link_endpoints
 
 WORK_SITE_STOP_TIMEOUT_S = 10.0
 
@@ -99,7 +101,15 @@ def build_parser() -> argparse.ArgumentParser:
             "--connect",
             default=DEFAULT_WORK_SITE_ENDPOINT,
             metavar="ENDPOINT",
-            help="zenoh endpoint of the work site or a router (default: %(default)s)",
+            help="zenoh endpoint of the work site or a router (default: %(default)s). One tcp/ "
+            "or tls/ endpoint HOST:PORT becomes two links, as `work-site serve --listen` makes "
+            "them: commands and state (priorities 0-5) on PORT, camera frames (6-7) on PORT+1",
+        )
+        p.add_argument(
+            "--single-link",
+            action="store_true",
+            help="connect to the --connect endpoint alone, all priorities on one link (a router "
+            "that listens on one port; with demo, the work site listens so too)",
         )
         p.add_argument(
             "--initial-model",
@@ -148,7 +158,8 @@ def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     try:
         check_site_id(args.site_id)
         scene = load_scene(args.scene)
-        config = make_config(connect=[args.connect])
+        connect, links_note = link_endpoints([args.connect], args.single_link)
+        config = make_config(connect=connect)
         if not 1 <= args.port <= 65535:
             raise ValueError(f"--port must be in 1..65535, got {args.port}")
     except (ModelError, ProtocolError, ValueError) as e:
@@ -165,7 +176,7 @@ def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         try:
             print(
                 f"operator-site: open {page.url} in a web browser (work site "
-                f"{args.site_id!r} at {args.connect}; Ctrl-C to stop)",
+                f"{args.site_id!r} at {', '.join(connect)}: {links_note}; Ctrl-C to stop)",
                 flush=True,
             )
             page.run(stop)
@@ -191,6 +202,7 @@ def demo(args: argparse.Namespace) -> int:
         args.site_id,
         "--listen",
         args.connect,
+        *(["--single-link"] if args.single_link else []),
     ]
     print(f"operator-site: starting the work site: {' '.join(cmd)}", flush=True)
     # Its own process group: Ctrl-C reaches it through us, once, in order.

@@ -21,6 +21,9 @@ kinds interleaved sample by sample so they share the same conditions):
   site does) over the same session: median round trip with images minus without.
 - ``link_*``: the same over the emulated link of ``deploy/netns.py`` (default 50 ms each way,
   1 % loss each way): echo process in the work namespace, client in the operator namespace.
+- Every zenoh session here uses two links as the sites do (``protocol.session.link_endpoints``:
+  priorities 0-5 on one port, camera frames' 6-7 on the next); ``link_single_*`` repeats the
+  link measurements over one link for all priorities, for comparison.
 
 zenoh's shared memory is off (``make_config``'s default), as between two machines.
 """
@@ -58,6 +61,7 @@ from protocol import (
     key,
     make_config,
 )
+from protocol.session import link_endpoints, split_endpoints
 
 REPO = Path(__file__).resolve().parents[1]
 RAW_PING, RAW_PONG, CONTROL = "bench/raw/ping", "bench/raw/pong", "bench/control"
@@ -131,29 +135,11 @@ def _camera_frames(session: zenoh.Session, stop: threading.Event, spec: list[str
     pub.undeclare()
 
 
-def _config(listen: list[str], connect: list[str]) -> zenoh.Config:
-    """Our session config; with several endpoints (one link per priority range, see
-    :func:`split_endpoints`) the transport must admit that many links."""
-    conf = make_config(listen=listen, connect=connect)
-    if max(len(listen), len(connect)) > 1:
-        conf.insert_json5("transport/unicast/max_links", json.dumps(max(len(listen), len(connect))))
-    return conf
-
-
-def split_endpoints(host: str, ports: tuple[int, int], split: bool) -> list[str]:
-    """One endpoint, or two: priorities 0-5 (control to data: commands, reports, state) on
-    ``ports[0]`` and 6-7 (data_low, background: camera frames) on ``ports[1]``, so that the
-    image stream's bytes queued in one TCP connection never hold a command back."""
-    if not split:
-        return [f"tcp/{host}:{ports[0]}"]
-    return [f"tcp/{host}:{ports[0]}?prio=0-5", f"tcp/{host}:{ports[1]}?prio=6-7"]
-
-
 def serve_echo(zenoh_listen: list[str], tcp_port: int) -> int:
     """The echo process: raw pong, Stop→ExecutionReport echo, TCP echo, camera on demand."""
     server = socket.create_server(("0.0.0.0", tcp_port))
     threading.Thread(target=_tcp_echo, args=(server,), daemon=True).start()
-    with zenoh.open(_config(zenoh_listen, [])) as session:
+    with zenoh.open(make_config(listen=zenoh_listen)) as session:
         fifo = zenoh.handlers.FifoChannel
         remote = zenoh.Locality.REMOTE
         raw_in = session.declare_subscriber(RAW_PING, fifo(1024), allowed_origin=remote)
@@ -226,7 +212,7 @@ class _Client:
     """The measuring side: one zenoh session and one TCP connection to the echo process."""
 
     def __init__(self, zenoh_connect: list[str], tcp_addr: str) -> None:
-        self.session = zenoh.open(_config([], zenoh_connect))
+        self.session = zenoh.open(make_config(connect=zenoh_connect))
         s = self.session
         fifo, remote = zenoh.handlers.FifoChannel, zenoh.Locality.REMOTE
         self.raw_out = s.declare_publisher(RAW_PING, priority=zenoh.Priority.REAL_TIME)
@@ -401,7 +387,7 @@ def measure_pair(
     split: bool = False,
 ) -> dict[str, Any]:
     """Start the echo process (``echo_prefix`` e.g. ``ip netns exec``) and run the client;
-    ``split``: one zenoh link per priority range (:func:`split_endpoints`)."""
+    ``split``: one zenoh link per priority range (:func:`protocol.session.split_endpoints`)."""
     endpoints = ",".join(split_endpoints(host, (_free_port(), _free_port()), split))
     tport = _free_port()
     echo = _start_echo(
@@ -428,7 +414,8 @@ def measure_work_site(seconds: float, program_samples: int) -> dict[str, Any]:
         start_new_session=True,
     )
     try:
-        with zenoh.open(make_config(connect=[endpoint])) as session:
+        # Connected as `operator-site serve --connect ENDPOINT` is: one link per priority range.
+        with zenoh.open(make_config(connect=link_endpoints([endpoint])[0])) as session:
             ring, fifo = zenoh.handlers.RingChannel, zenoh.handlers.FifoChannel
             cam = session.declare_subscriber(key(SITE_ID, "camera"), ring(1))
             reports = session.declare_subscriber(key(SITE_ID, "report"), fifo(256))
@@ -511,7 +498,9 @@ def run(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, list[float]
     samples: dict[str, list[float]] = {}
     summary: dict[str, Any] = {"frame_spec_w_h_hz": frame, "count": args.net_count}
     print(f"netbench: loopback round trips ({args.net_count} of each kind)...", flush=True)
-    lo = measure_pair([], [], "127.0.0.1", args.net_count, frame, args.net_image_count, 900)
+    lo = measure_pair(
+        [], [], "127.0.0.1", args.net_count, frame, args.net_image_count, 900, split=True
+    )
     for name in ("raw", "command", "tcp", "command_with_images", "command_without_images"):
         samples[f"loopback_{name}"] = lo[name]
     summary["raw_zenoh_rtt_ms_median"], summary["raw_zenoh_rtt_ms_p99"] = _summary(lo["raw"])
@@ -564,11 +553,12 @@ def run(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, list[float]
             frame,
             args.net_link_image_count,
             3600,
+            split=True,
         )
-        split = None
-        if not args.net_no_split:
-            print("netbench: the same with one zenoh link per priority range...", flush=True)
-            split = measure_pair(
+        single = None
+        if not args.net_no_single:
+            print("netbench: the same over one zenoh link for all priorities...", flush=True)
+            single = measure_pair(
                 ["ip", "netns", "exec", pair.work],
                 ["ip", "netns", "exec", pair.ops],
                 netns.WORK_ADDR,
@@ -576,22 +566,22 @@ def run(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, list[float]
                 frame,
                 args.net_link_image_count,
                 3600,
-                split=True,
+                split=False,
             )
     summary["link_relay_counters"] = link.counters
-    if split is not None:
+    if single is not None:
         for name in ("command", "command_with_images", "command_without_images"):
-            samples[f"link_split_{name}"] = split[name]
-        samples["link_split_frame_latency"] = split["frame_latency_ms"]
-        s_with, s_with_p99 = _summary(split["command_with_images"])
-        s_without, s_without_p99 = _summary(split["command_without_images"])
-        summary["link_split_zenoh_rtt_ms_median"] = _summary(split["command"])[0]
-        summary["link_split_command_rtt_with_images_ms_median"] = s_with
-        summary["link_split_command_rtt_with_images_ms_p99"] = s_with_p99
-        summary["link_split_command_delay_by_images_ms"] = s_with - s_without
-        summary["link_split_command_delay_by_images_ms_p99"] = s_with_p99 - s_without_p99
-        summary["link_split_frame_fps"] = split["frame_fps"]
-        summary["link_split_frame_latency_ms_median"] = _summary(split["frame_latency_ms"])[0]
+            samples[f"link_single_{name}"] = single[name]
+        samples["link_single_frame_latency"] = single["frame_latency_ms"]
+        s_with, s_with_p99 = _summary(single["command_with_images"])
+        s_without, s_without_p99 = _summary(single["command_without_images"])
+        summary["link_single_zenoh_rtt_ms_median"] = _summary(single["command"])[0]
+        summary["link_single_command_rtt_with_images_ms_median"] = s_with
+        summary["link_single_command_rtt_with_images_ms_p99"] = s_with_p99
+        summary["link_single_command_delay_by_images_ms"] = s_with - s_without
+        summary["link_single_command_delay_by_images_ms_p99"] = s_with_p99 - s_without_p99
+        summary["link_single_frame_fps"] = single["frame_fps"]
+        summary["link_single_frame_latency_ms_median"] = _summary(single["frame_latency_ms"])[0]
     for name in ("raw", "command", "tcp", "command_with_images", "command_without_images"):
         samples[f"link_{name}"] = ln[name]
     samples["link_frame_latency"] = ln["frame_latency_ms"]
@@ -641,7 +631,7 @@ def write_outputs(out: Path, summary: dict[str, Any], samples: dict[str, list[fl
         ("loopback", ["loopback_raw", "loopback_command", "loopback_tcp",
                       "loopback_command_with_images"]),
         ("emulated link", ["link_raw", "link_command", "link_tcp", "link_command_with_images",
-                           "link_split_command_with_images"]),
+                           "link_single_command_with_images"]),
     ]  # fmt: skip
     panels = [(t, [s for s in names if samples.get(s)]) for t, names in panels]
     panels = [(t, names) for t, names in panels if names]
@@ -696,9 +686,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--net-link-loss", type=float, default=0.01, help="loss fraction each way")
     g.add_argument("--net-link-seed", type=int, default=1, help="link schedule seed")
     g.add_argument(
-        "--net-no-split",
+        "--net-no-single",
         action="store_true",
-        help="skip the run with one zenoh link per priority range (commands apart from images)",
+        help="skip the comparison run over one zenoh link for all priorities (the sites use "
+        "two: commands apart from images)",
     )
     g.add_argument(
         "--net-link-count", type=int, default=500, help="round trips per kind over the link"

@@ -1,7 +1,10 @@
 """The one place that builds ``zenoh.Config`` objects.
 
 Loopback demo: the work site listens on :data:`DEFAULT_WORK_SITE_ENDPOINT` and the operator site
-connects to it; multicast scouting is off. Behaviour worth knowing (zenoh 1.10): with multicast off,
+connects to it; multicast scouting is off. Each site pair uses two links (see
+:func:`link_endpoints`): priorities 0-5 (commands, programs, stops, reports, robot state) on the
+given port, 6-7 (camera frames) on the next one, so that image bytes queued in one TCP connection
+never hold a command back. Behaviour worth knowing (zenoh 1.10): with multicast off,
 gossip scouting still runs over established links; a peer whose ``connect`` endpoint is down keeps
 retrying in the background rather than failing ``zenoh.open``; always ``close()`` sessions.
 """
@@ -20,6 +23,13 @@ from .errors import ProtocolError
 
 DEFAULT_WORK_SITE_ENDPOINT = "tcp/127.0.0.1:7447"
 MODES = ("peer", "client", "router")
+PRIORITY_RANGES = ("0-5", "6-7")
+"""zenoh priorities carried by each link of a split: 0-5 (real_time … data_high, data: stops,
+programs, reports, robot state, recognitions, heartbeats, liveliness) and 6-7 (data_low,
+background: camera frames). zenoh sends a priority that no link of a transport covers on the
+nearest one, so a peer with a single link still gets everything (measured, zenoh 1.10)."""
+SPLIT_PROTOCOLS = ("tcp", "tls")
+"""Link protocols whose endpoint can be split into two ports."""
 
 
 def _endpoints(name: str, endpoints: Sequence[str]) -> list[str]:
@@ -110,6 +120,66 @@ def operator_only_access_control(
     }
 
 
+def split_endpoints(
+    host: str, ports: tuple[int, int], split: bool = True, protocol: str = "tcp"
+) -> list[str]:
+    """One endpoint, or two: priorities 0-5 on ``ports[0]`` and 6-7 on ``ports[1]`` (see
+    :data:`PRIORITY_RANGES`)."""
+    if not split:
+        return [f"{protocol}/{host}:{ports[0]}"]
+    return [
+        f"{protocol}/{host}:{port}?prio={prio}"
+        for port, prio in zip(ports, PRIORITY_RANGES, strict=True)
+    ]
+
+
+def derive_split(endpoint: str) -> list[str]:
+    """``proto/host:port`` → ``[proto/host:port?prio=0-5, proto/host:port+1?prio=6-7]``.
+
+    Raises :class:`ProtocolError` saying why when it cannot: a protocol other than tcp/tls, an
+    endpoint that already carries metadata or config (``?``/``#``), or port 0 (the second port
+    of an ephemeral one is unknown) or 65535.
+    """
+    protocol, _, address = endpoint.partition("/")
+    if protocol not in SPLIT_PROTOCOLS:
+        raise ProtocolError(f"{endpoint}: only {'/'.join(SPLIT_PROTOCOLS)} endpoints are split")
+    if "?" in address or "#" in address:
+        raise ProtocolError(f"{endpoint}: has its own metadata or config; used as given")
+    host, sep, port_text = address.rpartition(":")
+    if not sep or not host or not port_text.isdigit():
+        raise ProtocolError(f"{endpoint}: expected {protocol}/host:port")
+    port = int(port_text)
+    if not 1 <= port <= 65534:
+        raise ProtocolError(f"{endpoint}: port {port} has no next port to put camera frames on")
+    return split_endpoints(host, (port, port + 1), protocol=protocol)
+
+
+def link_endpoints(endpoints: Sequence[str], single_link: bool = False) -> tuple[list[str], str]:
+    """The endpoints a site uses for the user's ``endpoints``, and a note saying what it did.
+
+    Exactly one ``tcp``/``tls`` endpoint without metadata becomes two links (:func:`derive_split`:
+    priorities 0-5 on its port, 6-7 on the next port). Several endpoints, or ``single_link``, are
+    used as given; so is one that cannot be split (the note says why). Both sites must split
+    alike to get two links; a site that does not still talks to one that does, over one link.
+    """
+    given = _endpoints("endpoints", endpoints)
+    if single_link:
+        return given, "one link for all priorities (--single-link)"
+    if len(given) != 1:
+        return given, "endpoints as given"
+    try:
+        split = derive_split(given[0])
+    except ProtocolError as e:
+        return given, f"one link for all priorities: {e}"
+    return split, "commands on priorities 0-5, camera frames on 6-7 (port + 1)"
+
+
+def _max_links(listen: Sequence[str], connect: Sequence[str]) -> int:
+    """Links one transport needs: 1, or as many as endpoints with a ``prio=`` range."""
+    n = max(sum("prio=" in e for e in eps) for eps in (listen, connect))
+    return max(n, 2) if n else 1
+
+
 def make_config(
     mode: str = "peer",
     listen: Sequence[str] = (),
@@ -127,7 +197,9 @@ def make_config(
     interface on a random port). Optional: ``tls`` (certificates for ``tls/`` endpoints, see
     :class:`TlsFiles`), ``access_control`` (zenoh's ``access_control`` section, e.g.
     :func:`operator_only_access_control`), ``lease_ms`` (link lease: a silent peer, e.g. behind a
-    cut link, is declared gone after this long; zenoh's default is 10 s).
+    cut link, is declared gone after this long; zenoh's default is 10 s). Endpoints with a
+    ``?prio=`` range (:func:`split_endpoints`) raise ``transport/unicast/max_links`` to their
+    number, so that one transport may hold that many links.
     """
     if mode not in MODES:
         raise ProtocolError(f"mode: must be one of {list(MODES)}, got {mode!r}")
@@ -135,6 +207,8 @@ def make_config(
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("listen/endpoints", json.dumps(_endpoints("listen", listen)))
     conf.insert_json5("connect/endpoints", json.dumps(_endpoints("connect", connect)))
+    if (links := _max_links(listen, connect)) > 1:
+        conf.insert_json5("transport/unicast/max_links", json.dumps(links))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(bool(shared_memory)))
     if tls is not None:
@@ -160,11 +234,17 @@ def make_config(
     return conf
 
 
-def work_site_config(endpoint: str = DEFAULT_WORK_SITE_ENDPOINT) -> zenoh.Config:
-    """The work site's config for the loopback demo: a peer listening on ``endpoint``."""
-    return make_config(listen=(endpoint,))
+def work_site_config(
+    endpoint: str = DEFAULT_WORK_SITE_ENDPOINT, single_link: bool = False
+) -> zenoh.Config:
+    """The work site's config for the loopback demo: a peer listening on ``endpoint`` (split
+    into two links by :func:`link_endpoints` unless ``single_link``)."""
+    return make_config(listen=link_endpoints([endpoint], single_link)[0])
 
 
-def operator_site_config(endpoint: str = DEFAULT_WORK_SITE_ENDPOINT) -> zenoh.Config:
-    """The operator site's config for the loopback demo: a peer connecting to ``endpoint``."""
-    return make_config(connect=(endpoint,))
+def operator_site_config(
+    endpoint: str = DEFAULT_WORK_SITE_ENDPOINT, single_link: bool = False
+) -> zenoh.Config:
+    """The operator site's config for the loopback demo: a peer connecting to ``endpoint``
+    (split into two links by :func:`link_endpoints` unless ``single_link``)."""
+    return make_config(connect=link_endpoints([endpoint], single_link)[0])

@@ -100,11 +100,15 @@ def test_default_configs_are_the_loopback_demo() -> None:
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
     assert json.loads(conf.get_json("transport/shared_memory/enabled")) is False
     assert DEFAULT_WORK_SITE_ENDPOINT == "tcp/127.0.0.1:7447"
+    # Two links: priorities 0-5 on the default port, camera frames' 6-7 on the next one.
+    split = ["tcp/127.0.0.1:7447?prio=0-5", "tcp/127.0.0.1:7448?prio=6-7"]
     work = work_site_config()
-    assert json.loads(work.get_json("listen/endpoints")) == [DEFAULT_WORK_SITE_ENDPOINT]
+    assert json.loads(work.get_json("listen/endpoints")) == split
     operator = operator_site_config()
-    assert json.loads(operator.get_json("connect/endpoints")) == [DEFAULT_WORK_SITE_ENDPOINT]
+    assert json.loads(operator.get_json("connect/endpoints")) == split
     assert json.loads(operator.get_json("listen/endpoints")) == []
+    single = work_site_config(single_link=True)
+    assert json.loads(single.get_json("listen/endpoints")) == [DEFAULT_WORK_SITE_ENDPOINT]
 
 
 def test_make_config_rejects_bad_arguments() -> None:

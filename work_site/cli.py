@@ -1,6 +1,7 @@
 """``work-site``: the work-site server and its tools.
 
 work-site serve [--scene FILE] [--site-id ID] [--listen ENDPOINT] [--connect ENDPOINT]
+                [--single-link]
 """
 
 from __future__ import annotations
@@ -14,11 +15,14 @@ import sys
 import threading
 from pathlib import Path
 
+import zenoh
+
 from models.errors import ModelError
 from models.layout import perturbed_camera_pose, random_layout
 from models.scene import DEFAULT_SCENE, load_scene
 from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError, make_config
 from protocol.keys import check_site_id
+from protocol.session import link_endpoints
 from work_site.vision import cli as vision_cli
 
 
@@ -85,14 +89,22 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=None,
         metavar="ENDPOINT",
-        help=f"zenoh endpoint to listen on; repeatable (default: {DEFAULT_WORK_SITE_ENDPOINT})",
+        help="zenoh endpoint to listen on; repeatable (default: "
+        f"{DEFAULT_WORK_SITE_ENDPOINT}). One tcp/ or tls/ endpoint HOST:PORT becomes two links: "
+        "commands, programs, reports and state (priorities 0-5) on PORT, camera frames (6-7) on "
+        "PORT+1, so that images never delay a command; several endpoints are used as given",
+    )
+    parser.add_argument(
+        "--single-link",
+        action="store_true",
+        help="listen on the --listen endpoint alone, all priorities on one link (no PORT+1)",
     )
     parser.add_argument(
         "--connect",
         action="append",
         default=[],
         metavar="ENDPOINT",
-        help="zenoh endpoint (router or peer) to connect to; repeatable",
+        help="zenoh endpoint (router or peer) to connect to, used as given; repeatable",
     )
     parser.add_argument(
         "--no-camera", action="store_true", help="do not render or publish camera frames"
@@ -196,7 +208,10 @@ def serve(args: argparse.Namespace) -> int:
                 else (0.0 if args.no_camera else DEFAULT_VISION_RATE_HZ)
             ),
         )
-        listen = args.listen if args.listen is not None else [DEFAULT_WORK_SITE_ENDPOINT]
+        listen, links_note = link_endpoints(
+            args.listen if args.listen is not None else [DEFAULT_WORK_SITE_ENDPOINT],
+            args.single_link,
+        )
         config = make_config(listen=listen, connect=args.connect)
     except (ModelError, ProtocolError, ValueError) as e:
         print(f"work-site: {e}", file=sys.stderr)
@@ -211,10 +226,16 @@ def serve(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     print(
         f"work-site: serving site {args.site_id!r} on {', '.join(listen) or 'no listener'}"
-        + (f", connecting to {', '.join(args.connect)}" if args.connect else ""),
+        + (f", connecting to {', '.join(args.connect)}" if args.connect else "")
+        + f" ({links_note})",
         flush=True,
     )
-    WorkSiteServer(scene, config, options).run(stop)
+    try:
+        WorkSiteServer(scene, config, options).run(stop)
+    except zenoh.ZError as e:  # zenoh.open: e.g. a port in use
+        hint = " (the camera link takes PORT+1: choose another port, or --single-link)"
+        print(f"work-site: zenoh: {e}".strip() + (hint if len(listen) > 1 else ""), file=sys.stderr)
+        return 1
     return 0
 
 
