@@ -25,6 +25,7 @@ from work_site.vision.index import (
     GroupParams,
     IndexParams,
     ModelIndex,
+    find_junctions,
     group_segments,
     load_or_build_index,
 )
@@ -41,6 +42,7 @@ from work_site.vision.model import (
     vision_model,
 )
 from work_site.vision.pose import fit_pose
+from work_site.vision.table import batch_support, edge_faces, rest_corners, table_hypotheses
 
 ENV_MATCH_TOL_PX = 1.5
 """Image lines this close to a projected edge of the fixed environment are its own."""
@@ -81,6 +83,9 @@ class RecognizerParams:
     table_prior: bool = True
     table_prior_px_per_m: float = 1000.0
     table_prior_px_per_rad: float = 60.0
+    table_hypotheses: bool = True
+    max_table_hypotheses: int = 200
+    table_angle_tol_rad: float = np.deg2rad(8.0)
 
 
 @dataclass(frozen=True)
@@ -281,6 +286,8 @@ class Recognizer:
             )
             for m in self.models
         }
+        self._corners = rest_corners(self.models, [m.com_O for m in self.object_models])
+        self._edge_faces = {m.name: edge_faces(m) for m in self.models}
         self._env_models = [(vision_model(o.model), o.X_WO) for o in scene.objects if o.fixed]
         table = [o for o in scene.objects if o.fixed and o.name == "table"]
         if table:
@@ -328,19 +335,24 @@ class Recognizer:
         tested: list[tuple[VisionModel, np.ndarray]] = []
         confident: set[str] = set()
         p = self.params
-        for n_tried, (g_segs, g_junc, entry) in enumerate(hyps):
-            if n_tried >= p.max_hypotheses:
-                break
+        stream = self._table_stream(segs, K, camera.X_WC, gx, gy)
+        stream += [
+            (self.models[int(self.index.model[e])], g_segs, (e, g_junc))
+            for g_segs, g_junc, e in hyps[: p.max_hypotheses]
+        ]
+        for model, g_segs, how in stream:
             if p.time_budget_s is not None and time.perf_counter() - t0 > p.time_budget_s:
                 break
             # A group wholly inside an object already found adds nothing; one that reaches
             # beyond it may be a bigger object that explains more (an L seen as its upright).
             if claimed[g_segs].all():
                 continue
-            model = self.models[int(self.index.model[entry])]
             if model.name in confident:
                 continue
-            X0 = self._initial_fit(model, entry, g_segs, g_junc, segs, K, camera.X_WC)
+            if isinstance(how, np.ndarray):
+                X0 = how  # a table hypothesis: already a whole pose
+            else:
+                X0 = self._initial_fit(model, how[0], g_segs, how[1], segs, K, camera.X_WC)
             if X0 is None:
                 continue
             # Many groups of one object lead to the same pose: test each pose once.
@@ -455,6 +467,30 @@ class Recognizer:
             _, mj = match_segments(proj, segs, ENV_MATCH_TOL_PX, np.deg2rad(3.0))
             explained[mj] = True
         return segs[~explained]
+
+    def _table_stream(self, segs, K, X_WC, gx, gy) -> list[tuple]:
+        """Table hypotheses ``(model, junction's two segments, X_CO)``, best supported first,
+        only those with enough cheap support (see :mod:`work_site.vision.table`)."""
+        p = self.params
+        if not p.table_hypotheses:
+            return []
+        junctions = find_junctions(segs, self.group_params)
+        mod, X_WO, pairs = table_hypotheses(
+            self._corners, junctions, segs, K, X_WC, self.table_z, p.table_angle_tol_rad
+        )
+        if len(mod) == 0:
+            return []
+        X_CO = invert_pose(X_WC) @ X_WO
+        score = np.zeros(len(mod))
+        for mi, m in enumerate(self.models):
+            sel = np.flatnonzero(mod == mi)
+            score[sel] = batch_support(
+                m, self._edge_faces[m.name], X_CO[sel], K, gx, gy,
+                p.gradient_min, p.gradient_angle_rad,
+            )  # fmt: skip
+        order = np.argsort(-score, kind="stable")
+        order = order[score[order] >= p.quick_support_min][: p.max_table_hypotheses]
+        return [(self.models[int(mod[i])], pairs[i], X_CO[i]) for i in order]
 
     def _hypotheses(self, segs: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, int]]:
         """(image group segments, junctions, index entry), most probable first."""

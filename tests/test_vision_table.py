@@ -1,0 +1,107 @@
+"""Table hypotheses: one junction of two image lines gives a block's whole resting pose."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.scene import load_scene
+from models.transforms import invert_pose, make_pose
+from work_site.vision.model import project, transform, vision_model
+from work_site.vision.table import (
+    back_project_to_plane,
+    batch_support,
+    edge_faces,
+    rest_corners,
+    table_hypotheses,
+)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    scene = load_scene()
+    objs = {o.name: o.model for o in scene.movable}
+    names = ["cube", "plank", "wedge", "hex_prism"]
+    models = [vision_model(objs[n]) for n in names]
+    corners = rest_corners(models, [objs[n].com_O for n in names])
+    return scene.camera, models, corners
+
+
+def _rot_z(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_rest_corners_are_right_angles_of_boxes_on_the_table(setup) -> None:
+    _, models, corners = setup
+    cube = corners.model == 0
+    # A cube rests on any of its 6 faces; each has 8 corners on top and bottom, 2 orders each.
+    assert np.count_nonzero(cube) == 6 * 8 * 2
+    np.testing.assert_allclose(np.abs(corners.turn[cube]), np.pi / 2, atol=1e-9)
+    assert set(np.round(corners.corner[cube, 2], 9)) == {0.0, 0.05}
+    hexp = corners.model == 3
+    # The hexagon's corners turn by 120° when it stands on its end.
+    assert np.any(np.isclose(np.abs(corners.turn[hexp]), 2 * np.pi / 3, atol=1e-9))
+    # Every resting rotation puts the model's lowest point on the table.
+    for k in np.flatnonzero(corners.model >= 0)[::7]:
+        m = models[corners.model[k]]
+        z = (m.vertices_O @ corners.R_WO0[k].T)[:, 2] + corners.lift_m[k]
+        assert abs(z.min()) < 1e-12
+
+
+def test_back_projection_lands_on_the_plane(setup) -> None:
+    camera = setup[0]
+    p_W = np.array([[0.4, 0.05, 0.025], [0.5, -0.1, 0.025]])
+    uv = project(transform(invert_pose(camera.X_WC), p_W), camera.K)
+    P, ok = back_project_to_plane(uv, camera.K, camera.X_WC, 0.025)
+    assert ok.all()
+    np.testing.assert_allclose(P, p_W, atol=1e-12)
+
+
+@pytest.mark.parametrize("mi", [0, 1, 2, 3])
+def test_a_junction_of_two_exact_top_edges_gives_the_pose(setup, mi) -> None:
+    camera, models, corners = setup
+    m = models[mi]
+    k = np.flatnonzero((corners.model == mi) & (corners.corner[:, 2] > 0.01))[0]
+    R_WO = _rot_z(0.7) @ corners.R_WO0[k]
+    X_WO = make_pose(R_WO, [0.45, 0.03, corners.lift_m[k]])
+    X_CW = invert_pose(camera.X_WC)
+    # The two horizontal edges at that corner, projected exactly.
+    c_W = transform(X_WO, (corners.R_WO0[k].T @ (corners.corner[k] - [0, 0, corners.lift_m[k]])))
+    E_W = transform(X_WO, m.edges_O)
+    at = np.linalg.norm(E_W - c_W, axis=2).min(axis=1) < 1e-9
+    horiz = np.abs(E_W[:, 0, 2] - E_W[:, 1, 2]) < 1e-9
+    two = np.flatnonzero(at & horiz)[:2]
+    segs = project(transform(X_CW, E_W[two]), camera.K).reshape(-1, 4)
+    uv_c = project(transform(X_CW, c_W[None]), camera.K)[0]
+    ends = [int(np.argmin(np.linalg.norm(s.reshape(2, 2) - uv_c, axis=1))) for s in segs]
+    junctions = [(0, ends[0], 1, ends[1], uv_c)]
+    mod, poses, pairs = table_hypotheses(corners, junctions, segs, camera.K, camera.X_WC, 0.0)
+    assert len(mod) > 0 and np.all(pairs == [0, 1])
+    best = np.inf
+    for X in poses[mod == mi]:
+        if np.linalg.norm(X[:3, 3] - X_WO[:3, 3]) > 1e-6:
+            continue
+        R = X[:3, :3].T @ X_WO[:3, :3]
+        best = min(best, min(np.linalg.norm(R @ S - np.eye(3)) for S in m.symmetries))
+    assert best < 1e-6
+
+
+def test_batch_support_prefers_the_true_pose(setup) -> None:
+    camera, models, _ = setup
+    import cv2
+
+    m = models[0]
+    X_WO = make_pose(_rot_z(0.3), [0.45, 0.0, 0.025])
+    X_CO = invert_pose(camera.X_WC) @ X_WO
+    # Draw the cube's visible outline and inner edges into an image, then take gradients.
+    img = np.zeros((camera.height, camera.width), np.uint8)
+    uv = project(transform(X_CO, m.edges_O), camera.K)
+    for a, b in uv:
+        cv2.line(img, tuple(np.round(a).astype(int)), tuple(np.round(b).astype(int)), 255, 1)
+    f = img.astype(np.float32)
+    gx, gy = cv2.Scharr(f, cv2.CV_32F, 1, 0), cv2.Scharr(f, cv2.CV_32F, 0, 1)
+    shifted = X_CO.copy()
+    shifted[0, 3] += 0.02
+    s = batch_support(m, edge_faces(m), np.array([X_CO, shifted]), camera.K, gx, gy, 60.0, 0.35)
+    assert s[0] > 0.8 and s[1] < 0.3

@@ -1,0 +1,263 @@
+"""Pose hypotheses from two image lines under the table prior (§IV-A, with the work site's
+knowledge that blocks rest on the table).
+
+A block resting on one of its faces has only three free pose parameters: its position on the
+table and its yaw. A corner of the block where two horizontal edges meet (a corner of its top
+face, or of its bottom face on the table) lies at a known height above the table, so the image
+junction of the two edges' lines, cast back onto the plane at that height, gives the corner's 3D
+position, and the two lines cast onto the same plane give the edges' directions. The angle
+between them must equal the model's corner angle (a strong filter); the first edge's direction
+then gives the yaw. So one junction of two lines yields a complete pose, with no indexing and no
+iterative fit, and it needs no third and fourth line: this finds blocks whose faces are shaded
+almost alike, where chains of four connected lines are rare.
+
+All candidate poses are scored at once (vectorised over candidates, edges and sample points) by
+the image gradient along their predicted edges, the cheap early rejection before the full test.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from work_site.vision.model import VisionModel, hull_facets
+
+HEIGHT_TOL_M = 1e-6
+"""Corners whose heights above the table differ by less than this share a back-projection."""
+
+
+@dataclass(frozen=True)
+class RestCorners:
+    """Every corner of two horizontal edges of every model in every resting orientation.
+
+    ``model`` (c,) index into the models; ``R_WO0`` (c, 3, 3) the resting rotation at yaw 0;
+    ``lift_m`` (c,) height of O's origin above the table at rest; ``corner`` (c, 3) the corner
+    in the rest frame (O rotated by ``R_WO0``, z measured from the table); ``heading`` (c,) the
+    yaw (rad) of the first edge leaving the corner; ``turn`` (c,) the signed angle (rad, about
+    +z) from the first edge to the second. Both orders of each pair of edges are listed.
+    """
+
+    model: np.ndarray
+    R_WO0: np.ndarray
+    lift_m: np.ndarray
+    corner: np.ndarray
+    heading: np.ndarray
+    turn: np.ndarray
+
+
+def rest_rotations(vertices_O: np.ndarray, com_O: np.ndarray, margin_m: float = 2e-3):
+    """Rotations ``R_WO`` (yaw 0) that rest the object on a hull facet whose support polygon
+    contains the centre of mass at least ``margin_m`` inside, facet normal pointing down."""
+    out = []
+    for n, d in hull_facets(vertices_O):
+        on = vertices_O[np.abs(vertices_O @ n - d) < 1e-9]
+        e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        poly = np.column_stack([on @ e1, on @ e2]).astype(np.float32)
+        hull = cv2.convexHull(poly)
+        c = (float(com_O @ e1), float(com_O @ e2))
+        if cv2.pointPolygonTest(hull, c, True) < margin_m:
+            continue
+        z = -n
+        out.append(np.array([e1, np.cross(z, e1), z]))
+    return out
+
+
+def rest_corners(models: Sequence[VisionModel], coms_O: Sequence[np.ndarray]) -> RestCorners:
+    """The :class:`RestCorners` of ``models`` (with their centres of mass ``coms_O``)."""
+    rows = []
+    for mi, (m, com) in enumerate(zip(models, coms_O, strict=True)):
+        for R0 in rest_rotations(m.vertices_O, np.asarray(com, dtype=np.float64)):
+            lift = -float((m.vertices_O @ R0.T)[:, 2].min())
+            E = m.edges_O @ R0.T + np.array([0.0, 0.0, lift])  # (e, 2, 3) rest frame
+            horiz = np.flatnonzero(np.abs(E[:, 0, 2] - E[:, 1, 2]) < 1e-9)
+            for i in horiz:
+                for j in horiz:
+                    if i == j:
+                        continue
+                    for ei in (0, 1):
+                        v = E[i, ei]
+                        d = np.linalg.norm(E[j] - v, axis=1)
+                        if d.min() > 1e-9:
+                            continue
+                        a = E[i, 1 - ei] - v
+                        b = E[j, 1 - int(np.argmin(d))] - v
+                        heading = np.arctan2(a[1], a[0])
+                        turn = _wrap(np.arctan2(b[1], b[0]) - heading)
+                        if abs(np.sin(turn)) < 0.1:
+                            continue  # collinear edges make no corner
+                        rows.append((mi, R0, lift, v, heading, turn))
+    if not rows:
+        return RestCorners(
+            np.zeros(0, int), np.zeros((0, 3, 3)), np.zeros(0), np.zeros((0, 3)),
+            np.zeros(0), np.zeros(0),
+        )  # fmt: skip
+    return RestCorners(
+        model=np.array([r[0] for r in rows], dtype=np.int64),
+        R_WO0=np.array([r[1] for r in rows]),
+        lift_m=np.array([r[2] for r in rows]),
+        corner=np.array([r[3] for r in rows]),
+        heading=np.array([r[4] for r in rows]),
+        turn=np.array([r[5] for r in rows]),
+    )
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def back_project_to_plane(
+    uv: np.ndarray, K: np.ndarray, X_WC: np.ndarray, z_W: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points (n, 2) px cast onto the world plane ``z = z_W``: (n, 3) points and (n,) bool
+    for rays that meet the plane in front of the camera."""
+    rays_C = np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(K).T
+    rays_W = rays_C @ X_WC[:3, :3].T
+    c = X_WC[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = (z_W - c[2]) / rays_W[:, 2]
+    ok = np.isfinite(lam) & (lam > 0)
+    lam = np.where(ok, lam, 0.0)
+    return c + lam[:, None] * rays_W, ok
+
+
+def table_hypotheses(
+    corners: RestCorners,
+    junctions: Sequence[tuple[int, int, int, int, np.ndarray]],
+    segs: np.ndarray,
+    K: np.ndarray,
+    X_WC: np.ndarray,
+    table_z: float,
+    angle_tol_rad: float = np.deg2rad(8.0),
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Poses from image junctions: ``(model (h,), X_WO (h, 4, 4), segs (h, 2))``, where
+    ``segs`` are the two image segments of the junction each pose came from."""
+    if len(junctions) == 0 or len(corners.model) == 0:
+        return np.zeros(0, int), np.zeros((0, 4, 4)), np.zeros((0, 2), int)
+    a = np.array([j[0] for j in junctions])
+    b = np.array([j[2] for j in junctions])
+    X = np.array([j[4] for j in junctions])
+    ends = segs.reshape(-1, 2, 2)
+    # The far end of each segment from the junction: the edge leaves the corner that way.
+    far_a = ends[a, 1 - np.array([j[1] for j in junctions])]
+    far_b = ends[b, 1 - np.array([j[3] for j in junctions])]
+    models, poses, pairs = [], [], []
+    heights = np.unique(np.round(corners.corner[:, 2] / HEIGHT_TOL_M).astype(np.int64))
+    for hk in heights:
+        h = hk * HEIGHT_TOL_M
+        sel = np.flatnonzero(np.abs(corners.corner[:, 2] - h) < 2 * HEIGHT_TOL_M)
+        P, ok0 = back_project_to_plane(X, K, X_WC, table_z + h)
+        Pa, ok1 = back_project_to_plane(far_a, K, X_WC, table_z + h)
+        Pb, ok2 = back_project_to_plane(far_b, K, X_WC, table_z + h)
+        ok = ok0 & ok1 & ok2
+        da, db = Pa - P, Pb - P
+        psi_a = np.arctan2(da[:, 1], da[:, 0])
+        turn = _wrap(np.arctan2(db[:, 1], db[:, 0]) - psi_a)  # (n,)
+        # (junction, corner) pairs whose angles agree
+        diff = np.abs(_wrap(turn[:, None] - corners.turn[sel][None, :]))
+        ji, ck = np.nonzero((diff < angle_tol_rad) & ok[:, None])
+        if len(ji) == 0:
+            continue
+        c = sel[ck]
+        # Bisect the angle error: the yaw that best aligns both edges.
+        yaw = psi_a[ji] - corners.heading[c] + 0.5 * _wrap(turn[ji] - corners.turn[c])
+        cs, sn = np.cos(yaw), np.sin(yaw)
+        Rz = np.zeros((len(c), 3, 3))
+        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = cs, -sn, sn, cs
+        Rz[:, 2, 2] = 1.0
+        v = corners.corner[c]
+        X_WO = np.tile(np.eye(4), (len(c), 1, 1))
+        X_WO[:, :3, :3] = Rz @ corners.R_WO0[c]
+        rot_v = np.einsum("nij,nj->ni", Rz, v)
+        X_WO[:, 0, 3] = P[ji, 0] - rot_v[:, 0]
+        X_WO[:, 1, 3] = P[ji, 1] - rot_v[:, 1]
+        X_WO[:, 2, 3] = table_z + corners.lift_m[c]
+        models.append(corners.model[c])
+        poses.append(X_WO)
+        pairs.append(np.column_stack([a[ji], b[ji]]))
+    if not models:
+        return np.zeros(0, int), np.zeros((0, 4, 4)), np.zeros((0, 2), int)
+    return np.concatenate(models), np.concatenate(poses), np.vstack(pairs)
+
+
+def edge_faces(model: VisionModel) -> np.ndarray:
+    """(e, f) bool: edge ``e`` lies on face ``f`` of the model's parts (faces stacked over the
+    parts in :attr:`VisionModel.planes_O` order)."""
+    planes = np.vstack(model.planes_O)
+    E = model.edges_O  # (e, 2, 3)
+    dist = np.abs(E @ planes[:, :3].T - planes[:, 3])  # (e, 2, f)
+    return np.all(dist < 1e-7, axis=1)
+
+
+def batch_support(
+    model: VisionModel,
+    on_face: np.ndarray,
+    X_CO: np.ndarray,
+    K: np.ndarray,
+    gx: np.ndarray,
+    gy: np.ndarray,
+    gradient_min: float,
+    gradient_angle_rad: float,
+    points_per_edge: int = 6,
+) -> np.ndarray:
+    """Cheap support of many poses ``X_CO`` (n, 4, 4) of one model at once, (n,): the fraction
+    of points along the predicted edges where the image gradient, within ±1.5 px across the
+    edge, is strong and at right angles to it. An edge counts as seen when one of its faces
+    faces the camera (exact for convex parts; occlusion by other objects is ignored here)."""
+    n = len(X_CO)
+    if n == 0:
+        return np.zeros(0)
+    R, t = X_CO[:, :3, :3], X_CO[:, :3, 3]
+    E = np.einsum("nij,ekj->neki", R, model.edges_O) + t[:, None, None, :]  # (n, e, 2, 3)
+    planes = np.vstack(model.planes_O)
+    nC = np.einsum("nij,fj->nfi", R, planes[:, :3])  # (n, f, 3)
+    dC = planes[:, 3][None, :] + np.einsum("nfi,ni->nf", nC, t)  # n·x ≤ d inside, in C
+    # A face faces the camera (at C's origin) when the origin is outside its plane: d < 0.
+    facing = dC < 0  # (n, f)
+    seen = np.einsum("nf,ef->ne", facing.astype(np.float64), on_face.astype(np.float64)) > 0
+    z = E[..., 2]
+    front = np.all(z > 1e-3, axis=2)
+    seen &= front
+    uv = E[..., :2] / np.where(z > 1e-3, z, 1.0)[..., None] @ K[:2, :2].T + K[:2, 2]
+    d = uv[:, :, 1] - uv[:, :, 0]  # (n, e, 2)
+    L = np.linalg.norm(d, axis=2)
+    h, w = gx.shape
+    inside = np.all((uv >= 0) & (uv <= np.array([w - 1, h - 1])), axis=(2, 3))
+    use = seen & (L >= 4.0) & inside
+    u = d / np.maximum(L, 1e-9)[..., None]
+    nrm = np.stack([-u[..., 1], u[..., 0]], axis=-1)
+    k = points_per_edge
+    ts = (np.arange(k) + 0.5) / k
+    P = uv[:, :, None, 0] + ts[None, None, :, None] * d[:, :, None, :]  # (n, e, k, 2)
+    N = np.broadcast_to(nrm[:, :, None, :], P.shape)
+    good = np.zeros(P.shape[:3], dtype=bool)
+    cos_min = np.cos(gradient_angle_rad)
+    for off in (-1.5, 0.0, 1.5):
+        sx, sy = sample_gradient(gx, gy, (P + off * N).reshape(-1, 2))
+        sx, sy = sx.reshape(P.shape[:3]), sy.reshape(P.shape[:3])
+        mag = np.hypot(sx, sy)
+        cos = np.abs(sx * N[..., 0] + sy * N[..., 1]) / np.maximum(mag, 1e-9)
+        good |= (mag > gradient_min) & (cos > cos_min)
+    count = use.sum(axis=1) * k
+    hits = np.sum(good & use[..., None], axis=(1, 2))
+    return np.where(count > 0, hits / np.maximum(count, 1), 0.0)
+
+
+def sample_gradient(
+    gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, width: int = 1024
+) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples of both gradient images at points (m, 2) px, 0 outside the image;
+    any number of points (``cv2.remap`` maps must stay below 32767 rows)."""
+    m = len(pts)
+    rows = -(-m // width)
+    Q = np.zeros((rows * width, 2), dtype=np.float32)
+    Q[:m] = pts
+    Q[m:] = -10.0
+    mx, my = Q[:, 0].reshape(rows, width), Q[:, 1].reshape(rows, width)
+    sx = cv2.remap(gx, mx, my, cv2.INTER_LINEAR).ravel()[:m]
+    sy = cv2.remap(gy, mx, my, cv2.INTER_LINEAR).ravel()[:m]
+    return sx, sy
