@@ -90,7 +90,8 @@ def rest_corners(models: Sequence[VisionModel], coms_O: Sequence[np.ndarray]) ->
                         turn = _wrap(np.arctan2(b[1], b[0]) - heading)
                         if abs(np.sin(turn)) < 0.1:
                             continue  # collinear edges make no corner
-                        rows.append((mi, R0, lift, v, heading, turn))
+                        if not _known(rows, mi, m.symmetries, R0, v, heading, turn):
+                            rows.append((mi, R0, lift, v, heading, turn))
     if not rows:
         return RestCorners(
             np.zeros(0, int), np.zeros((0, 3, 3)), np.zeros(0), np.zeros((0, 3)),
@@ -104,6 +105,29 @@ def rest_corners(models: Sequence[VisionModel], coms_O: Sequence[np.ndarray]) ->
         heading=np.array([r[4] for r in rows]),
         turn=np.array([r[5] for r in rows]),
     )
+
+
+def _known(rows, mi, symmetries, R0, v, heading, turn) -> bool:
+    """Whether a listed corner of model ``mi`` gives the same poses as this one, up to the
+    model's symmetries: from any junction both give ``R = Rz(ψ)·A`` and ``t = P − Rz(ψ)·w`` with
+    ``A = Rz(−heading)·R0`` and ``w = Rz(−heading)·v``, so they agree when the ``w`` and the
+    turns agree and the ``A`` differ by a symmetry."""
+    A = _rz(-heading) @ R0
+    w = _rz(-heading) @ v
+    for mj, R1, _, v1, h1, t1 in rows:
+        if mj != mi or abs(_wrap(t1 - turn)) > 1e-9:
+            continue
+        if np.linalg.norm(_rz(-h1) @ v1 - w) > 1e-9:
+            continue
+        A1 = _rz(-h1) @ R1
+        if any(np.linalg.norm(A1 @ S - A) < 1e-6 for S in symmetries):
+            return True
+    return False
+
+
+def _rz(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _wrap(a):
