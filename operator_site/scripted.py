@@ -19,6 +19,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -131,6 +132,43 @@ def drag(session: TaskSession, waypoints: list[np.ndarray]) -> None:
                 np.linalg.norm(result.X_WO[:3, 3] - X[:3, 3]) < WAYPOINT_REACHED_M
             ):
                 break
+
+
+@dataclass(frozen=True, eq=False)
+class Demonstration:
+    """What the scripted operator did: the task session (its history is the demonstration),
+    the workpiece, the corner (0–3 for ``corner``, 0–1 for ``around-corner``) and the ideal
+    goal pose of the workpiece."""
+
+    session: TaskSession
+    workpiece: str
+    corner: int
+    ideal_X_WO: np.ndarray
+
+
+def demonstrate(task: str, model: WorkSiteModel, rng: np.random.Generator) -> Demonstration:
+    """The scripted operator: choose the workpiece among :data:`WORKPIECES` in ``model`` and
+    the corner with ``rng``, then drag the block through ``task`` in a task session of the
+    model; RuntimeError if no candidate block is in the model."""
+    candidates = [n for n in WORKPIECES if n in model.poses]
+    if not candidates:
+        raise RuntimeError(f"none of {WORKPIECES} was recognised")
+    workpiece = str(rng.choice(candidates))
+    corner = int(rng.integers(4))
+    session = TaskSession(model.scene())
+    session.select(workpiece)
+    bbox = session.scene.object(workpiece).model.bbox_O
+    if task == "corner":
+        waypoints, ideal = corner_waypoints(session.X_WO[workpiece], bbox, corner)
+        drag(session, waypoints)
+    else:
+        corner %= 2
+        before, after, ideal = around_corner_waypoints(session.X_WO[workpiece], bbox, corner)
+        drag(session, before)
+        for name in ("frame", "table"):
+            session.toggle_capture(name)
+        drag(session, after)
+    return Demonstration(session, workpiece, corner, ideal)
 
 
 ProgramMaker = Callable[[TaskSession, str], MotionProgram]
@@ -277,28 +315,10 @@ def run_scripted(
         out["recognised"] = sorted(model.poses)
         out["corrections_mm"] = {c.name: round(c.moved_mm, 2) for c in corrections}
 
-        candidates = [n for n in WORKPIECES if n in model.poses]
-        if not candidates:
-            raise RuntimeError(f"none of {WORKPIECES} was recognised")
-        workpiece = str(rng.choice(candidates))
-        corner = int(rng.integers(4))
-        out |= {"workpiece": workpiece, "corner": corner}
-
         t0 = time.monotonic()
-        session = TaskSession(model.scene())
-        session.select(workpiece)
-        bbox = scene.object(workpiece).model.bbox_O
-        if task == "corner":
-            waypoints, ideal = corner_waypoints(session.X_WO[workpiece], bbox, corner)
-            drag(session, waypoints)
-        else:
-            corner %= 2
-            out["corner"] = corner
-            before, after, ideal = around_corner_waypoints(session.X_WO[workpiece], bbox, corner)
-            drag(session, before)
-            for name in ("frame", "table"):
-                session.toggle_capture(name)
-            drag(session, after)
+        demo = demonstrate(task, model, rng)
+        session, workpiece, ideal = demo.session, demo.workpiece, demo.ideal_X_WO
+        out |= {"workpiece": workpiece, "corner": demo.corner}
         goal = session.X_WO[workpiece]
         final = session.sim.history[-1]
         stage_s["operator"] = time.monotonic() - t0

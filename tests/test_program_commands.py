@@ -311,3 +311,49 @@ def test_fig12_with_the_fingers_of_a_bar_clearing_grasp() -> None:
     assert gen.check.ok
     assert unwanted_contact_nodes(path) == []
     assert 1.0 - path.length_m() / gen.raw.length_m() >= 0.40
+
+
+def test_a_move_may_cut_a_little_into_a_contact_it_keeps_but_not_into_others() -> None:
+    """A move pressed into the wall it touches at both ends (as round an outside corner) is the
+    impedance's business up to the contact cut; deeper, or into anything else, is a collision."""
+    scene = scenarios.figure_scene()
+    sweeper = Sweeper(scene, "cube")
+    half = 0.025
+    # Against the outside of the −y bar (its outer face at y = −0.12), on the table.
+    y_touch = -0.12 - half - 1e-4
+    a = make_pose(p_AB=np.array([0.40, y_touch, half + 1e-4]))
+    both = frozenset({"frame", "table"})
+    for cut_m, ok in ((0.5e-3, True), (2e-3, False)):
+        mid = make_pose(p_AB=np.array([0.38, y_touch + cut_m + 1e-4, half + 1e-4]))
+        first = sweeper.segment(a, mid, both, both)
+        assert first.ok is ok, (cut_m, first.reason)
+    # The same shallow cut into the frame when only the table is kept is a collision.
+    mid = make_pose(p_AB=np.array([0.38, y_touch + 0.6e-3, half + 1e-4]))
+    result = sweeper.segment(a, mid, both, frozenset({"table"}))
+    assert not result.ok and "frame" in result.reason
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_around_corner_demonstrations_become_programs_that_pass_the_check(seed: int) -> None:
+    """Fig. 2 / Fig. 13 with random layouts (these seeds were refused before pivots round the
+    corner were refined by halving): a program that keeps frame and table to the end."""
+    from models.layout import random_layout
+    from models.scene import load_scene
+    from operator_site.model_editor import WorkSiteModel
+    from operator_site.scripted import demonstrate, generated_program
+
+    scene = load_scene()
+    model = WorkSiteModel(scene)
+    for name, X in random_layout(scene, seed).items():
+        if not scene.object(name).fixed:
+            model.accept(name, X, 1.0)
+    model.make_consistent()
+    demo = demonstrate("around-corner", model, np.random.default_rng(seed))
+    program = generated_program(demo.session, f"around-{seed}")
+    kinds = [c.kind for c in program.commands]
+    assert kinds[0] == "guarded_grasp" and kinds[-2:] == ["release", "move"]
+    last = program.commands[-3]
+    assert last.kind == "contact_move"
+    assert {c.object for c in last.contacts} == {"frame", "table"}
+    X_end = np.asarray(last.X_WP)
+    assert np.linalg.norm(X_end[:3, 3] - demo.ideal_X_WO[:3, 3]) < 1e-3

@@ -14,6 +14,13 @@ than d − floor further on (conservative advancement, exact: every point moves 
 so for them the samples are at most ``contact_sample_m`` of point travel apart and each must be
 more than the barrier floor away: a dent deeper than the floor and shorter than
 ``contact_sample_m`` along the segment could be missed.
+
+An object kept in contact at both ends of a move may be cut into by up to ``contact_cut_m``
+(fcl's penetration depth): the robot makes such a move under impedance control, pressed onto
+the surface by the target bias anyway, so a straight move that pivots round an outside corner
+(Fig. 13) cuts the corner by a fraction of a millimetre and meets a little more force, stiffness
+× depth (1 N for 1 mm at the work site's 1000 N/m), well inside its force limit. Anything
+deeper, or any cut into an object not in contact at both ends, is a collision.
 """
 
 from __future__ import annotations
@@ -36,6 +43,8 @@ CONTACT_SAMPLE_M = 0.5e-3
 KEEP_CONTACT_M = 0.005
 """A contact kept at both ends of a segment must stay within this along it (m): the target
 bias d of §VI-B, by which the impedance controller presses the workpiece onto the surface."""
+CONTACT_CUT_M = 1e-3
+"""A move may cut this deep into an object kept in contact at both of its ends (m)."""
 MAX_SAMPLES_PER_SEGMENT = 20_000
 """A segment needing more samples than this is refused (it grazes something all along)."""
 CARRYING = ("guarded_grasp", "move", "guarded_move", "contact_move")
@@ -76,6 +85,7 @@ class Sweeper:
         X_WO: dict[str, np.ndarray] | None = None,
         keep_contact_m: float = KEEP_CONTACT_M,
         contact_sample_m: float = CONTACT_SAMPLE_M,
+        contact_cut_m: float = CONTACT_CUT_M,
     ) -> None:
         self.params = params or SimParams()
         world = SimWorld(
@@ -84,6 +94,7 @@ class Sweeper:
         self.c_O = scene.object(workpiece).model.com_O.astype(np.float64)
         self.keep_contact_m = keep_contact_m
         self.contact_sample_m = contact_sample_m
+        self.contact_cut_m = contact_cut_m
         # Reach: far enough that an object out of reach leaves room for a long sample step.
         self.stepper = ContactStepper(world, self.c_O, self.params, 0.02)
 
@@ -95,7 +106,8 @@ class Sweeper:
         kept: frozenset[str],
     ) -> SegmentCheck:
         """Sweep the move ``X0`` → ``X1``: objects in ``touching`` (in contact at an end) are
-        sampled densely; objects in ``kept`` must stay within ``keep_contact_m``."""
+        sampled densely; objects in ``kept`` must stay within ``keep_contact_m`` and may be cut
+        into by up to ``contact_cut_m``."""
         st = self.stepper
         c0 = X0[:3, :3] @ self.c_O + X0[:3, 3]
         c1 = X1[:3, :3] @ self.c_O + X1[:3, 3]
@@ -109,6 +121,8 @@ class Sweeper:
             free = st.reach_m
             for name, pair in probe.nearest.items():
                 if pair.distance_m <= st.floor_m:
+                    if name in kept and st.penetration(X, name)[0] <= self.contact_cut_m:
+                        continue
                     where = f"{t:.3f} of the way"
                     return SegmentCheck(False, f"collides with {name} {where}", clearance, samples)
                 if name not in touching:

@@ -32,6 +32,10 @@ REFINE_FORCE_N = 10.0
 """Pull towards the segment's end while refining (N): each step goes its full length."""
 REFINE_HOLD_N = 0.5
 """Holding force onto each contact kept along the segment (N)."""
+MAX_BISECTIONS = 6
+"""A move the drag cannot refine is halved at most this deep (at most 2^6 = 64 moves)."""
+CLEAR_ROUNDS = 4
+"""Pushes out of nearby objects tried on a midpoint before the bisection gives up."""
 
 
 @dataclass(frozen=True)
@@ -163,13 +167,56 @@ def _node_at(sweeper: Sweeper, X_WO: np.ndarray, required: frozenset[str]) -> Pa
     return PathNode(X_WO, tuple(contacts), required)
 
 
+def _pushed_clear(sweeper: Sweeper, X_WO: np.ndarray) -> np.ndarray | None:
+    """``X_WO`` translated out of every object it overlaps or nearly touches, to ε_b from it
+    (the barrier's rest distance); None if that takes more than :data:`CLEAR_ROUNDS` pushes."""
+    st = sweeper.stepper
+    X = X_WO.copy()
+    for _ in range(CLEAR_ROUNDS):
+        probe = st.probe(X)
+        close = {n: p for n, p in probe.nearest.items() if p.distance_m <= st.floor_m}
+        if not close:
+            return X
+        for name, pair in close.items():
+            if pair.distance_m > 0.0:
+                X[:3, 3] += (st.params.eps_barrier_m - pair.distance_m) * away_normal(pair)
+            else:
+                depth, escape = st.penetration(X, name)
+                X[:3, 3] += (depth + st.params.eps_barrier_m) * escape
+    return X if st.admissible(st.probe(X), frozenset()) else None
+
+
+def _bisect(a: PathNode, b: PathNode, sweeper: Sweeper, depth: int) -> list[PathNode] | None:
+    """Waypoints from ``a`` to ``b`` (``b`` last) found by halving the move and pushing each
+    midpoint clear of what it cuts into, until every piece passes the sweep; None if it takes
+    more than ``depth`` halvings."""
+    if _sweep_ok(a, b, sweeper):
+        return [b]
+    if depth == 0:
+        return None
+    X = _pushed_clear(sweeper, interpolate(a.X_WO, b.X_WO, np.array([0.5]), sweeper.c_O)[0])
+    if X is None:
+        return None
+    mid = _node_at(sweeper, X, _objects(a) & _objects(b))
+    first = _bisect(a, mid, sweeper, depth - 1)
+    second = None if first is None else _bisect(mid, b, sweeper, depth - 1)
+    return None if first is None or second is None else first + second
+
+
 def refine_segment(
     a: PathNode, b: PathNode, sweeper: Sweeper, step_m: float = REFINE_STEP_M
 ) -> list[PathNode] | None:
-    """Waypoints from ``a`` to ``b`` (``b`` last) whose moves all pass the sweep, found by
+    """Waypoints from ``a`` to ``b`` (``b`` last) whose moves all pass the sweep. First by
     dragging the workpiece from ``a`` towards ``b`` with the contact step, so that it slides
-    round what it touches (a straight move round a corner in contact cuts the corner); the
-    waypoints are then merged as far as the sweep allows. None if the drag gets stuck."""
+    round what it touches (a straight move round a corner in contact cuts the corner), the
+    waypoints then merged as far as the sweep allows; where the drag gets stuck, by halving
+    the move (:func:`_bisect`). None if both fail."""
+    return _drag_refine(a, b, sweeper, step_m) or _bisect(a, b, sweeper, MAX_BISECTIONS)
+
+
+def _drag_refine(
+    a: PathNode, b: PathNode, sweeper: Sweeper, step_m: float
+) -> list[PathNode] | None:
     st = sweeper.stepper
     kept = _objects(a) & _objects(b)
     X, probe = a.X_WO, st.probe(a.X_WO)

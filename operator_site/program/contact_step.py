@@ -88,6 +88,14 @@ class ContactStepper:
                 nearest[name] = pair
         return Probe(pairs, nearest)
 
+    def penetration(self, X_WO: np.ndarray, name: str) -> tuple[float, np.ndarray]:
+        """Deepest overlap (m, ≥ 0) of the workpiece at ``X_WO`` with object ``name`` and the
+        unit direction in W that moves the workpiece out of it (:meth:`SimWorld.penetration`)."""
+        lo, hi = self.world.workpiece_box(X_WO, 0.0)
+        near = self.world.candidates(lo, hi)
+        mine = near[[self.world.obstacle_object[i] == name for i in near]]
+        return self.world.penetration(X_WO, mine)
+
     def admissible(self, probe: Probe, required: frozenset[str]) -> bool:
         """Nothing closer than the barrier floor, every required object within ε_o."""
         if any(pair.distance_m <= self.floor_m for pair in probe.nearest.values()):
@@ -105,7 +113,8 @@ class ContactStepper:
         P, N, G = [], [], []
         for pair in probe.pairs:
             name = self.world.obstacle_object[pair.obstacle]
-            reach = p.eps_capture_m if name in required else p.eps_contact_m
+            own = pair.wp_part < self.world.n_own_parts  # fingers only touch (see the stepper)
+            reach = p.eps_capture_m if own and name in required else p.eps_contact_m
             if not 0 < pair.distance_m < reach:
                 continue
             part = self.world.wp_parts[pair.wp_part]

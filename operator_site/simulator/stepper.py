@@ -239,7 +239,10 @@ class Simulator:
                 self.state.held.add(name)
         for pair in pairs:
             name = self.world.obstacle_object[pair.obstacle]
-            reach = p.eps_capture_m if name in self.state.held else p.eps_contact_m
+            # A captured object holds the workpiece itself within ε_o; the fingers riding with
+            # it only ever touch (ε_c): a finger above a captured bar is not a contact to keep.
+            own = pair.wp_part < self.world.n_own_parts
+            reach = p.eps_capture_m if own and name in self.state.held else p.eps_contact_m
             if pair.distance_m >= reach or pair.distance_m <= 0:
                 continue
             points, n, gaps = contact_manifold(

@@ -54,6 +54,8 @@ class SimWorld:
         wp = scene.object(workpiece)
         self.workpiece = wp.name
         self.wp_parts = (*wp.model.parts, *attached_O)
+        self.n_own_parts = len(wp.model.parts)
+        """``wp_parts[:n_own_parts]`` are the workpiece's; the rest ride with it (fingers)."""
         self.wp_vertices_O = np.vstack([p.vertices_O for p in self.wp_parts])
         self._wp_objects = [
             fcl.CollisionObject(fcl_convex(p), fcl.Transform()) for p in self.wp_parts
@@ -83,6 +85,7 @@ class SimWorld:
         self.hi_W = np.array(hi).reshape(-1, 3)
         self.thinnest_obstacle_m = float(thinnest)
         self._request = fcl.DistanceRequest(enable_nearest_points=True)
+        self._collide_request = fcl.CollisionRequest(num_max_contacts=4, enable_contact=True)
         self.queries = 0
         """Narrow-phase distance queries made so far (one per pair of convex parts)."""
 
@@ -116,3 +119,23 @@ class SimWorld:
                 )
         self.queries += len(self._wp_objects) * len(obstacles)
         return out
+
+    def penetration(self, X_WO: np.ndarray, obstacles: np.ndarray) -> tuple[float, np.ndarray]:
+        """The deepest overlap of any workpiece part at ``X_WO`` with the listed obstacle parts:
+        fcl's EPA depth (m, 0 when nothing overlaps) and the unit direction (3,) in W that moves
+        the workpiece out of it (zero when nothing overlaps)."""
+        tf = fcl.Transform(X_WO[:3, :3], X_WO[:3, 3])
+        deepest, escape = 0.0, np.zeros(3)
+        for wp in self._wp_objects:
+            wp.setTransform(tf)
+            for i in obstacles:
+                result = fcl.CollisionResult()
+                if not fcl.collide(wp, self._obstacles[i], self._collide_request, result):
+                    continue
+                for c in result.contacts:
+                    if c.penetration_depth > deepest:
+                        # fcl's normal points from the workpiece into the obstacle.
+                        deepest, escape = float(c.penetration_depth), -np.asarray(c.normal)
+        self.queries += len(self._wp_objects) * len(obstacles)
+        norm = float(np.linalg.norm(escape))
+        return deepest, escape / norm if norm > 0.0 else escape
