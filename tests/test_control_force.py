@@ -12,6 +12,7 @@ import pytest
 from models.transforms import make_pose, rpy_to_R
 from protocol import ContactState, MotionCommand, MotionProgram
 from work_site.control import benchmark
+from work_site.control.controller import compliant_projector
 from work_site.control.executor import (
     CONTACT_VERIFY_N,
     TARGET_BIAS_M,
@@ -86,6 +87,9 @@ def test_sliding_along_a_wall_keeps_the_normal_force_in_its_band() -> None:
     assert result["slide_samples"] > 100
     low, high = result["slide_band_n"]
     assert low <= result["slide_normal_n_min"] <= result["slide_normal_n_max"] <= high, result
+    # Stiff along the wall: friction (about 2 mm of lag with an isotropic 1000 N/m) leaves the
+    # cube within a millimetre of its goal.
+    assert abs(result["slide_end_along_wall_mm"]) <= 1.0, result
 
 
 def _grasp_and_lift(world) -> tuple[list[MotionCommand], np.ndarray]:
@@ -166,3 +170,13 @@ def test_contact_forces_split_a_wrench_along_the_normals() -> None:
     f = contact_forces_n([-3.0, 0.0, 5.0], normals)
     assert f[1] == 0.0 and f[0] == pytest.approx(5.0)
     assert CONTACT_VERIFY_N > 0
+
+
+def test_the_compliant_directions_are_the_span_of_the_contact_normals() -> None:
+    P = compliant_projector(np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [1.0, 1e-6, 0.0]]))
+    np.testing.assert_allclose(P, np.diag([1.0, 0.0, 1.0]), atol=1e-5)
+    corner = compliant_projector(np.eye(3))
+    np.testing.assert_allclose(corner, np.eye(3), atol=1e-12)
+    tilted = np.array([[0.0, -0.6, 0.8]])
+    np.testing.assert_allclose(compliant_projector(tilted), tilted.T @ tilted, atol=1e-12)
+    assert not compliant_projector(np.zeros((0, 3))).any()

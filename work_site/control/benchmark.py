@@ -227,7 +227,8 @@ def corner() -> dict:
 
 def slide() -> dict:
     """The cube put against the frame's x = 0.35 wall, then slid 6 cm along it (+y) by a
-    contact move: the force along the wall's normal at each period of the slide."""
+    contact move: the force along the wall's normal at each period of the slide, and how far
+    short of its goal along the wall the cube ends (friction against the impedance)."""
     world, c = _site()
     (x0, _), _ = FRAME_INNER_M
     start_y, end_y = -0.03, 0.03
@@ -254,10 +255,12 @@ def slide() -> dict:
                 normal_n.append(float(c.force_W[0]))
             if execution.finished:
                 break
+        end_error_m = float(world.object_pose("cube")[1, 3] - end_y)
     finally:
         world.close()
     f = np.array(normal_n)
     return {
+        "slide_end_along_wall_mm": end_error_m * 1e3,
         "slide_status": reports[-1][2] if reports else "none",
         "slide_message": reports[-1][3] if reports else "",
         "slide_normal_n_mean": float(f.mean()) if f.size else math.nan,

@@ -52,11 +52,11 @@ class Guard:
 
 @dataclass(frozen=True)
 class Impedance:
-    """Translational admittance of a contact move: isotropic ``stiffness`` (N/m) and
-    ``damping`` (N·s/m); the offset moves at most ``max_rate_mps``. Updated at every 1 ms servo
-    step, discrete stability needs ``damping > (stiffness + k_env)·Δt/2`` with k_env the
-    contacts' stiffness (measured: about 1.3e5 N/m for a cube pressed into a corner): 66 N·s/m;
-    the default leaves a factor 3."""
+    """Translational admittance of a contact move: ``stiffness`` (N/m) and ``damping`` (N·s/m),
+    along the contact normals (``compliant_W``) or in every direction; the offset moves at most
+    ``max_rate_mps``. Updated at every 1 ms servo step, discrete stability needs
+    ``damping > (stiffness + k_env)·Δt/2`` with k_env the contacts' stiffness (measured: about
+    1.3e5 N/m for a cube pressed into a corner): 66 N·s/m; the default leaves a factor 3."""
 
     stiffness_n_per_m: float = 1000.0
     damping_n_s_per_m: float = 200.0
@@ -67,6 +67,26 @@ class Impedance:
     about ±0.1 mm)."""
     settled_ticks: int = 10
     max_settle_s: float = 3.0
+    compliant_W: np.ndarray | None = None
+    """Projector (3, 3) onto the contact normals' span (:func:`compliant_projector`), along
+    which ``stiffness_n_per_m`` holds; across it (along the surfaces) the move is stiffer,
+    ``tangential_stiffness_n_per_m``, so that friction does not drag the block behind its path,
+    yet a contact the model missed still meets a spring, not a wall. None: isotropic."""
+    tangential_stiffness_n_per_m: float = 5000.0
+
+
+NORMAL_RANK_TOL = 1e-3
+"""Singular values of the stacked contact normals below this are not independent directions."""
+
+
+def compliant_projector(normals_W: np.ndarray) -> np.ndarray:
+    """The orthogonal projector (3, 3) onto the span of the rows of ``normals_W``."""
+    N = np.asarray(normals_W, dtype=np.float64).reshape(-1, 3)
+    if len(N) == 0:
+        return np.zeros((3, 3))
+    _, sv, Vt = np.linalg.svd(N, full_matrices=False)
+    basis = Vt[sv > NORMAL_RANK_TOL * sv[0]]
+    return basis.T @ basis
 
 
 @dataclass(frozen=True)
@@ -213,7 +233,15 @@ class TaskController:
         window's mean force, ``|δ̇|`` limited."""
         imp = self.impedance
         f_W = np.mean(self._window, axis=0) if self._window else np.zeros(3)
-        rate = (f_W - imp.stiffness_n_per_m * self.offset_W) / imp.damping_n_s_per_m
+        if imp.compliant_W is None:
+            spring_W = imp.stiffness_n_per_m * self.offset_W
+        else:
+            P = imp.compliant_W
+            along = P @ self.offset_W
+            spring_W = imp.stiffness_n_per_m * along + imp.tangential_stiffness_n_per_m * (
+                self.offset_W - along
+            )
+        rate = (f_W - spring_W) / imp.damping_n_s_per_m
         speed = float(np.linalg.norm(rate))
         if speed > imp.max_rate_mps:
             rate *= imp.max_rate_mps / speed

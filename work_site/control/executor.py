@@ -33,6 +33,7 @@ from work_site.control.controller import (
     Guard,
     Impedance,
     TaskController,
+    compliant_projector,
 )
 from work_site.control.kinematics import ik_tcp
 
@@ -262,7 +263,12 @@ def expand(program: MotionProgram, index: int) -> list:
         normals = np.array([n for _, n in contact_directions(cmd.contacts)])
         biased[:3, 3] += target_bias_W(normals)
         return [
-            MoveTo(biased, cmd.speed_mps, limit, impedance=Impedance()),
+            MoveTo(
+                biased,
+                cmd.speed_mps,
+                limit,
+                impedance=Impedance(compliant_W=compliant_projector(normals)),
+            ),
             VerifyContacts(cmd.contacts),
         ]
     if cmd.kind == "guarded_grasp":
