@@ -284,10 +284,10 @@ def build_program(
     params = params or CommandParams()
     first = path.nodes[0]
     commands = [
-        MotionCommand(
+        MotionCommand(  # the work site descends onto the block at its own slower grasp speed
             kind="guarded_grasp",
             X_WP=first.X_WO,
-            speed_mps=params.contact_speed_mps,
+            speed_mps=params.free_speed_mps,
             force_limit_n=params.force_limit_n,
             contacts=contact_states(first),
         )
