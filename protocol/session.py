@@ -11,6 +11,7 @@ retrying in the background rather than failing ``zenoh.open``; always ``close()`
 
 from __future__ import annotations
 
+import ipaddress
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -172,6 +173,48 @@ def link_endpoints(endpoints: Sequence[str], single_link: bool = False) -> tuple
     except ProtocolError as e:
         return given, f"one link for all priorities: {e}"
     return split, "commands on priorities 0-5, camera frames on 6-7 (port + 1)"
+
+
+SECURE_PROTOCOLS = ("tls", "quic")
+"""Link protocols that carry TLS (with :class:`TlsFiles` they authenticate both sites)."""
+LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")
+"""Link protocols that never leave the machine."""
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """Whether ``endpoint`` listens on this machine only: ``127.0.0.0/8``, ``::1``,
+    ``localhost`` or a local-only protocol. Any other host (``0.0.0.0``, an interface's
+    address, a name) counts as reachable from the network."""
+    protocol, _, address = endpoint.partition("/")
+    if protocol in LOCAL_PROTOCOLS:
+        return True
+    host = address.split("?", 1)[0].split("#", 1)[0].rpartition(":")[0].strip("[]")
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_listeners(listen: Sequence[str], tls: TlsFiles | None, insecure: bool = False) -> None:
+    """Refuse (:class:`ProtocolError`, one line naming the options to use) a listener on a
+    non-loopback address that is not a TLS endpoint with certificates; ``insecure`` allows it
+    (an isolated lab network). Loopback listeners need nothing."""
+    if insecure:
+        return
+    for endpoint in listen:
+        if is_loopback_endpoint(endpoint):
+            continue
+        protocol, _, address = endpoint.partition("/")
+        if protocol in SECURE_PROTOCOLS and tls is not None:
+            continue
+        address = address.split("?", 1)[0].split("#", 1)[0]
+        raise ProtocolError(
+            f"refusing to listen on {endpoint} without TLS: a listener reachable from the "
+            f"network must authenticate its peers; use --listen tls/{address} --certs DIR "
+            "(make DIR with deploy/make-certs.sh), or --insecure on an isolated lab network"
+        )
 
 
 def _max_links(listen: Sequence[str], connect: Sequence[str]) -> int:

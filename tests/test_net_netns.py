@@ -54,6 +54,7 @@ def emulated(tmp_path: Path) -> Iterator:
             "--site-id",
             SITE,
             "--no-camera",
+            "--insecure",  # plain TCP on 10.77.0.2: a test link between two namespaces
         ]
         if lease_ms is not None:
             argv.append(f"--lease-ms={lease_ms}")

@@ -18,8 +18,13 @@ import pytest
 
 from models.transforms import make_pose, rpy_to_R
 from operator_site.link import WorkSiteLink
-from protocol import MotionCommand, MotionProgram, make_config
-from protocol.session import TlsFiles, operator_only_access_control
+from protocol import MotionCommand, MotionProgram, ProtocolError, make_config
+from protocol.session import (
+    TlsFiles,
+    check_listeners,
+    is_loopback_endpoint,
+    operator_only_access_control,
+)
 from tests.conftest import free_port, wait_until
 
 pytestmark = pytest.mark.integration
@@ -198,3 +203,95 @@ def test_only_the_operator_may_command(secure_work_site: str, certs: Path, links
     assert wait_until(lambda: "started" in reports_of(operator, "slow"), 10.0)
     operator.send_stop("operator stops")
     assert wait_until(lambda: "stopped" in reports_of(operator, "slow"), 5.0)
+
+
+# ------------------------------------------------- listeners reachable from the network need TLS
+
+
+@pytest.mark.parametrize(
+    "endpoint",
+    [
+        "tcp/127.0.0.1:7447",
+        "tcp/127.3.2.1:7447?prio=0-5",
+        "tcp/[::1]:7447",
+        "tcp/localhost:7447",
+        "udp/127.0.0.1:7447",
+        "unixsock-stream//tmp/work-site.sock",
+    ],
+)
+def test_loopback_listeners_stay_unauthenticated(endpoint: str) -> None:
+    assert is_loopback_endpoint(endpoint)
+    check_listeners([endpoint], tls=None)
+
+
+@pytest.mark.parametrize(
+    "endpoint",
+    [
+        "tcp/0.0.0.0:7447",
+        "tcp/[::]:7447",
+        "tcp/10.77.0.2:7447",
+        "tcp/robot.example.org:7447?prio=6-7",
+        "udp/0.0.0.0:7447",
+        "tls/0.0.0.0:7447",  # TLS without certificates is refused too
+    ],
+)
+def test_a_plain_listener_on_the_network_is_refused_unless_insecure(endpoint: str) -> None:
+    assert not is_loopback_endpoint(endpoint)
+    with pytest.raises(ProtocolError, match="--certs DIR") as e:
+        check_listeners(["tcp/127.0.0.1:7447", endpoint], tls=None)
+    assert "\n" not in str(e.value) and "--insecure" in str(e.value)
+    check_listeners([endpoint], tls=None, insecure=True)
+
+
+def test_a_tls_listener_with_certificates_is_accepted(certs: Path) -> None:
+    tls = TlsFiles(certs / "ca.pem", certs / "work-site.pem", certs / "work-site.key")
+    check_listeners(["tls/0.0.0.0:7447?prio=0-5", "tls/0.0.0.0:7448?prio=6-7"], tls)
+    with pytest.raises(ProtocolError, match=r"tcp/0\.0\.0\.0:7449 without TLS"):
+        check_listeners(["tls/0.0.0.0:7447", "tcp/0.0.0.0:7449"], tls)  # certs, but plain TCP
+
+
+def _serve(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "work_site", "serve", "--no-camera", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+    )
+
+
+def test_work_site_serve_refuses_a_plain_listener_on_every_interface(certs: Path) -> None:
+    port = free_port()
+    done = _serve("--listen", f"tcp/0.0.0.0:{port}")
+    assert done.returncode == 2
+    lines = [line for line in done.stderr.splitlines() if line.startswith("work-site")]
+    assert len(lines) == 1, done.stderr  # one line (pybullet prints its build time first)
+    assert f"on tcp/0.0.0.0:{port} without TLS" in lines[0]
+    assert f"--listen tls/0.0.0.0:{port} --certs DIR" in lines[0]
+    assert "--insecure" in lines[0] and "serving" not in done.stdout
+    # Certificates do not make a tcp/ listener secure; --operators needs certificates.
+    done = _serve("--listen", f"tcp/0.0.0.0:{port}", "--certs", str(certs))
+    assert done.returncode == 2 and "without TLS" in done.stderr
+    done = _serve("--listen", f"tcp/127.0.0.1:{port}", "--operators", "operator")
+    assert done.returncode == 2 and "--operators needs --certs" in done.stderr
+
+
+def test_insecure_allows_a_plain_listener_for_a_lab(links) -> None:
+    port = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "work_site", "serve", "--no-camera", "--insecure",
+         "--single-link", "--listen", f"tcp/0.0.0.0:{port}", "--site-id", SITE],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )  # fmt: skip
+    try:
+        link = links(make_config(connect=[f"tcp/127.0.0.1:{port}"]))
+        assert connected(link, STARTUP_TIMEOUT_S)
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        out, _ = proc.communicate(timeout=15)
+    serving = [line for line in out.splitlines() if line.startswith("work-site: serving")]
+    assert serving and serving[0].endswith("; --insecure"), out  # said on the start-up line

@@ -1,7 +1,7 @@
 """``work-site``: the work-site server and its tools.
 
 work-site serve [--scene FILE] [--site-id ID] [--listen ENDPOINT] [--connect ENDPOINT]
-                [--single-link]
+                [--single-link] [--certs DIR [--operators CN ...]] [--insecure]
 """
 
 from __future__ import annotations
@@ -22,7 +22,12 @@ from models.layout import perturbed_camera_pose, random_layout
 from models.scene import DEFAULT_SCENE, load_scene
 from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError, make_config
 from protocol.keys import check_site_id
-from protocol.session import link_endpoints
+from protocol.session import (
+    TlsFiles,
+    check_listeners,
+    link_endpoints,
+    operator_only_access_control,
+)
 from work_site.vision import cli as vision_cli
 
 
@@ -105,6 +110,47 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="ENDPOINT",
         help="zenoh endpoint (router or peer) to connect to, used as given; repeatable",
+    )
+    security = parser.add_argument_group(
+        "security",
+        "A listener on a non-loopback address must be a tls/ endpoint with --certs (mutual TLS); "
+        "loopback listeners stay unauthenticated.",
+    )
+    security.add_argument(
+        "--certs",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="mutual TLS for tls/ endpoints with DIR/ca.pem and DIR/NAME.{pem,key} (made by "
+        "deploy/make-certs.sh)",
+    )
+    security.add_argument(
+        "--cert-name",
+        default="work-site",
+        metavar="NAME",
+        help="this site's certificate in --certs (default: %(default)s)",
+    )
+    security.add_argument(
+        "--operators",
+        nargs="+",
+        default=None,
+        metavar="CN",
+        help="only peers whose certificate common name is listed may send programs and stops "
+        "(zenoh access control; needs --certs)",
+    )
+    security.add_argument(
+        "--lease-ms",
+        type=int,
+        default=None,
+        metavar="MS",
+        help="zenoh link lease: a silent peer (a cut link) is declared gone after this long "
+        "(default: zenoh's 10000)",
+    )
+    security.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow a plain (unauthenticated, unencrypted) listener on a non-loopback address: "
+        "for an isolated lab network only",
     )
     parser.add_argument(
         "--no-camera", action="store_true", help="do not render or publish camera frames"
@@ -208,11 +254,22 @@ def serve(args: argparse.Namespace) -> int:
                 else (0.0 if args.no_camera else DEFAULT_VISION_RATE_HZ)
             ),
         )
-        listen, links_note = link_endpoints(
-            args.listen if args.listen is not None else [DEFAULT_WORK_SITE_ENDPOINT],
-            args.single_link,
+        given = args.listen if args.listen is not None else [DEFAULT_WORK_SITE_ENDPOINT]
+        listen, links_note = link_endpoints(given, args.single_link)
+        tls = None
+        if args.certs is not None:
+            tls = TlsFiles(
+                args.certs / "ca.pem",
+                args.certs / f"{args.cert_name}.pem",
+                args.certs / f"{args.cert_name}.key",
+            )
+        if args.operators and tls is None:
+            raise ValueError("--operators needs --certs (identities come from TLS certificates)")
+        check_listeners(given, tls, args.insecure)  # the derived ones share host and protocol
+        acl = operator_only_access_control(args.site_id, args.operators) if args.operators else None
+        config = make_config(
+            listen=listen, connect=args.connect, tls=tls, access_control=acl, lease_ms=args.lease_ms
         )
-        config = make_config(listen=listen, connect=args.connect)
     except (ModelError, ProtocolError, ValueError) as e:
         print(f"work-site: {e}", file=sys.stderr)
         return 2
@@ -227,7 +284,10 @@ def serve(args: argparse.Namespace) -> int:
     print(
         f"work-site: serving site {args.site_id!r} on {', '.join(listen) or 'no listener'}"
         + (f", connecting to {', '.join(args.connect)}" if args.connect else "")
-        + f" ({links_note})",
+        + f" ({links_note})"
+        + ("; mutual TLS" if tls else "")
+        + ("; commands only from " + ", ".join(args.operators) if args.operators else "")
+        + ("; --insecure" if args.insecure else ""),
         flush=True,
     )
     try:
