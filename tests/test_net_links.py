@@ -22,7 +22,7 @@ from protocol.session import (
     split_endpoints,
     work_site_config,
 )
-from tests.conftest import free_port, wait_until
+from tests.conftest import REPO, free_port, wait_until
 
 COMMAND_PRIORITIES = (
     zenoh.Priority.REAL_TIME,
@@ -196,3 +196,17 @@ def test_real_work_site_listens_on_two_links_with_frames_on_the_low_one(work_sit
         assert "camera frames on 6-7 (port + 1)" in ws.log()
     finally:
         link.close()
+
+
+def test_the_loopback_config_file_is_what_work_site_serve_builds() -> None:
+    path = REPO / "deploy" / "zenoh" / "work-site-loopback.json5"
+    from_file, built = zenoh.Config.from_file(str(path)), work_site_config()
+    for k in (
+        "mode",
+        "listen/endpoints",
+        "connect/endpoints",
+        "transport/unicast/max_links",
+        "scouting/multicast/enabled",
+        "transport/shared_memory/enabled",
+    ):
+        assert json.loads(from_file.get_json(k)) == json.loads(built.get_json(k)), k
