@@ -172,9 +172,12 @@ def test_link_jitter_spreads_and_reorders(link_factory) -> None:
     link = link_factory(delay_ms=20.0, jitter_ms=8.0, seed=5)
     result = run_probe(link, count=500, interval_ms=1.0)
     assert result["received"] == 500
-    # Each direction is 12..28 ms: the round trip lies in 24..56 ms (+ relay overhead).
+    # Each direction is 12..28 ms: the round trip lies in 24..56 ms, plus the relay's and the
+    # scheduler's latency, which only a median bounds on a loaded machine (the median of the
+    # sum of two uniform delays is 40 ms).
     assert 23.9 <= result["rtt_ms_min"] < 32.0, result
-    assert 48.0 < result["rtt_ms_max"] <= 60.0, result
+    assert result["rtt_ms_max"] > 48.0, result
+    assert 36.0 <= result["rtt_ms_median"] <= 46.0, result
     assert result["reordered"] > 10, result
 
 
