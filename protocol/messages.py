@@ -186,6 +186,26 @@ class ContactState(Record):
     normals_W: np.ndarray
 
 
+SAME_CONTACT_DIRECTION_RAD = 0.3490658503988659  # 20°
+"""Normals of one object closer than this are one contact direction, at both sites: a face
+reports one normal per point, and a wrist force cannot tell two normals apart inside the
+friction cone (μ = 0.5, the blocks' friction: 26.6°). End to end, normals 7.5° apart each asked
+for 1 N of contact force and one of them got 0 N."""
+
+
+def contact_directions(contacts: tuple[ContactState, ...]) -> list[tuple[str, np.ndarray]]:
+    """The distinct (object, unit normal into the workpiece) directions of ``contacts``: the first
+    normal of each group closer than :data:`SAME_CONTACT_DIRECTION_RAD`."""
+    cos_same = float(np.cos(SAME_CONTACT_DIRECTION_RAD))
+    out: list[tuple[str, np.ndarray]] = []
+    for c in contacts:
+        for n in np.asarray(c.normals_W, dtype=np.float64):
+            n = n / np.linalg.norm(n)
+            if all(name != c.object or float(m @ n) < cos_same for name, m in out):
+                out.append((c.object, n))
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class MotionCommand(Record):
     """One program step (nested in :class:`MotionProgram`): move the workpiece to ``X_WP``.

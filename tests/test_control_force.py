@@ -157,10 +157,19 @@ def test_the_target_bias_solves_N_dp_equals_minus_d() -> None:
     corner = np.eye(3)
     dp = target_bias_W(corner)
     np.testing.assert_allclose(corner @ dp, -TARGET_BIAS_M * np.ones(3), atol=1e-15)
-    # Nearly parallel normals would ask for a long bias: its norm is bounded.
+    # Nearly parallel normals would ask for a long bias along the surfaces: the bias goes
+    # along their common direction instead, pressing both by d.
     tilt = math.radians(2.0)
     wedge = np.array([[1.0, 0.0, 0.0], [math.cos(tilt), math.sin(tilt), 0.0]])
-    assert np.linalg.norm(target_bias_W(wedge)) <= TARGET_BIAS_MAX_M + 1e-15
+    dp = target_bias_W(wedge)
+    assert np.linalg.norm(dp) <= TARGET_BIAS_MAX_M + 1e-15
+    np.testing.assert_allclose(wedge @ dp, -TARGET_BIAS_M, rtol=1e-3)
+    # A block between two nearly opposite walls (seen end to end: least squares biased it 83 mm
+    # along the walls): no bias along the squeeze, none along the walls, the table still pressed.
+    squeeze = np.array([[-1.0, 0.0, 0.0], [0.99, -0.12, 0.0], [0.0, 0.0, 1.0]])
+    squeeze /= np.linalg.norm(squeeze, axis=1, keepdims=True)
+    dp = target_bias_W(squeeze)
+    assert abs(dp[1]) < 1e-3 and dp[2] == pytest.approx(-TARGET_BIAS_M)
 
 
 def test_contact_forces_split_a_wrench_along_the_normals() -> None:

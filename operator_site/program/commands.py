@@ -23,7 +23,7 @@ from operator_site.program.contact_step import away_normal
 from operator_site.program.path import NodeContact, PathNode, WorkpiecePath
 from operator_site.program.poses import interpolate, log_batch
 from protocol import ContactState, MotionCommand, MotionProgram
-from protocol.messages import MAX_CONTACT_NORMALS, MAX_CONTACTS
+from protocol.messages import MAX_CONTACT_NORMALS, MAX_CONTACTS, contact_directions
 
 REFINE_STEP_M = 0.002
 """Point travel per contact step when a move in contact is refined round a corner (m)."""
@@ -81,20 +81,9 @@ def contact_states(node: PathNode) -> tuple[ContactState, ...]:
     return tuple(out)
 
 
-SAME_DIRECTION_RAD = np.radians(5.0)
-"""Contact normals of one object closer than this are one contact direction."""
-
-
 def contact_direction_count(contacts: tuple[ContactState, ...]) -> int:
-    """Distinct (object, normal) directions among ``contacts``."""
-    count = 0
-    for c in contacts:
-        kept: list[np.ndarray] = []
-        for n in np.asarray(c.normals_W):
-            if all(float(m @ n) < np.cos(SAME_DIRECTION_RAD) for m in kept):
-                kept.append(n)
-        count += len(kept)
-    return count
+    """Distinct (object, normal) directions among ``contacts``, as the work site counts them."""
+    return len(contact_directions(contacts))
 
 
 def _force_limit(contacts: tuple[ContactState, ...], params: CommandParams) -> float:

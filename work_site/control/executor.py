@@ -27,6 +27,7 @@ from scipy.optimize import nnls
 
 from models.transforms import invert_pose
 from protocol import ContactState, MotionProgram
+from protocol.messages import contact_directions
 from work_site.control.controller import (
     HARD_FORCE_LIMIT_N,
     MAX_TCP_SPEED_MPS,
@@ -58,8 +59,6 @@ block in its grip (4° with 8 mm)."""
 GUARD_OVERTRAVEL_M = 0.01
 """A guarded move aims this far past its target (which is where contact is expected), so that
 the guard, not the target, ends it; a contact further off than this fails the command."""
-NORMALS_SAME_RAD = math.radians(5.0)
-"""Contact normals closer than this are one contact direction (a face reports one per point)."""
 
 Report = Callable[[str, int, str, str], None]
 """report(program_id, command_index, status, message)."""
@@ -67,24 +66,18 @@ Report = Callable[[str, int, str, str], None]
 _MOVING_KINDS = ("guarded_grasp", "move", "guarded_move", "contact_move")
 
 
-def contact_directions(contacts: tuple[ContactState, ...]) -> list[tuple[str, np.ndarray]]:
-    """The distinct (object, unit normal into the workpiece) directions of ``contacts``."""
-    out: list[tuple[str, np.ndarray]] = []
-    for c in contacts:
-        for n in np.asarray(c.normals_W, dtype=np.float64):
-            n = n / np.linalg.norm(n)
-            if all(
-                name != c.object or float(m @ n) < math.cos(NORMALS_SAME_RAD) for name, m in out
-            ):
-                out.append((c.object, n))
-    return out
+BIAS_RCOND = 0.3
+"""Directions in which the contact normals disagree (singular value of the stacked normals below
+this fraction of the largest: nearly opposite walls) get no target bias: the least-squares
+bias there is large, along the surfaces, and presses nothing."""
 
 
 def target_bias_W(normals_W: np.ndarray, d_m: float = TARGET_BIAS_M) -> np.ndarray:
-    """Δp (m, W) with ``N Δp ≈ −d·1`` in the least-squares sense, its norm bounded by
-    :data:`TARGET_BIAS_MAX_M` (§VI-B)."""
+    """Δp (m, W) with ``N Δp ≈ −d·1`` in the least-squares sense over the directions the
+    normals agree on (:data:`BIAS_RCOND`), its norm bounded by :data:`TARGET_BIAS_MAX_M`
+    (§VI-B)."""
     N = np.asarray(normals_W, dtype=np.float64).reshape(-1, 3)
-    dp = np.linalg.lstsq(N, -d_m * np.ones(len(N)), rcond=None)[0]
+    dp = np.linalg.lstsq(N, -d_m * np.ones(len(N)), rcond=BIAS_RCOND)[0]
     size = float(np.linalg.norm(dp))
     return dp * (TARGET_BIAS_MAX_M / size) if size > TARGET_BIAS_MAX_M else dp
 
