@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -31,10 +30,14 @@ from operator_site.model_editor import WorkSiteModel
 from operator_site.program import choose_grasp_yaw, generate_program, pick_and_place
 from operator_site.task import TaskSession
 from protocol import MotionProgram, TruthPoses, decode, key, make_config
+from protocol.messages import contact_directions
+from protocol.session import free_port_pair, link_endpoints
 
 TASKS = ("corner", "around-corner")
 WORKPIECES = ("cube", "tall_block")
 """Blocks the scripted tasks may choose: tall enough to be held above the frame's bars."""
+BAR_HEIGHT_M = 0.03
+"""The frame's bars stand this high on the table (DESIGN.md)."""
 FRAME_INNER_W = ((0.35, 0.55), (-0.10, 0.10))
 """The frame's inner walls (x from, to; y from, to; m), DESIGN.md."""
 ACCEPT_SCORE = 0.5
@@ -88,8 +91,14 @@ PRESS_M = 0.004
 """The dragger is held this far into a surface the block should stay against (m)."""
 
 
+AROUND_END_M = (0.05, 0.04, 0.03, 0.02)
+"""How far along the x = 0.33 face past the corner the around-corner task may end (m): the
+first whose end pose is :data:`END_CLEARANCE_M` clear of every other block."""
+END_CLEARANCE_M = 0.005
+
+
 def around_corner_waypoints(
-    X_WO: np.ndarray, bbox_O: np.ndarray, corner: int
+    X_WO: np.ndarray, bbox_O: np.ndarray, corner: int, end_m: float = AROUND_END_M[0]
 ) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
     """Fig. 2 / Fig. 13: the block set down against the outside of the frame's near bar
     (y = ∓0.12 for ``corner`` 0 / 1), slid along it past the outer corner at x = 0.33, round
@@ -116,7 +125,7 @@ def around_corner_waypoints(
     touch = make_pose(R, (start_x, along_y - sy * PRESS_M, z - PRESS_M))
     before = [up, above, down, touch]
     past = make_pose(R, (ox0 - half[0] - 0.01, along_y - sy * PRESS_M, z - PRESS_M))
-    end_y = face_y - sy * 0.05
+    end_y = face_y - sy * end_m
     end = make_pose(R, (ox0 - half[0] + PRESS_M, end_y, z - PRESS_M))
     goal = make_pose(R, (ox0 - half[0], end_y, z))
     return before, [past, end], goal
@@ -151,8 +160,12 @@ def demonstrate(task: str, model: WorkSiteModel, rng: np.random.Generator) -> De
     the corner with ``rng``, then drag the block through ``task`` in a task session of the
     model; RuntimeError if no candidate block is in the model."""
     candidates = [n for n in WORKPIECES if n in model.poses]
+    if task == "around-corner":
+        # Pushed along a bar by its centre, a block whose centre is above the bar's top tips
+        # over the bar's edge (the simulator tilts the tall block 11°), as a real one would.
+        candidates = [n for n in candidates if _centre_height_m(model, n) < BAR_HEIGHT_M]
     if not candidates:
-        raise RuntimeError(f"none of {WORKPIECES} was recognised")
+        raise RuntimeError(f"none of {WORKPIECES} fit for {task} was recognised")
     workpiece = str(rng.choice(candidates))
     corner = int(rng.integers(4))
     session = TaskSession(model.scene())
@@ -163,12 +176,37 @@ def demonstrate(task: str, model: WorkSiteModel, rng: np.random.Generator) -> De
         drag(session, waypoints)
     else:
         corner %= 2
-        before, after, ideal = around_corner_waypoints(session.X_WO[workpiece], bbox, corner)
+        for end_m in AROUND_END_M:  # as a person would: end where there is room
+            before, after, ideal = around_corner_waypoints(
+                session.X_WO[workpiece], bbox, corner, end_m
+            )
+            if _clearance_to_blocks_m(session, ideal) >= END_CLEARANCE_M:
+                break
         drag(session, before)
         for name in ("frame", "table"):
             session.toggle_capture(name)
         drag(session, after)
     return Demonstration(session, workpiece, corner, ideal)
+
+
+def _clearance_to_blocks_m(session: TaskSession, X_WO: np.ndarray) -> float:
+    """Distance from the workpiece at ``X_WO`` to the nearest block other than the frame and
+    the table (m; inf when none is within 2 cm)."""
+    world = session.sim.world
+    lo, hi = world.workpiece_box(X_WO, 0.02)
+    fixed = ("frame", "table")
+    near = [i for i in world.candidates(lo, hi) if world.obstacle_object[i] not in fixed]
+    if not near:
+        return math.inf
+    return min(pair.distance_m for pair in world.distances(X_WO, np.array(near)))
+
+
+def _centre_height_m(model: WorkSiteModel, name: str) -> float:
+    """Height of block ``name``'s centre of mass above its lowest point, as it lies (m)."""
+    X = model.poses[name]
+    obj = model.scene().object(name).model
+    V_W = np.vstack([part.vertices_O for part in obj.parts]) @ X[:3, :3].T
+    return float((X[:3, :3] @ obj.com_O)[2] - V_W[:, 2].min())
 
 
 ProgramMaker = Callable[[TaskSession, str], MotionProgram]
@@ -230,12 +268,6 @@ def _wait(predicate: Callable[[], bool], link: WorkSiteLink, timeout_s: float) -
     return False
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def _start_work_site(
     seed: int, site_id: str, endpoint: str, log_path: Path, time_scale: float
 ) -> subprocess.Popen:
@@ -272,11 +304,11 @@ def run_scripted(
     proc = None
     site_id = site_id or (f"e2e-{seed}" if connect is None else "site1")
     if connect is None:
-        connect = f"tcp/127.0.0.1:{_free_port()}"
+        connect = f"tcp/127.0.0.1:{free_port_pair()}"
         log_path = Path(tempfile.gettempdir()) / f"telerobot-e2e-{seed}-work-site.log"
         proc = _start_work_site(seed, site_id, connect, log_path, time_scale)
         log(f"work site started (log: {log_path})")
-    link = WorkSiteLink(make_config(connect=[connect]), site_id)
+    link = WorkSiteLink(make_config(connect=link_endpoints([connect])[0]), site_id)
     truth = _Truth(link)
     try:
         t0 = time.monotonic()
@@ -323,7 +355,7 @@ def run_scripted(
         final = session.sim.history[-1]
         stage_s["operator"] = time.monotonic() - t0
         required = sorted({c.object for c in final.contacts})
-        out["contacts_required"] = sum(len(_directions(c.normals_W)) for c in final.contacts)
+        out["contacts_required"] = len(contact_directions(final.contacts))
         out["contacts_required_objects"] = required
         out["goal_off_ideal_mm"] = float(np.linalg.norm(goal[:3, 3] - ideal[:3, 3]) * 1e3)
 
@@ -378,11 +410,3 @@ def run_scripted(
                 proc.wait()
     return out
 
-
-def _directions(normals_W: np.ndarray, same_rad: float = math.radians(5.0)) -> list[np.ndarray]:
-    """The distinct directions among a contact's normals."""
-    out: list[np.ndarray] = []
-    for n in np.asarray(normals_W, dtype=np.float64):
-        if all(float(m @ n) < math.cos(same_rad) for m in out):
-            out.append(n)
-    return out

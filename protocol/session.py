@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import socket
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -173,6 +174,24 @@ def link_endpoints(endpoints: Sequence[str], single_link: bool = False) -> tuple
     except ProtocolError as e:
         return given, f"one link for all priorities: {e}"
     return split, "commands on priorities 0-5, camera frames on 6-7 (port + 1)"
+
+
+def free_port_pair(host: str = "127.0.0.1", tries: int = 100) -> int:
+    """A TCP port on ``host`` such that nothing listens on it nor on the next one right now (a
+    split site listens on both, :func:`derive_split`); RuntimeError after ``tries`` draws."""
+    for _ in range(tries):
+        with socket.socket() as first:
+            first.bind((host, 0))
+            port = int(first.getsockname()[1])
+            if port >= 65535:
+                continue
+            with socket.socket() as second:
+                try:
+                    second.bind((host, port + 1))
+                except OSError:
+                    continue
+        return port
+    raise RuntimeError(f"no two free consecutive TCP ports on {host} in {tries} tries")
 
 
 SECURE_PROTOCOLS = ("tls", "quic")
