@@ -23,7 +23,7 @@ from models.robot import load_robot
 from models.scene import load_scene
 from models.transforms import invert_pose, make_pose, rpy_to_R, so3_log
 from protocol import ContactState, MotionCommand, MotionProgram
-from work_site.control.controller import TCP_ACCEL_MPS2, Guard, TaskController
+from work_site.control.controller import TCP_ACCEL_MPS2, Guard, Impedance, TaskController
 from work_site.control.executor import CONTACT_VERIFY_N, Execution, check_program
 from work_site.world import World
 
@@ -225,7 +225,7 @@ def corner() -> dict:
     }
 
 
-def slide() -> dict:
+def slide(impedance: Impedance | None = None) -> dict:
     """The cube put against the frame's x = 0.35 wall, then slid 6 cm along it (+y) by a
     contact move: the force along the wall's normal at each period of the slide, and how far
     short of its goal along the wall the cube ends (friction against the impedance)."""
@@ -248,7 +248,9 @@ def slide() -> dict:
     reports: list[tuple] = []
     normal_n: list[float] = []
     try:
-        execution = Execution(program, c, lambda *r: reports.append(r))
+        execution = Execution(
+            program, c, lambda *r: reports.append(r), impedance=impedance or Impedance()
+        )
         for _ in range(6000):
             execution.tick()
             if execution.index == len(program.commands) - 1 and c.move is not None:
@@ -307,6 +309,28 @@ def _plot(out_dir: Path, tracking_rows: list[dict], guarded_rows: list[dict]) ->
     plt.close(fig)
 
 
+TANGENTIAL_STIFFNESSES_N_PER_M = (1000.0, 2000.0, 5000.0, 10000.0, 20000.0)
+"""The slide's sweep of the impedance's stiffness along the surfaces (1000: isotropic)."""
+
+
+def slide_sweep() -> list[dict]:
+    """The slide at each of :data:`TANGENTIAL_STIFFNESSES_N_PER_M`: how far short along the wall
+    it ends against the normal force's range (the knob's accuracy/force trade)."""
+    rows = []
+    for k in TANGENTIAL_STIFFNESSES_N_PER_M:
+        r = slide(Impedance(tangential_stiffness_n_per_m=k))
+        rows.append(
+            {
+                "tangential_stiffness_n_per_m": k,
+                "end_along_wall_mm": r["slide_end_along_wall_mm"],
+                "normal_n_min": r["slide_normal_n_min"],
+                "normal_n_max": r["slide_normal_n_max"],
+                "status": r["slide_status"],
+            }
+        )
+    return rows
+
+
 def main(out_dir: Path) -> dict:
     """Run every case; write CSVs and the plot under ``out_dir``; the JSON summary."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -315,6 +339,8 @@ def main(out_dir: Path) -> dict:
     guarded = [guarded_touch(v) for v in GUARD_SPEEDS_MPS]
     _write_csv(out_dir / "control_guarded.csv", guarded)
     _plot(out_dir, rows, guarded)
+    sweep = slide_sweep()
+    _write_csv(out_dir / "control_slide.csv", sweep)
     at_tenth = next(r for r in rows if r["speed_mps"] == 0.1)
     at_20 = next(r for r in guarded if r["speed_mps"] == 0.02)
     return {
@@ -322,6 +348,7 @@ def main(out_dir: Path) -> dict:
         "guarded_overshoot_n": at_20["overshoot_n"],
         **corner(),
         **slide(),
+        "slide_by_tangential_stiffness": sweep,
         "tracking_by_speed": rows,
         "guarded_by_speed": guarded,
     }

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import nnls
@@ -224,8 +224,9 @@ MIN_GRIP_OPENING_M = 0.005
 _UP_W = np.array([0.0, 0.0, 1.0])
 
 
-def expand(program: MotionProgram, index: int) -> list:
-    """The primitive actions of command ``index``."""
+def expand(program: MotionProgram, index: int, impedance: Impedance | None = None) -> list:
+    """The primitive actions of command ``index``; contact moves use ``impedance`` (default
+    :class:`Impedance`) compliant along their contact normals."""
     cmd = program.commands[index]
     if cmd.kind in ("open_gripper", "release"):
         return [ForgetPayload(), SetFingers(GRIPPER_OPEN_M / 2)]
@@ -260,7 +261,9 @@ def expand(program: MotionProgram, index: int) -> list:
                 biased,
                 cmd.speed_mps,
                 limit,
-                impedance=Impedance(compliant_W=compliant_projector(normals)),
+                impedance=replace(
+                    impedance or Impedance(), compliant_W=compliant_projector(normals)
+                ),
             ),
             VerifyContacts(cmd.contacts),
         ]
@@ -299,6 +302,8 @@ class Execution:
     report: Report
     index: int = -1
     finished: bool = False
+    impedance: Impedance = field(default_factory=Impedance)
+    """The contact moves' impedance (its ``compliant_W`` is set per move)."""
 
     def __post_init__(self) -> None:
         self._actions: list = []
@@ -373,7 +378,7 @@ class Execution:
                 if self.index >= len(self.program.commands):
                     self._finish("done", "program complete")
                     return
-                self._actions = expand(self.program, self.index)
+                self._actions = expand(self.program, self.index, self.impedance)
                 self.report(
                     self.program.program_id,
                     self.index,
