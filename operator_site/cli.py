@@ -20,7 +20,7 @@ from models.errors import ModelError
 from models.scene import DEFAULT_SCENE, load_scene
 from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError, make_config
 from protocol.keys import check_site_id
-from protocol.session import link_endpoints
+from protocol.session import TlsFiles, link_endpoints
 
 WORK_SITE_STOP_TIMEOUT_S = 10.0
 
@@ -120,6 +120,20 @@ def build_parser() -> argparse.ArgumentParser:
             "layout) (default: %(default)s)",
         )
         p.add_argument("-v", "--verbose", action="store_true", help="log more")
+    serve.add_argument(
+        "--certs",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="mutual TLS to a work site's tls/ endpoint with DIR/ca.pem and DIR/NAME.{pem,key} "
+        "(made by deploy/make-certs.sh; the work site admits the names in its --operators)",
+    )
+    serve.add_argument(
+        "--cert-name",
+        default="operator",
+        metavar="NAME",
+        help="this site's certificate in --certs (default: %(default)s)",
+    )
     demo.add_argument(
         "--scripted",
         choices=["corner", "around-corner"],
@@ -159,7 +173,13 @@ def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         check_site_id(args.site_id)
         scene = load_scene(args.scene)
         connect, links_note = link_endpoints([args.connect], args.single_link)
-        config = make_config(connect=connect)
+        certs = getattr(args, "certs", None)  # demo's work site is on loopback: no TLS
+        tls = None
+        if certs is not None:
+            tls = TlsFiles(
+                certs / "ca.pem", certs / f"{args.cert_name}.pem", certs / f"{args.cert_name}.key"
+            )
+        config = make_config(connect=connect, tls=tls)
         if not 1 <= args.port <= 65535:
             raise ValueError(f"--port must be in 1..65535, got {args.port}")
     except (ModelError, ProtocolError, ValueError) as e:

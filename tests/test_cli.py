@@ -38,6 +38,7 @@ def test_help(module: str) -> None:
     [
         (["--scene", "/nonexistent/scene.json"], "scene.json: scene file does not exist"),
         (["--site-id", "a/b"], "site_id: must match"),
+        (["--certs", "/nonexistent/certs"], "no such file '/nonexistent/certs/ca.pem'"),
     ],
 )
 def test_bad_arguments_are_refused_clearly(module: str, args: list[str], message: str) -> None:
