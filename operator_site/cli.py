@@ -68,6 +68,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="e2e: blocks' poses from the work site's ground truth instead of vision",
     )
     bench.add_argument(
+        "--surface-stiffness",
+        type=float,
+        default=None,
+        metavar="N_PER_M",
+        help="e2e: the started work sites' `--surface-stiffness` (default: theirs, isotropic)",
+    )
+    bench.add_argument(
+        "--tasks",
+        nargs="+",
+        choices=["corner", "around-corner"],
+        default=["corner", "around-corner"],
+        help="e2e: which scripted tasks (default: both)",
+    )
+    bench.add_argument(
         "--out",
         type=Path,
         default=Path("docs/bench"),
@@ -152,6 +166,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="with --scripted: take the blocks' poses from the simulated work site's ground "
         "truth instead of vision (measures the rest of the chain alone)",
+    )
+    demo.add_argument(
+        "--surface-stiffness",
+        type=float,
+        default=None,
+        metavar="N_PER_M",
+        help="with --scripted: the started work site's `--surface-stiffness` (contact moves' "
+        "impedance stiffness along the surfaces; default: isotropic)",
     )
     return parser
 
@@ -257,6 +279,12 @@ def main(argv: list[str]) -> int:
     return demo(args) if args.command == "demo" else serve(args)
 
 
+def _work_site_args(args: argparse.Namespace) -> tuple[str, ...]:
+    """Options for a work site that a scripted run starts."""
+    k = args.surface_stiffness
+    return () if k is None else ("--surface-stiffness", str(k))
+
+
 def run_scripted_demo(args: argparse.Namespace, connect_given: bool) -> int:
     """``demo --scripted``: one end-to-end run; exit code 0 on success, 1 otherwise."""
     import json
@@ -270,6 +298,7 @@ def run_scripted_demo(args: argparse.Namespace, connect_given: bool) -> int:
         site_id=args.site_id if connect_given else None,
         scene=load_scene(args.scene),
         oracle=args.oracle_vision,
+        work_site_args=_work_site_args(args),
     )
     if args.json:
         print(json.dumps(result))
@@ -294,7 +323,13 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.name == "e2e":
         from operator_site import e2e_bench
 
-        results = e2e_bench.main(args.out, args.seeds, oracle=args.oracle_vision)
+        results = e2e_bench.main(
+            args.out,
+            args.seeds,
+            tuple(args.tasks),
+            oracle=args.oracle_vision,
+            work_site_args=_work_site_args(args),
+        )
         print(json.dumps(results))
         return 0
     from operator_site.simulator import benchmark

@@ -76,14 +76,23 @@ def _plot(out_dir: Path, by_task: dict[str, list[dict]]) -> None:
     plt.close(fig)
 
 
-def main(out_dir: Path, seeds: int, tasks: tuple[str, ...] = TASKS, oracle: bool = False) -> dict:
-    """Run ``seeds`` seeds of each task; write the files; the summary by task."""
+def main(
+    out_dir: Path,
+    seeds: int,
+    tasks: tuple[str, ...] = TASKS,
+    oracle: bool = False,
+    work_site_args: tuple[str, ...] = (),
+) -> dict:
+    """Run ``seeds`` seeds of each task (work sites started with ``work_site_args``); write the
+    files; the summary by task."""
     out_dir.mkdir(parents=True, exist_ok=True)
     by_task: dict[str, list[dict]] = {}
     for task in tasks:
         rows = by_task.setdefault(task, [])
         for seed in range(seeds):
-            r = run_scripted(task, seed, oracle=oracle, log=lambda _: None)
+            r = run_scripted(
+                task, seed, oracle=oracle, log=lambda _: None, work_site_args=work_site_args
+            )
             rows.append(r)
             print(
                 f"{task} seed {seed}: {'ok' if r.get('success') else 'FAILED'} "
@@ -103,6 +112,7 @@ def main(out_dir: Path, seeds: int, tasks: tuple[str, ...] = TASKS, oracle: bool
                 writer.writerow(r | {f"{s}_s": r["stage_s"].get(s) for s in STAGES})
     summary = {task: summarise(rows) for task, rows in by_task.items()}
     summary["oracle_vision"] = oracle
+    summary["work_site_args"] = list(work_site_args)
     (out_dir / "e2e.json").write_text(json.dumps(summary, indent=1))
     _plot(out_dir, by_task)
     return summary

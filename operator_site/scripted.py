@@ -269,11 +269,16 @@ def _wait(predicate: Callable[[], bool], link: WorkSiteLink, timeout_s: float) -
 
 
 def _start_work_site(
-    seed: int, site_id: str, endpoint: str, log_path: Path, time_scale: float
+    seed: int,
+    site_id: str,
+    endpoint: str,
+    log_path: Path,
+    time_scale: float,
+    extra_args: tuple[str, ...] = (),
 ) -> subprocess.Popen:
     cmd = [
         sys.executable, "-m", "work_site", "serve", "--listen", endpoint, "--site-id", site_id,
-        "--seed", str(seed), "--vision-rate", "2", "--time-scale", str(time_scale),
+        "--seed", str(seed), "--vision-rate", "2", "--time-scale", str(time_scale), *extra_args,
     ]  # fmt: skip
     with log_path.open("w") as out:
         return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
@@ -289,12 +294,13 @@ def run_scripted(
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
     oracle: bool = False,
     time_scale: float = 1.0,
+    work_site_args: tuple[str, ...] = (),
 ) -> dict:
     """Run ``task`` with ``seed`` end to end; the result's JSON-ready dict. Starts a work site
     on loopback (``--seed``-ed) unless ``connect`` names a running one. ``oracle``: take the
     blocks' poses from the simulated work site's ground truth instead of vision (to measure
     the rest of the chain alone). ``time_scale``: how much faster than real time the started
-    work site simulates."""
+    work site simulates; ``work_site_args``: more options for it."""
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r} (known: {', '.join(TASKS)})")
     scene = scene or load_scene()
@@ -306,7 +312,7 @@ def run_scripted(
     if connect is None:
         connect = f"tcp/127.0.0.1:{free_port_pair()}"
         log_path = Path(tempfile.gettempdir()) / f"telerobot-e2e-{seed}-work-site.log"
-        proc = _start_work_site(seed, site_id, connect, log_path, time_scale)
+        proc = _start_work_site(seed, site_id, connect, log_path, time_scale, work_site_args)
         log(f"work site started (log: {log_path})")
     link = WorkSiteLink(make_config(connect=link_endpoints([connect])[0]), site_id)
     truth = _Truth(link)

@@ -203,6 +203,15 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         "restart is never run twice (default: $XDG_STATE_HOME/telerobot/SITE_ID-programs.jsonl)",
     )
     parser.add_argument(
+        "--surface-stiffness",
+        type=float,
+        default=None,
+        metavar="N_PER_M",
+        help="contact moves' impedance stiffness along the contact surfaces (default: the same "
+        "1000 N/m as along the normals, isotropic as in the paper; 5000 keeps a slide within "
+        "0.4 mm of its path against friction, docs/benchmarks.md)",
+    )
+    parser.add_argument(
         "--time-scale",
         type=float,
         default=1.0,
@@ -241,6 +250,7 @@ def serve(args: argparse.Namespace) -> int:
         options = ServerOptions(
             camera_X_WC=camera_X_WC,
             time_scale=args.time_scale,
+            surface_stiffness_n_per_m=args.surface_stiffness,
             journal=args.journal or default_journal(args.site_id),
             site_id=args.site_id,
             physics_rate_hz=args.physics_rate,

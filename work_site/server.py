@@ -40,7 +40,7 @@ from protocol import (
     key,
 )
 from work_site.camera import CameraProcess, RenderRequest
-from work_site.control.controller import CONTROL_PERIOD_S, TaskController
+from work_site.control.controller import CONTROL_PERIOD_S, Impedance, TaskController
 from work_site.control.executor import Execution, check_program
 from work_site.recognition import VisionProcess, VisionResult
 from work_site.world import World
@@ -119,6 +119,9 @@ class ServerOptions:
     """Where the camera really is (4×4 nested tuples), when not where its calibration says:
     frames are rendered from here, vision still uses the calibrated model."""
     time_scale: float = 1.0
+    surface_stiffness_n_per_m: float | None = None
+    """Contact moves' impedance stiffness along the contact surfaces (None: isotropic, §VI-B);
+    see :class:`~work_site.control.controller.Impedance`."""
     """Simulated seconds per second of wall time: 1 is real time; more runs programs faster
     (for benchmarks), as far as the machine keeps up."""
     journal: Path | None = None
@@ -141,6 +144,9 @@ class ServerOptions:
             raise ValueError("camera_supersample must be ≥ 1")
         if not 0.0 <= self.camera_noise_grey <= 64.0:
             raise ValueError(f"camera_noise_grey must be in [0, 64], got {self.camera_noise_grey}")
+        k = self.surface_stiffness_n_per_m
+        if k is not None and not 100.0 <= k <= 1e5:
+            raise ValueError(f"surface_stiffness_n_per_m must be in [100, 1e5] N/m, got {k}")
         if not 0.1 <= self.time_scale <= 100.0:
             raise ValueError(f"time_scale must be in [0.1, 100], got {self.time_scale}")
         if not 0.0 <= self.vision_rate_hz <= 100.0:
@@ -456,5 +462,9 @@ class WorkSiteServer:
                 self._report(pid, -1, "refused", reason)
                 continue
             self._report(pid, -1, "accepted", f"{len(program.commands)} commands")
-            self._execution = Execution(program, self._controller, self._report)
+            surface = self.options.surface_stiffness_n_per_m
+            impedance = Impedance(tangential_stiffness_n_per_m=surface)
+            self._execution = Execution(
+                program, self._controller, self._report, impedance=impedance
+            )
             running = True
