@@ -298,7 +298,7 @@ def test_drag_confirm_send_and_the_robot_does_it(work_site, link_to) -> None:
 
         assert wait_until(finished, 60.0), (link.status.reports, ws.log())
         last = [r for r in link.status.reports if r.program_id == program.program_id][-1]
-        assert last.status == "done", [(r.status, r.message) for r in link.status.reports]
+        assert last.status == "done", f"{last.message} ({ws.log()[-3000:]})"
         # The gripper ends above where the block was put down.
         X_WG = ROBOT.tcp_pose_W(link.robot_state.q)
         np.testing.assert_allclose(X_WG[:2, 3], goal[:2, 3], atol=2e-3)
