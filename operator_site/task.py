@@ -1,12 +1,13 @@
 """The operator's task in progress: the work-site model, the chosen workpiece and its simulator.
 
-UI-independent, so every operator action (select, drag, capture, reset) is testable without a
+UI-independent, so every operator action (select, drag, capture, undo, reset) is testable without a
 browser; the page calls these methods from its callbacks, under its lock.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -14,6 +15,10 @@ from models.robot import load_robot
 from models.scene import Scene
 from operator_site.grasp import bar_clearing_depth_m, finger_parts_O, top_grasp
 from operator_site.simulator import SimParams, Simulator, StepResult
+from operator_site.simulator.stepper import SimState
+
+MAX_UNDO = 50
+"""Drags that :meth:`TaskSession.undo` can take back."""
 
 
 class TaskSession:
@@ -29,6 +34,8 @@ class TaskSession:
         self.X_GP = np.eye(4)
         self.opening_m = 0.0
         self.fingers_O: tuple = ()
+        self._marks: list[SimState] = []
+        """Snapshots of the simulation where drags began, newest last (:meth:`undo`)."""
 
     @property
     def workpiece(self) -> str | None:
@@ -55,6 +62,7 @@ class TaskSession:
         )
         self.start_X_WO = self.X_WO[name].copy()
         self._start_step = self._start_state()
+        self._marks = []
 
     def _start_state(self) -> StepResult:
         """The workpiece where the simulator starts it, with its contacts there."""
@@ -125,3 +133,31 @@ class TaskSession:
         for other in captured:
             self.sim.capture(other)
         self._start_step = self._start_state()
+        self._marks = []
+
+    def mark(self) -> None:
+        """Remember the task as it is now (the page calls this as a drag begins), so that
+        :meth:`undo` can come back here; the newest :data:`MAX_UNDO` are kept."""
+        if self.sim is None:
+            return
+        st = self.sim.state
+        self._marks.append(
+            replace(
+                st,
+                X_WO=st.X_WO.copy(),
+                X_WD=st.X_WD.copy(),
+                capturable=set(st.capturable),
+                held=set(st.held),
+                history=list(st.history),
+            )
+        )
+        del self._marks[:-MAX_UNDO]
+
+    def undo(self) -> np.ndarray | None:
+        """Back to the last :meth:`mark`: the workpiece's pose, captures and path as they were
+        there; the workpiece's pose then, or None when there is nothing to undo."""
+        if self.sim is None or not self._marks:
+            return None
+        self.sim.state = self._marks.pop()
+        self.X_WO[self.sim.world.workpiece] = self.sim.state.X_WO.copy()
+        return self.sim.state.X_WO.copy()

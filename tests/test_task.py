@@ -207,3 +207,51 @@ def test_a_task_saved_and_loaded_comes_back(page: OperatorPage, tmp_path) -> Non
     assert page.session.workpiece == "cube"
     page.on_load(str(tmp_path / "missing.json"))
     assert "cannot read it" in page.task_md.content
+
+
+def test_undo_takes_back_one_drag_at_a_time() -> None:
+    session = TaskSession(load_scene())
+    assert session.undo() is None  # nothing selected
+    session.select("cube")
+    assert session.undo() is None  # nothing dragged
+    start = session.X_WO["cube"].copy()
+    before, steps = [], []
+    for dx in (-0.03, -0.06):
+        before.append(session.sim.X_WO)
+        steps.append(len(session.sim.history))
+        session.mark()
+        target = start.copy()
+        target[0, 3] += dx
+        session.set_target(target)
+        for _ in range(100):
+            session.step()
+    assert session.X_WO["cube"][0, 3] == pytest.approx(start[0, 3] - 0.06, abs=1e-4)
+    np.testing.assert_array_equal(session.undo(), before[1])
+    np.testing.assert_array_equal(session.X_WO["cube"], before[1])
+    assert len(session.sim.history) == steps[1] and len(session.path_history()) == steps[1] + 1
+    session.step()  # the spring's target went back too: the block stays
+    np.testing.assert_allclose(session.X_WO["cube"], before[1], atol=1e-6)
+    np.testing.assert_array_equal(session.undo(), before[0])
+    assert session.sim.history == [] and session.undo() is None
+
+
+def test_page_undo_and_the_program_progress(page: OperatorPage, monkeypatch) -> None:
+    page.on_click_object("cube")
+    start = page.session.X_WO["cube"].copy()
+    page.dragger.position = tuple(start[:3, 3] + [0.04, 0.0, -0.004])
+    page.on_drag()
+    for _ in range(60):
+        page.step_task()
+    seen: list[float] = []
+    show = page._show_progress
+    monkeypatch.setattr(page, "_show_progress", lambda f, stage: (seen.append(f), show(f, stage)))
+    page.on_make_program()
+    assert page.pending_program is not None
+    assert seen == sorted(seen) and len(seen) == 4 and 0.0 < seen[0] and seen[-1] < 1.0
+    assert not page.progress.visible
+    page.on_undo()
+    assert "undone" in page.task_md.content
+    np.testing.assert_allclose(page.session.X_WO["cube"][:3, 3], start[:3, 3], atol=2e-4)
+    np.testing.assert_allclose(page.dragger.position, page.session.sim.state.X_WD[:3, 3])
+    page.on_undo()
+    assert "nothing to undo" in page.task_md.content

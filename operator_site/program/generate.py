@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,16 +46,23 @@ def generate_program(
     deform_params: DeformParams | None = None,
     command_params: CommandParams | None = None,
     X_WO: dict[str, np.ndarray] | None = None,
+    progress: Callable[[float, str], None] | None = None,
 ) -> Generated:
     """The motion program for the task in ``history``; raises :class:`ProgramRefusedError` if its
     sweep finds a collision or a lost contact. ``X_WO`` overrides the scene's object poses, as
-    for the simulator (pass the task session's ``X_WO``: the poses the simulation used)."""
+    for the simulator (pass the task session's ``X_WO``: the poses the simulation used).
+    ``progress(fraction, stage)`` is called as each stage begins (fraction of the work done)."""
+    say = progress or (lambda _fraction, _stage: None)
+    say(0.05, "reading the path")
     c_O = scene.object(workpiece).model.com_O
     raw = path_from_history(history, workpiece, c_O)
+    say(0.15, "deforming the path")
     deformer = Deformer(scene, workpiece, deform_params, sim_params, attached_O, X_WO)
     deformed = deformer.deform(raw)
+    say(0.55, "fitting robot moves")
     sweeper = Sweeper(scene, workpiece, sim_params, attached_O, X_WO=X_WO)
     program = build_program(program_id, deformed.path, X_GP, command_params, sweeper)
+    say(0.85, "checking every move for collisions")
     check = sweeper.program(program)
     if not check.ok:
         raise ProgramRefusedError(check)

@@ -10,6 +10,7 @@ Only this package calls viser. Poses go to viser as position + ``wxyz`` quaterni
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from pathlib import Path
@@ -39,7 +40,8 @@ FINGER_RGB = (40, 40, 48)
 TASK_HELP = (
     "Pick a block (click it, or choose it below), then drag the arrows and rings around it: "
     "the block follows on a spring and bumps, slides and settles against what it meets. "
-    "**Capture mode**: click the frame or the table to keep the block touching it."
+    "**Capture mode**: click the frame or the table to keep the block touching it. "
+    "**Undo** takes the last drag back."
 )
 MODEL_HELP = (
     "Blocks the work site's camera recognised are outlined on its image (orange: not in the "
@@ -50,6 +52,8 @@ ACCEPT_SCORE = 0.5
 """Recognitions scoring at least this are accepted by "accept the recognised blocks"."""
 LOG_LINES = 8
 DEFAULT_TASK_FILE = "task.json"
+GESTURE_GAP_S = 0.5
+"""A dragger update after a pause this long begins a new drag (what "undo" takes back)."""
 INITIAL_EYE_W = (1.05, -0.85, 0.75)
 INITIAL_LOOK_AT_W = (0.40, 0.0, 0.05)
 
@@ -158,6 +162,7 @@ class OperatorPage:
         self._show_model()
         self.frames_shown = 0
         self.states_shown = 0
+        self._last_drag_s = -math.inf
 
     # ------------------------------------------------------------------------------ building
 
@@ -191,6 +196,7 @@ class OperatorPage:
             gui.add_markdown(TASK_HELP)
             self.workpiece_dropdown = gui.add_dropdown("workpiece", self._workpiece_options())
             self.capture_mode = gui.add_checkbox("capture mode", False)
+            self.undo_button = gui.add_button("undo the last drag")
             self.reset_button = gui.add_button("put the block back")
             self.task_md = gui.add_markdown("")
             self.task_file = gui.add_text("task file", DEFAULT_TASK_FILE)
@@ -208,6 +214,7 @@ class OperatorPage:
         self.accept_button.on_click(lambda _: self.on_accept_recognitions())
         self.scene_layout_button.on_click(lambda _: self.on_use_scene_layout())
         self.workpiece_dropdown.on_update(lambda _: self.on_select(self.workpiece_dropdown.value))
+        self.undo_button.on_click(lambda _: self.on_undo())
         self.reset_button.on_click(lambda _: self.on_reset())
         self.save_button.on_click(lambda _: self.on_save(self.task_file.value))
         self.load_button.on_click(lambda _: self.on_load(self.task_file.value))
@@ -444,9 +451,26 @@ class OperatorPage:
         X_WD = make_pose(
             quat_wxyz_to_R(np.asarray(self.dragger.wxyz)), np.asarray(self.dragger.position)
         )
+        now = time.monotonic()
         with self._lock:
             if self.session.sim is not None:
+                if now - self._last_drag_s > GESTURE_GAP_S:
+                    self.session.mark()  # a new drag begins: undo comes back here
+                self._last_drag_s = now
                 self.session.set_target(X_WD)
+
+    def on_undo(self) -> None:
+        """Take the last drag back: the block, its captures and its path as they were before."""
+        with self._lock:
+            X = self.session.undo()
+            if X is None:
+                self.message = "nothing to undo"
+            else:
+                _set_pose(self.dragger, self.session.sim.state.X_WD)
+                _set_pose(self.object_frames[self.session.workpiece], X)
+                self._show_path(None, None)
+                self.message = "the last drag was undone"
+            self.task_md.content = self.message
 
     def on_reset(self) -> None:
         """Put the workpiece back where it was picked up, dragger too."""
@@ -512,7 +536,7 @@ class OperatorPage:
         """Turn the task into a robot program (§VI: the dragged path deformed, fitted with few
         moves keeping its required contacts, checked), and show it for confirmation."""
         self.progress.visible = True
-        self.progress.value = 10.0
+        self.progress.value = 0.0
         self.send_button.disabled = True
         with self._lock:
             name = self.session.workpiece
@@ -534,6 +558,7 @@ class OperatorPage:
                     attached_O=self.session.fingers_O,
                     sim_params=self.session.params,
                     X_WO=self.session.X_WO,
+                    progress=self._show_progress,
                 )
             except ValueError as e:  # ProgramRefusedError says which command and why
                 self.pending_program = None
@@ -559,6 +584,10 @@ class OperatorPage:
         self.program_md.content = "  \n".join(lines)
         self.progress.visible = False
         self.send_button.disabled = False
+
+    def _show_progress(self, fraction: float, stage: str) -> None:
+        self.progress.value = 100.0 * fraction
+        self.program_md.content = f"making the program: {stage}…"
 
     def on_send_program(self) -> None:
         """Second confirmation: send the pending program to the work site."""
