@@ -239,7 +239,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(out_dir: Path, quick: bool = False) -> list[dict]:
-    """Run every case; write CSV and PNG files into ``out_dir``; return the JSON rows."""
+    """Run every case; write deform.json, CSV and PNG files into ``out_dir``; return the rows."""
     out_dir.mkdir(parents=True, exist_ok=True)
     repeats = 1 if quick else REPEATS
     results = []
@@ -253,6 +253,7 @@ def run(out_dir: Path, quick: bool = False) -> list[dict]:
         trade_rows = trade()
         _write_csv(trade_rows, out_dir / "deform_trade.csv")
         _plot(scaling_rows, trade_rows, out_dir, results[0]["sweeps"])
+    (out_dir / "deform.json").write_text(json.dumps(results, indent=1))
     return results
 
 
