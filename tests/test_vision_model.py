@@ -26,3 +26,22 @@ def test_overlap_depth_with_given_normals_matches_the_hull_computation() -> None
     b = a + np.array([0.045, 0.0, 0.0])
     assert abs(convex_overlap_depth(a, b, na, na) - 0.005) < 1e-12
     assert convex_overlap_depth(a, a + np.array([0.06, 0, 0]), na, na) == 0.0
+
+
+def test_occlusion_by_several_parts_is_the_union_of_each_part() -> None:
+    """All parts tested at once (stacked planes) equals testing them one by one."""
+    from work_site.vision.model import occluded
+
+    rng = np.random.default_rng(9)
+    parts = []
+    for _ in range(4):
+        V = _box([0, 0, 0], rng.uniform(0.02, 0.08, 3)) + rng.uniform(
+            [-0.1, -0.1, 0.3], [0.1, 0.1, 0.6]
+        )
+        parts.append(np.array([[*n, d] for n, d in hull_facets(V)]))
+    points = rng.uniform([-0.2, -0.2, 0.2], [0.2, 0.2, 0.9], (2000, 3))
+    each = [occluded(points, [P]) for P in parts]
+    together = occluded(points, parts)
+    np.testing.assert_array_equal(together, np.any(each, axis=0))
+    assert 0 < together.sum() < len(points)  # the test exercises both outcomes
+    assert not occluded(points, []).any()

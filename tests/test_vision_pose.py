@@ -89,3 +89,55 @@ def test_noisy_lines_give_the_error_the_jacobian_predicts(setup) -> None:
     assert np.all((ratio > 0.75) & (ratio < 1.3)), ratio
     # And the depth is the worst-determined translation, as §IV-B says.
     assert predicted_std[5] > predicted_std[3] and predicted_std[5] > predicted_std[4]
+
+
+def test_jacobian_with_skewed_intrinsics_matches_finite_differences(setup) -> None:
+    """The elementwise Jacobian carries every term of K, the skew ``K[0, 1]`` included."""
+    camera, models = setup
+    model, X_WO = models["wedge"]
+    X_CO, edges, segs = _true_lines(camera, model, X_WO)
+    K = camera.K.copy()
+    K[0, 1] = 3.5
+    X = apply_update(X_CO, np.array([-0.01, 0.02, 0.03, -0.003, 0.002, 0.006]))
+    r, J = residuals_and_jacobian(X, edges, segs, K)
+    np.testing.assert_allclose(r, line_residuals(X, edges, segs, K), atol=1e-12)
+    h = 1e-6
+    J_num = np.column_stack(
+        [
+            (
+                line_residuals(apply_update(X, h * e), edges, segs, K)
+                - line_residuals(apply_update(X, -h * e), edges, segs, K)
+            )
+            / (2 * h)
+            for e in np.eye(6)
+        ]
+    )
+    np.testing.assert_allclose(J, J_num, atol=1e-4 * np.max(np.abs(J)))
+
+
+def test_a_fit_at_its_minimum_evaluates_nothing_more(setup, monkeypatch) -> None:
+    """Steps below ``tol`` are not tried: a fit started at its optimum evaluates the residuals
+    once, and a coarser ``tol`` stops sooner at a pose within that tolerance."""
+    import work_site.vision.pose as pose_module
+
+    camera, models = setup
+    model, X_WO = models["cube"]
+    X_CO, edges, segs = _true_lines(camera, model, X_WO)
+    rng = np.random.default_rng(8)
+    noisy = segs + rng.normal(0.0, 0.3, segs.shape)
+    start = apply_update(X_CO, np.r_[rng.normal(0, 0.05, 3), rng.normal(0, 0.005, 3)])
+    calls = []
+    real = pose_module.residuals_and_jacobian
+    monkeypatch.setattr(
+        pose_module, "residuals_and_jacobian", lambda *a: calls.append(1) or real(*a)
+    )
+    fine = fit_pose(start, edges, noisy, camera.K, iterations=50, tol=1e-12)
+    n_fine = len(calls)
+    calls.clear()
+    coarse = fit_pose(start, edges, noisy, camera.K, iterations=50, tol=1e-7)
+    assert coarse.converged and len(calls) < n_fine
+    assert np.max(np.abs(coarse.X_CO - fine.X_CO)) < 1e-6
+    calls.clear()
+    again = fit_pose(fine.X_CO, edges, noisy, camera.K, iterations=50, tol=1e-7)
+    assert len(calls) == 1 and again.converged
+    np.testing.assert_array_equal(again.X_CO, fine.X_CO)

@@ -115,22 +115,27 @@ def planes_in(X_CO: np.ndarray, planes_O: np.ndarray) -> np.ndarray:
 
 def occluded(points_C: np.ndarray, occluders_C: list[np.ndarray]) -> np.ndarray:
     """For points (n, 3) in C: is the ray from the camera centre to the point blocked by any of
-    the convex parts (each (k, 4) half-spaces in C) before it gets there? (n,) bool."""
+    the convex parts (each (k, 4) half-spaces in C) before it gets there? (n,) bool.
+
+    All parts at once: the planes are stacked and each part's entry and exit are reduced over
+    its own rows (``reduceat``), so the cost is a few array operations whatever the count."""
     hidden = np.zeros(len(points_C), dtype=bool)
+    if len(occluders_C) == 0 or len(points_C) == 0:
+        return hidden
+    planes = np.vstack(occluders_C)  # (P, 4)
+    starts = np.cumsum([0] + [len(q) for q in occluders_C[:-1]])
     dist = np.linalg.norm(points_C, axis=1)
-    eps_t = VISIBILITY_EPS_M / np.maximum(dist, 1e-9)
-    for planes in occluders_C:
-        # Ray x(t) = t·p for t in [0, 1]; inside where t·(n·p) ≤ d for every face.
-        den = points_C @ planes[:, :3].T  # (n, k)
-        num = np.broadcast_to(planes[:, 3], den.shape)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = num / den
-        t_enter = np.max(np.where(den < 0, t, 0.0), axis=1)
-        t_exit = np.min(np.where(den > 0, t, np.inf), axis=1)
-        parallel_out = np.any((den == 0) & (num < 0), axis=1)
-        hit = (t_enter < t_exit - eps_t) & (t_enter < 1.0 - eps_t) & ~parallel_out
-        hidden |= hit
-    return hidden
+    eps_t = (VISIBILITY_EPS_M / np.maximum(dist, 1e-9))[:, None]
+    # Ray x(t) = t·p for t in [0, 1]; inside a part where t·(n·p) ≤ d for each of its faces.
+    den = points_C @ planes[:, :3].T  # (n, P)
+    num = np.broadcast_to(planes[:, 3], den.shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = num / den
+    t_enter = np.maximum.reduceat(np.where(den < 0, t, 0.0), starts, axis=1)  # (n, parts)
+    t_exit = np.minimum.reduceat(np.where(den > 0, t, np.inf), starts, axis=1)
+    parallel_out = np.logical_or.reduceat((den == 0) & (num < 0), starts, axis=1)
+    hit = (t_enter < t_exit - eps_t) & (t_enter < 1.0 - eps_t) & ~parallel_out
+    return np.any(hit, axis=1)
 
 
 def visible_edges(
@@ -161,14 +166,14 @@ def visible_edges(
     if len(keep) == 0:
         return keep, np.zeros((0, 4)), np.zeros(0)
     half = 0.5 / EDGE_SAMPLES
-    segs = []
-    for i in keep:
-        idx = np.flatnonzero(vis[i])
-        t0 = 0.0 if idx[0] == 0 else ts[idx[0]] - half
-        t1 = 1.0 if idx[-1] == EDGE_SAMPLES - 1 else ts[idx[-1]] + half
-        a, b = edges_C[i, 0], edges_C[i, 1]
-        segs.append(np.concatenate([project(a + t0 * (b - a), K), project(a + t1 * (b - a), K)]))
-    return keep, np.array(segs), frac[keep]
+    first = np.argmax(vis[keep], axis=1)  # first and last visible sample of each kept edge
+    last = EDGE_SAMPLES - 1 - np.argmax(vis[keep, ::-1], axis=1)
+    t0 = np.where(first == 0, 0.0, ts[first] - half)[:, None]
+    t1 = np.where(last == EDGE_SAMPLES - 1, 1.0, ts[last] + half)[:, None]
+    a = edges_C[keep, 0]
+    d = edges_C[keep, 1] - a
+    segs = np.column_stack([project(a + t0 * d, K), project(a + t1 * d, K)])
+    return keep, segs, frac[keep]
 
 
 def convex_overlap_depth(
