@@ -42,7 +42,13 @@ from work_site.vision.model import (
     vision_model,
 )
 from work_site.vision.pose import fit_pose
-from work_site.vision.table import batch_support, edge_faces, rest_corners, table_hypotheses
+from work_site.vision.table import (
+    batch_support,
+    edge_faces,
+    rest_corners,
+    sample_gradient,
+    table_hypotheses,
+)
 
 ENV_MATCH_TOL_PX = 1.5
 """Image lines this close to a projected edge of the fixed environment are its own."""
@@ -136,28 +142,6 @@ def check_camera(camera: CameraModel) -> None:
         raise ValueError("camera X_WC must be a finite 4×4 pose")
 
 
-def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[complex, complex]:
-    """Least-squares 2-D similarity ``dst ≈ a·src + t`` as complex numbers (a: scale·rotation)."""
-    zs = src[:, 0] + 1j * src[:, 1]
-    zd = dst[:, 0] + 1j * dst[:, 1]
-    ms, md = zs.mean(), zd.mean()
-    den = np.sum(np.abs(zs - ms) ** 2)
-    a = np.sum(np.conj(zs - ms) * (zd - md)) / den if den > 0 else 1.0 + 0j
-    return complex(a), complex(md - a * ms)
-
-
-def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation taking unit vector ``a`` to unit vector ``b``."""
-    v = np.cross(a, b)
-    c = float(a @ b)
-    s = np.linalg.norm(v)
-    if s < 1e-12:
-        return np.eye(3)
-    Kx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]]) / s
-    ang = np.arctan2(s, c)
-    return np.eye(3) + np.sin(ang) * Kx + (1 - np.cos(ang)) * Kx @ Kx
-
-
 def initial_pose(
     R_view: np.ndarray,
     junctions_canonical_px: np.ndarray,
@@ -167,22 +151,54 @@ def initial_pose(
 ) -> np.ndarray:
     """``X_CO`` that makes the indexed view's group land on the image group: rotate in the
     image plane, scale to depth, then tilt the view onto the ray through the group."""
+    return initial_poses(
+        R_view[None], junctions_canonical_px[None], junctions_image_px[None], K, index_params
+    )[0]
+
+
+def initial_poses(
+    R_view: np.ndarray,
+    junctions_canonical_px: np.ndarray,
+    junctions_image_px: np.ndarray,
+    K: np.ndarray,
+    index_params: IndexParams,
+) -> np.ndarray:
+    """:func:`initial_pose` of many hypotheses at once: ``R_view`` (h, 3, 3), junctions
+    (h, j, 2) each; returns (h, 4, 4). The image group is the indexed one under the 2-D
+    similarity ``a·z + t`` (least squares, complex numbers; ``a`` is scale·rotation)."""
+    h = len(R_view)
     f = index_params.canonical_f_px
     src = junctions_canonical_px / f
     Kinv = np.linalg.inv(K)
-    dst = (np.column_stack([junctions_image_px, np.ones(len(junctions_image_px))]) @ Kinv.T)[:, :2]
-    a, t = _similarity(src, dst)
-    scale = abs(a)
+    J = junctions_image_px
+    dst = J @ Kinv[:2, :2].T + Kinv[:2, 2]  # K's last row is (0, 0, 1)
+    zs = src[..., 0] + 1j * src[..., 1]  # (h, j)
+    zd = dst[..., 0] + 1j * dst[..., 1]
+    ms, md = zs.mean(axis=1, keepdims=True), zd.mean(axis=1, keepdims=True)
+    den = np.sum(np.abs(zs - ms) ** 2, axis=1)
+    num = np.sum(np.conj(zs - ms) * (zd - md), axis=1)
+    a = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0 + 0j)
+    t = md[:, 0] - a * ms[:, 0]
+    Z = index_params.view_distance_m / np.maximum(np.abs(a), 1e-9)
     alpha = np.angle(a)
-    Z = index_params.view_distance_m / max(scale, 1e-9)
-    ray = np.array([t.real, t.imag, 1.0])
-    Rz = np.array(
-        [[np.cos(alpha), -np.sin(alpha), 0], [np.sin(alpha), np.cos(alpha), 0], [0, 0, 1.0]]
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    Rz = np.zeros((h, 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = ca, -sa, sa, ca, 1.0
+    ray = np.column_stack([t.real, t.imag, np.ones(h)])
+    b = ray / np.linalg.norm(ray, axis=1, keepdims=True)
+    # The smallest rotation taking +z to b: about v = z × b = (−b_y, b_x, 0), by atan2(|v|, b_z).
+    sv = np.hypot(b[:, 0], b[:, 1])
+    kx = np.where(sv < 1e-12, 0.0, -b[:, 1] / np.maximum(sv, 1e-300))
+    ky = np.where(sv < 1e-12, 0.0, b[:, 0] / np.maximum(sv, 1e-300))
+    ang = np.arctan2(sv, b[:, 2])
+    Kx = np.zeros((h, 3, 3))
+    Kx[:, 0, 2], Kx[:, 1, 2], Kx[:, 2, 0], Kx[:, 2, 1] = ky, -kx, -ky, kx
+    R_tilt = (
+        np.eye(3) + np.sin(ang)[:, None, None] * Kx + (1 - np.cos(ang))[:, None, None] * Kx @ Kx
     )
-    R_tilt = _rotation_between(np.array([0.0, 0.0, 1.0]), ray / np.linalg.norm(ray))
-    X = np.eye(4)
-    X[:3, :3] = R_tilt @ Rz @ R_view
-    X[:3, 3] = Z * ray
+    X = np.tile(np.eye(4), (h, 1, 1))
+    X[:, :3, :3] = R_tilt @ Rz @ R_view
+    X[:, :3, 3] = Z[:, None] * ray
     return X
 
 
@@ -227,6 +243,45 @@ class _Candidate:
     verification: Verification
     parts_W: list[tuple[np.ndarray, np.ndarray]]
     grown: bool = False  # made by growing a smaller found object into a bigger model
+
+
+class PoseSet:
+    """Poses already tested, per model, to skip equal ones: equal means translations within
+    ``same_pose_m`` and rotations within ``same_pose_rad`` up to one of the model's
+    symmetries. Kept as growing arrays, so a look-up is a few array operations."""
+
+    def __init__(self, same_pose_m: float, same_pose_rad: float) -> None:
+        self.same_pose_m = same_pose_m
+        self.cos_min = 1 + 2 * np.cos(same_pose_rad)  # trace of a rotation by that angle
+        self._X: dict[str, np.ndarray] = {}  # (capacity, 4, 4) per model name
+        self._n: dict[str, int] = {}
+
+    def add(self, model: VisionModel, X_CO: np.ndarray) -> None:
+        """Record a tested pose ``X_CO`` of ``model``."""
+        n = self._n.get(model.name, 0)
+        X = self._X.get(model.name)
+        if X is None or n == len(X):
+            grown = np.empty((max(16, 2 * n), 4, 4))
+            if X is not None:
+                grown[:n] = X[:n]
+            self._X[model.name] = X = grown
+        X[n] = X_CO
+        self._n[model.name] = n + 1
+
+    def seen(self, model: VisionModel, X_CO: np.ndarray) -> bool:
+        """Whether a pose of ``model`` equal to ``X_CO`` up to its symmetries was recorded."""
+        n = self._n.get(model.name, 0)
+        if n == 0:
+            return False
+        X = self._X[model.name][:n]
+        d = X[:, :3, 3] - X_CO[:3, 3]
+        near = np.einsum("ki,ki->k", d, d) <= self.same_pose_m**2
+        if not near.any():
+            return False
+        # trace(R_tᵀ·R·S) for every near tested R_t and symmetry S
+        RS = X_CO[:3, :3] @ model.symmetries  # (s, 3, 3)
+        tr = np.einsum("kij,sij->ks", X[near, :3, :3], RS)
+        return bool(np.any(tr > self.cos_min))
 
 
 class Recognizer:
@@ -335,14 +390,11 @@ class Recognizer:
         hyps = self._hypotheses(segs)
         candidates: list[_Candidate] = []
         claimed = np.zeros(len(segs), dtype=bool)
-        tested: list[tuple[VisionModel, np.ndarray]] = []
-        confident: set[str] = set()
         p = self.params
+        tested = PoseSet(p.same_pose_m, p.same_pose_rad)
+        confident: set[str] = set()
         stream = self._table_stream(segs, K, camera.X_WC, gx, gy)
-        stream += [
-            (self.models[int(self.index.model[e])], g_segs, (e, g_junc))
-            for g_segs, g_junc, e in hyps[: p.max_hypotheses]
-        ]
+        stream += self._index_stream(hyps[: p.max_hypotheses], K, camera.X_WC)
         for model, g_segs, how in stream:
             if p.time_budget_s is not None and time.perf_counter() - t0 > p.time_budget_s:
                 break
@@ -355,13 +407,13 @@ class Recognizer:
             if isinstance(how, np.ndarray):
                 X0 = how  # a table hypothesis: already a whole pose
             else:
-                X0 = self._initial_fit(model, how[0], g_segs, how[1], segs, K, camera.X_WC)
+                X0 = self._initial_fit(model, how[0], how[1], g_segs, segs, K, camera.X_WC)
             if X0 is None:
                 continue
             # Many groups of one object lead to the same pose: test each pose once.
-            if self._seen(model, X0, tested):
+            if tested.seen(model, X0):
                 continue
-            tested.append((model, X0))
+            tested.add(model, X0)
             result = self._test(model, X0, segs, K, gx, gy, env_C, camera.X_WC)
             if result is None:
                 continue
@@ -380,9 +432,9 @@ class Recognizer:
                     p.gradient_min, p.gradient_angle_rad,
                 )  # fmt: skip
                 for X_CB, s in zip(X_CB_all, support, strict=True):
-                    if self._seen(whole, X_CB, tested):
+                    if tested.seen(whole, X_CB):
                         continue
-                    tested.append((whole, X_CB))
+                    tested.add(whole, X_CB)
                     if s < p.grow_support_min:
                         continue
                     r2 = self._test(whole, X_CB, segs, K, gx, gy, env_C, camera.X_WC)
@@ -453,18 +505,6 @@ class Recognizer:
             per_model[c.model.name] = per_model.get(c.model.name, 0) + 1
         return sorted(accepted, key=lambda r: -r.score)
 
-    def _seen(self, model: VisionModel, X_CO: np.ndarray, tested) -> bool:
-        """Whether a pose of ``model`` equal to ``X_CO`` up to its symmetries was tested."""
-        p = self.params
-        cos_min = 1 + 2 * np.cos(p.same_pose_rad)
-        for m, Xt in tested:
-            if m is not model or np.linalg.norm(X_CO[:3, 3] - Xt[:3, 3]) > p.same_pose_m:
-                continue
-            R = Xt[:3, :3].T @ X_CO[:3, :3]
-            if any(np.trace(R @ S) > cos_min for S in model.symmetries):
-                return True
-        return False
-
     # -- steps --------------------------------------------------------------------------------
     def _drop_environment(self, segs, X_CW, K, env_C) -> np.ndarray:
         """Image segments not explained by the fixed environment's projected edges: the frame's
@@ -534,22 +574,46 @@ class Recognizer:
             out.append((groups.segs[g], groups.junctions[g], e))
         return out
 
-    def _initial_fit(self, model, entry, g_segs, g_junc, segs, K, X_WC):
-        """Pose from the hypothesis' four correspondences, or None if it cannot be right: the
-        lines do not fit, or the object would be far from resting on the table."""
+    def _index_stream(self, hyps, K, X_WC) -> list[tuple]:
+        """Indexed hypotheses ``(model, group's segments, (index entry, initial X_CO))`` in
+        their order, all initial poses computed at once, without those that cannot be right:
+        the view must show the object standing on one of its faces, roughly at table height
+        (most accidental matches fail this at no cost)."""
+        if not hyps:
+            return []
         p = self.params
         idx = self.index
-        X = initial_pose(idx.R_CO[idx.view[entry]], idx.junctions[entry], g_junc, K, idx.params)
+        entries = np.array([e for _, _, e in hyps])
+        X = initial_poses(
+            idx.R_CO[idx.view[entries]], idx.junctions[entries],
+            np.array([g_junc for _, g_junc, _ in hyps]), K, idx.params,
+        )  # fmt: skip
+        ok = np.ones(len(hyps), dtype=bool)
         if p.table_prior:
-            # Before any fitting: the view must show the object standing on one of its faces,
-            # roughly at table height (most accidental matches fail this at no cost).
             X_WO = X_WC @ X
-            n_W = self._facets[model.name][0] @ X_WO[:3, :3].T
-            if -n_W[:, 2].min() < np.cos(p.prefilter_tilt_rad):
-                return None
-            z_min = transform(X_WO, model.vertices_O)[:, 2].min()
-            if abs(z_min - self.table_z) > p.prefilter_height_m:
-                return None
+            mods = idx.model[entries]
+            for mi, m in enumerate(self.models):
+                sel = np.flatnonzero(mods == mi)
+                if len(sel) == 0:
+                    continue
+                up = X_WO[sel, 2, :3]  # world z of O's axes: n_W[:, 2] = N_O · up
+                tilt_ok = -(self._facets[m.name][0] @ up.T).min(axis=0) >= np.cos(
+                    p.prefilter_tilt_rad
+                )
+                z_min = (m.vertices_O @ up.T).min(axis=0) + X_WO[sel, 2, 3]
+                ok[sel] = tilt_ok & (np.abs(z_min - self.table_z) <= p.prefilter_height_m)
+        return [
+            (self.models[int(idx.model[e])], g_segs, (e, X[k]))
+            for k, (g_segs, _, e) in enumerate(hyps)
+            if ok[k]
+        ]
+
+    def _initial_fit(self, model, entry, X, g_segs, segs, K, X_WC):
+        """Pose fitted to the hypothesis' four correspondences from the initial ``X``, or None
+        if it cannot be right: the lines do not fit, or the object would be far from resting
+        on the table."""
+        p = self.params
+        idx = self.index
         edges = model.edges_O[idx.edges[entry]]
         fit = fit_pose(
             X, edges, segs[g_segs], K, iterations=p.fit_iterations, tol=p.fit_tol,
@@ -648,15 +712,13 @@ class Recognizer:
         k = 6  # points per edge
         t = (np.arange(k) + 0.5) / k
         P = proj[:, None, :2] + t[None, :, None] * d[:, None, :]  # (e, k, 2)
-        N = np.broadcast_to(n[:, None, :], P.shape)
-        best = np.zeros(P.shape[:2], dtype=bool)
-        for off in (-1.5, 0.0, 1.5):
-            Q = (P + off * N).reshape(-1, 2).astype(np.float32)
-            sx = cv2.remap(gx, Q[:, :1], Q[:, 1:], cv2.INTER_LINEAR).reshape(P.shape[:2])
-            sy = cv2.remap(gy, Q[:, :1], Q[:, 1:], cv2.INTER_LINEAR).reshape(P.shape[:2])
-            mag = np.hypot(sx, sy)
-            cos = np.abs(sx * N[..., 0] + sy * N[..., 1]) / np.maximum(mag, 1e-9)
-            best |= (mag > p.gradient_min) & (cos > np.cos(p.gradient_angle_rad))
+        offsets = np.array([-1.5, 0.0, 1.5])
+        Q = P[None] + offsets[:, None, None, None] * n[None, :, None, :]  # (3, e, k, 2)
+        sx, sy = sample_gradient(gx, gy, Q.reshape(-1, 2))
+        sx, sy = sx.reshape(Q.shape[:3]), sy.reshape(Q.shape[:3])
+        mag = np.hypot(sx, sy)
+        cos = np.abs(sx * n[:, None, 0] + sy * n[:, None, 1]) / np.maximum(mag, 1e-9)
+        best = np.any((mag > p.gradient_min) & (cos > np.cos(p.gradient_angle_rad)), axis=0)
         return float(best.mean())
 
     def _verify(self, model: VisionModel, X_CO, K, segs, gx, gy, occluders_C):
@@ -673,29 +735,24 @@ class Recognizer:
         if len(proj) == 0 or L.sum() < 20:
             return Verification(0.0, 0.0, 0.0, [], 0.0)
         mi, mj = match_segments(proj, segs, p.verify_tol_px, p.verify_angle_rad)
+        a = proj[:, :2]
+        u = (proj[:, 2:] - a) / L[:, None]
         covered = 0.0
-        for e in range(len(proj)):
-            rows = mj[mi == e]
-            if len(rows) == 0:
-                continue
-            a = proj[e, :2]
-            u = (proj[e, 2:] - a) / L[e]
-            t = np.sort(np.column_stack([(segs[rows, :2] - a) @ u, (segs[rows, 2:] - a) @ u]), 1)
-            t = np.clip(t, 0.0, L[e])
-            covered += _union_length(t)
+        if len(mi):
+            # Each matched image segment as an interval along its edge; the union per edge.
+            ta = np.sum((segs[mj, :2] - a[mi]) * u[mi], axis=1)
+            tb = np.sum((segs[mj, 2:] - a[mi]) * u[mi], axis=1)
+            lo = np.clip(np.minimum(ta, tb), 0.0, L[mi])
+            hi = np.clip(np.maximum(ta, tb), 0.0, L[mi])
+            covered = _covered_length(mi, lo, hi, L)
         frac_len = covered / L.sum()
         # Gradient direction agreement sampled every 1.5 px along every visible edge.
-        pts, normals = [], []
-        for e in range(len(proj)):
-            a, b = proj[e, :2], proj[e, 2:]
-            u = (b - a) / L[e]
-            ts = np.arange(1.0, L[e] - 1.0, 1.5)
-            pts.append(a + ts[:, None] * u)
-            normals.append(np.repeat([[-u[1], u[0]]], len(ts), axis=0))
-        P = np.vstack(pts).astype(np.float32)
-        N = np.vstack(normals)
-        sx = cv2.remap(gx, P[:, :1], P[:, 1:], cv2.INTER_LINEAR).ravel()
-        sy = cv2.remap(gy, P[:, :1], P[:, 1:], cv2.INTER_LINEAR).ravel()
+        counts = np.maximum(np.ceil((L - 2.0) / 1.5), 0).astype(int)  # len(arange(1, L−1, 1.5))
+        e = np.repeat(np.arange(len(proj)), counts)
+        ts = 1.0 + 1.5 * (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts))
+        P = (a[e] + ts[:, None] * u[e]).astype(np.float32)
+        N = np.column_stack([-u[e, 1], u[e, 0]])
+        sx, sy = sample_gradient(gx, gy, P)
         mag = np.hypot(sx, sy)
         cosang = np.abs(sx * N[:, 0] + sy * N[:, 1]) / np.maximum(mag, 1e-9)
         good = (mag > p.gradient_min) & (cosang > np.cos(p.gradient_angle_rad))
@@ -703,10 +760,8 @@ class Recognizer:
         # The outline against the background must show in the image almost everywhere: a
         # hypothesis that explains one block and hangs over empty table fails here.
         uv = project(transform(X_CO, model.vertices_O), K).astype(np.float32)
-        hull = cv2.convexHull(uv)
-        on_hull = np.array(
-            [abs(cv2.pointPolygonTest(hull, (float(x), float(y)), True)) < 1.0 for x, y in P]
-        )
+        hull = cv2.convexHull(uv).reshape(-1, 2).astype(np.float64)
+        on_hull = _distance_to_polygon(P.astype(np.float64), hull) < 1.0
         frac_sil = float(np.mean(good[on_hull])) if on_hull.any() else 0.0
         return Verification(float(frac_len), frac_grad, frac_sil, mj.tolist(), float(covered))
 
@@ -742,37 +797,47 @@ def _radius(V: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(V - V.mean(0), axis=1)))
 
 
-def _union_length(t: np.ndarray) -> float:
-    """Total length of the union of intervals (n, 2) with lo ≤ hi."""
-    t = t[np.argsort(t[:, 0])]
-    total, cur_lo, cur_hi = 0.0, t[0, 0], t[0, 1]
-    for lo, hi in t[1:]:
-        if lo > cur_hi:
-            total += cur_hi - cur_lo
-            cur_lo, cur_hi = lo, hi
-        else:
-            cur_hi = max(cur_hi, hi)
-    return float(total + cur_hi - cur_lo)
+def _covered_length(edge: np.ndarray, lo: np.ndarray, hi: np.ndarray, L: np.ndarray) -> float:
+    """Total length of the union, per edge, of intervals ``[lo, hi]`` (m,) on edges ``edge``
+    (m,) of lengths ``L`` (e,), with ``0 ≤ lo ≤ hi ≤ L[edge]``. The edges are laid end to end
+    with gaps, so one sort and one running maximum do all of them."""
+    start = np.cumsum(L + 1.0) - (L + 1.0)
+    lo, hi = lo + start[edge], hi + start[edge]
+    order = np.argsort(lo, kind="stable")
+    lo, hi = lo[order], hi[order]
+    reach = np.maximum.accumulate(hi)  # the furthest any earlier interval reaches
+    before = np.concatenate([[-np.inf], reach[:-1]])
+    return float(np.sum(np.maximum(hi - np.maximum(lo, before), 0.0)))
+
+
+def _distance_to_polygon(P: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Distance (px) of points (n, 2) to the boundary of the closed polygon (k, 2)."""
+    A = poly
+    B = np.roll(poly, -1, axis=0)
+    D = B - A
+    den = np.maximum(np.sum(D * D, axis=1), 1e-18)
+    W = P[:, None, :] - A[None]  # (n, k, 2)
+    t = np.clip(np.einsum("nkj,kj->nk", W, D) / den, 0.0, 1.0)
+    R = W - t[..., None] * D[None]
+    return np.sqrt(np.min(np.einsum("nkj,nkj->nk", R, R), axis=1))
 
 
 def _clip_segments(segs: np.ndarray, w: int, h: int) -> np.ndarray:
-    """Segments clipped to the image rectangle (Liang–Barsky); fully outside → zero length."""
-    out = segs.copy()
-    for k, (x0, y0, x1, y1) in enumerate(segs):
-        dx, dy = x1 - x0, y1 - y0
-        t0, t1 = 0.0, 1.0
-        for pp, qq in ((-dx, x0), (dx, w - 1 - x0), (-dy, y0), (dy, h - 1 - y0)):
-            if pp == 0:
-                if qq < 0:
-                    t0, t1 = 1.0, 0.0
-                continue
-            r = qq / pp
-            if pp < 0:
-                t0 = max(t0, r)
-            else:
-                t1 = min(t1, r)
-        if t0 >= t1:
-            out[k] = [x0, y0, x0, y0]
-        else:
-            out[k] = [x0 + t0 * dx, y0 + t0 * dy, x0 + t1 * dx, y0 + t1 * dy]
-    return out
+    """Segments (n, 4) clipped to the image rectangle (Liang–Barsky, all at once); fully
+    outside → zero length at the first end point."""
+    x0, y0, x1, y1 = segs.T
+    dx, dy = x1 - x0, y1 - y0
+    t0 = np.zeros(len(segs))
+    t1 = np.ones(len(segs))
+    out_par = np.zeros(len(segs), dtype=bool)
+    for pp, qq in ((-dx, x0), (dx, w - 1 - x0), (-dy, y0), (dy, h - 1 - y0)):
+        par = pp == 0
+        out_par |= par & (qq < 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = qq / np.where(par, 1.0, pp)
+        t0 = np.where(~par & (pp < 0), np.maximum(t0, r), t0)
+        t1 = np.where(~par & (pp > 0), np.minimum(t1, r), t1)
+    gone = out_par | (t0 >= t1)
+    t0 = np.where(gone, 0.0, t0)
+    t1 = np.where(gone, 0.0, t1)
+    return np.column_stack([x0 + t0 * dx, y0 + t0 * dy, x0 + t1 * dx, y0 + t1 * dy])

@@ -1,0 +1,135 @@
+"""The recogniser's vectorised helpers against plain reference implementations."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from models.scene import load_scene
+from models.transforms import make_pose, so3_exp
+from work_site.vision.model import vision_model
+from work_site.vision.recognizer import (
+    PoseSet,
+    _clip_segments,
+    _covered_length,
+    _distance_to_polygon,
+)
+
+
+def _union_reference(intervals: list[tuple[float, float]]) -> float:
+    total, cur = 0.0, None
+    for lo, hi in sorted(intervals):
+        if cur is None or lo > cur[1]:
+            total += 0.0 if cur is None else cur[1] - cur[0]
+            cur = [lo, hi]
+        else:
+            cur[1] = max(cur[1], hi)
+    return total + (0.0 if cur is None else cur[1] - cur[0])
+
+
+def test_covered_length_is_the_union_per_edge() -> None:
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        L = rng.uniform(5.0, 80.0, rng.integers(1, 6))
+        m = int(rng.integers(1, 15))
+        edge = rng.integers(0, len(L), m)
+        a, b = rng.uniform(0, 1, (2, m)) * L[edge]
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        expected = sum(
+            _union_reference([(x, y) for x, y, k in zip(lo, hi, edge, strict=True) if k == e])
+            for e in range(len(L))
+        )
+        assert abs(_covered_length(edge, lo, hi, L) - expected) < 1e-9
+
+
+def _clip_reference(seg, w, h):
+    x0, y0, x1, y1 = seg
+    dx, dy = x1 - x0, y1 - y0
+    t0, t1 = 0.0, 1.0
+    for pp, qq in ((-dx, x0), (dx, w - 1 - x0), (-dy, y0), (dy, h - 1 - y0)):
+        if pp == 0:
+            if qq < 0:
+                t0, t1 = 1.0, 0.0
+            continue
+        r = qq / pp
+        t0, t1 = (max(t0, r), t1) if pp < 0 else (t0, min(t1, r))
+    if t0 >= t1:
+        return [x0, y0, x0, y0]
+    return [x0 + t0 * dx, y0 + t0 * dy, x0 + t1 * dx, y0 + t1 * dy]
+
+
+def test_clip_segments_matches_liang_barsky_one_by_one() -> None:
+    rng = np.random.default_rng(2)
+    segs = rng.uniform(-100, 740, (400, 4))
+    segs[:40, 2] = segs[:40, 0]  # vertical, some outside
+    segs[40:80, 3] = segs[40:80, 1]  # horizontal
+    clipped = _clip_segments(segs, 640, 480)
+    expected = np.array([_clip_reference(s, 640, 480) for s in segs])
+    np.testing.assert_allclose(clipped, expected, atol=1e-9)
+    inside = np.linalg.norm(clipped[:, 2:] - clipped[:, :2], axis=1) > 0
+    assert 0 < inside.sum() < len(segs)
+    assert np.all(clipped[inside][:, [0, 2]] >= -1e-9) and np.all(
+        clipped[inside][:, [0, 2]] <= 639 + 1e-9
+    )
+
+
+def test_distance_to_polygon_matches_opencv() -> None:
+    rng = np.random.default_rng(3)
+    hull = cv2.convexHull(rng.uniform(100, 300, (12, 2)).astype(np.float32))
+    poly = hull.reshape(-1, 2).astype(np.float64)
+    P = rng.uniform(50, 350, (500, 2)).astype(np.float32)
+    expected = [abs(cv2.pointPolygonTest(hull, (float(x), float(y)), True)) for x, y in P]
+    np.testing.assert_allclose(
+        _distance_to_polygon(P.astype(np.float64), poly), expected, atol=1e-3
+    )
+
+
+def test_pose_set_sees_poses_equal_up_to_symmetry_only() -> None:
+    models = {o.name: vision_model(o.model) for o in load_scene().movable}
+    cube, wedge = models["cube"], models["wedge"]
+    rng = np.random.default_rng(4)
+    tested = PoseSet(same_pose_m=0.004, same_pose_rad=np.deg2rad(4.0))
+    X = make_pose(so3_exp(rng.normal(0, 1, 3)), [0.1, 0.0, 0.8])
+    assert not tested.seen(cube, X)
+    for _ in range(40):  # enough to make the arrays grow
+        tested.add(wedge, make_pose(so3_exp(rng.normal(0, 1, 3)), rng.uniform(-0.2, 0.2, 3)))
+    tested.add(cube, X)
+    # The same cube turned by one of its symmetries, nudged within the tolerances.
+    S = cube.symmetries[5]
+    near = make_pose(
+        X[:3, :3] @ S.T @ so3_exp([0.0, 0.0, np.deg2rad(3.0)]), X[:3, 3] + [0.002, 0.002, 0.0]
+    )
+    assert tested.seen(cube, near)
+    assert not tested.seen(wedge, near)  # other models' poses do not count
+    far = make_pose(near[:3, :3], X[:3, 3] + [0.005, 0.0, 0.0])
+    assert not tested.seen(cube, far)
+    turned = make_pose(X[:3, :3] @ so3_exp([0.0, 0.0, np.deg2rad(6.0)]), X[:3, 3])
+    assert not tested.seen(cube, turned)
+
+
+def test_initial_poses_undo_a_known_image_similarity() -> None:
+    """A group seen on the optical axis, turned by θ and at half the canonical scale, gives
+    the indexed view turned by θ about the axis at twice the view distance; many at once."""
+    from work_site.vision.index import IndexParams
+    from work_site.vision.recognizer import initial_pose, initial_poses
+
+    params = IndexParams()
+    f = params.canonical_f_px
+    K = np.array([[f, 0.0, 320.0], [0.0, f, 240.0], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(6)
+    n = 8
+    R_view = np.array([so3_exp(rng.normal(0, 1, 3)) for _ in range(n)])
+    canonical = rng.normal(0.0, 50.0, (n, 3, 2))
+    canonical -= canonical.mean(axis=1, keepdims=True)
+    theta = rng.uniform(-np.pi, np.pi, n)
+    z = 0.5 * np.exp(1j * theta)[:, None] * (canonical[..., 0] + 1j * canonical[..., 1])
+    image = np.stack([z.real + 320.0, z.imag + 240.0], axis=-1)
+    X = initial_poses(R_view, canonical, image, K, params)
+    for k in range(n):
+        c, s = np.cos(theta[k]), np.sin(theta[k])
+        Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        np.testing.assert_allclose(X[k, :3, :3], Rz @ R_view[k], atol=1e-12)
+        np.testing.assert_allclose(X[k, :3, 3], [0.0, 0.0, 2 * params.view_distance_m], atol=1e-12)
+        np.testing.assert_array_equal(
+            initial_pose(R_view[k], canonical[k], image[k], K, params), X[k]
+        )
