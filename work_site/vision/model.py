@@ -189,12 +189,8 @@ def convex_overlap_depth(
     and extra axes never create a false overlap). Pass the facet normals if known: finding
     them is the slow part.
     """
-    na = _unique_dirs(
-        list(normals_A) if normals_A is not None else [n for n, _ in hull_facets(A)]
-    )
-    nb = _unique_dirs(
-        list(normals_B) if normals_B is not None else [n for n, _ in hull_facets(B)]
-    )
+    na = _unique_dirs(list(normals_A) if normals_A is not None else [n for n, _ in hull_facets(A)])
+    nb = _unique_dirs(list(normals_B) if normals_B is not None else [n for n, _ in hull_facets(B)])
     ea = _unique_dirs([np.cross(a, b) for a, b in itertools.combinations(na, 2)])
     eb = _unique_dirs([np.cross(a, b) for a, b in itertools.combinations(nb, 2)])
     axes = na + nb + _unique_dirs([np.cross(a, b) for a in ea for b in eb])

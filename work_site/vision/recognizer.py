@@ -664,14 +664,19 @@ class Recognizer:
         """Predict further correspondences, refit and verify; None if the pose does not hold."""
         p = self.params
         prior = self._prior(model, X_WC) if X_WC is not None else None
-        if self._quick_support(model, X, K, gx, gy, occluders_C) < p.quick_support_min:
+        # Visible edges are recomputed only when the pose has moved (the quick support and
+        # the first round see the same pose, and so do rounds whose refit was skipped).
+        seen_at, vis = X, visible_edges(model, X, K, occluders_C)
+        if self._quick_support(model, X, K, gx, gy, occluders_C, vis[1]) < p.quick_support_min:
             return None
         mi = mj = np.zeros(0, int)
         fit = None
         pairs = None
         for r in range(p.refine_rounds):
             tol = p.match_tol_px[min(r, len(p.match_tol_px) - 1)]
-            ids, proj, _ = visible_edges(model, X, K, occluders_C)
+            if seen_at is not X:
+                seen_at, vis = X, visible_edges(model, X, K, occluders_C)
+            ids, proj, _ = vis
             mi, mj = match_segments(proj, segs, tol, p.match_angle_rad)
             if len(np.unique(mi)) < 4:
                 return None
@@ -688,17 +693,19 @@ class Recognizer:
             return None
         if fit.rms_px > p.final_rms_max_px or len(np.unique(mi)) < p.min_matched_edges:
             return None
-        v = self._verify(model, X, K, segs, gx, gy, occluders_C)
+        proj = vis[1] if seen_at is X else None
+        v = self._verify(model, X, K, segs, gx, gy, occluders_C, proj)
         if v.length_fraction < p.min_length_fraction or v.score < p.min_score:
             return None
         return X, fit.rms_px, v
 
-    def _quick_support(self, model: VisionModel, X_CO, K, gx, gy, occluders_C) -> float:
+    def _quick_support(self, model: VisionModel, X_CO, K, gx, gy, occluders_C, proj=None) -> float:
         """Cheap test of a pose before any refinement: the fraction of points along its
         predicted visible edges where the image gradient, within ±1.5 px across the edge, is
-        strong and at right angles to it."""
+        strong and at right angles to it. ``proj``: the visible edges if already known."""
         p = self.params
-        _, proj, _ = visible_edges(model, X_CO, K, occluders_C)
+        if proj is None:
+            _, proj, _ = visible_edges(model, X_CO, K, occluders_C)
         h, w = gx.shape
         proj = _clip_segments(proj, w, h)
         d = proj[:, 2:] - proj[:, :2]
@@ -721,11 +728,13 @@ class Recognizer:
         best = np.any((mag > p.gradient_min) & (cos > np.cos(p.gradient_angle_rad)), axis=0)
         return float(best.mean())
 
-    def _verify(self, model: VisionModel, X_CO, K, segs, gx, gy, occluders_C):
+    def _verify(self, model: VisionModel, X_CO, K, segs, gx, gy, occluders_C, proj=None):
         """Fractions of the visible projected edge length matched by image lines and with the
-        image gradient across them, plus the image segments matched."""
+        image gradient across them, plus the image segments matched. ``proj``: the visible
+        edges if already known."""
         p = self.params
-        _, proj, _ = visible_edges(model, X_CO, K, occluders_C)
+        if proj is None:
+            _, proj, _ = visible_edges(model, X_CO, K, occluders_C)
         h, w = gx.shape
         # Clip to the image: an edge beyond the border is unseen, not missing.
         proj = _clip_segments(proj, w, h)
