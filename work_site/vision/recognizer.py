@@ -387,14 +387,14 @@ class Recognizer:
             return []
         gx = cv2.Scharr(img.astype(np.float32), cv2.CV_32F, 1, 0)
         gy = cv2.Scharr(img.astype(np.float32), cv2.CV_32F, 0, 1)
-        hyps = self._hypotheses(segs)
+        p = self.params
+        hyps = self._hypotheses(segs, p.max_hypotheses) if p.max_hypotheses > 0 else []
         candidates: list[_Candidate] = []
         claimed = np.zeros(len(segs), dtype=bool)
-        p = self.params
         tested = PoseSet(p.same_pose_m, p.same_pose_rad)
         confident: set[str] = set()
         stream = self._table_stream(segs, K, camera.X_WC, gx, gy)
-        stream += self._index_stream(hyps[: p.max_hypotheses], K, camera.X_WC)
+        stream += self._index_stream(hyps, K, camera.X_WC)
         for model, g_segs, how in stream:
             if p.time_budget_s is not None and time.perf_counter() - t0 > p.time_budget_s:
                 break
@@ -543,8 +543,11 @@ class Recognizer:
         order = order[score[order] >= p.quick_support_min][: p.max_table_hypotheses]
         return [(self.models[int(mod[i])], pairs[i], X_CO[i]) for i in order]
 
-    def _hypotheses(self, segs: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, int]]:
-        """(image group segments, junctions, index entry), most probable first."""
+    def _hypotheses(
+        self, segs: np.ndarray, limit: int | None = None
+    ) -> list[tuple[np.ndarray, np.ndarray, int]]:
+        """(image group segments, junctions, index entry), most probable first; at most
+        ``limit`` of them."""
         groups = group_segments(segs, self.group_params, self.index.params.ratio_weight)
         if len(groups.segs) == 0:
             return []
@@ -572,6 +575,8 @@ class Recognizer:
                 continue
             seen.add(key)
             out.append((groups.segs[g], groups.junctions[g], e))
+            if limit is not None and len(out) >= limit:
+                break
         return out
 
     def _index_stream(self, hyps, K, X_WC) -> list[tuple]:
