@@ -80,3 +80,69 @@ def test_bad_arrays_are_refused() -> None:
         check_grey_image(np.zeros((10, 10), np.float32))
     with pytest.raises(ValueError, match="2-D"):
         check_grey_image(np.zeros((2, 3, 5, 7), np.uint8))
+
+
+def _merge_reference(segs: np.ndarray, params) -> np.ndarray:
+    """The greedy merge one segment at a time, as first written (longest first)."""
+    order = np.argsort(-np.hypot(segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1]))
+    segs = segs[order].copy()
+    alive = np.ones(len(segs), dtype=bool)
+    changed = True
+    while changed:
+        changed = False
+        for i in range(len(segs)):
+            if not alive[i]:
+                continue
+            a, b = segs[i, :2], segs[i, 2:]
+            L = np.linalg.norm(b - a)
+            u = (b - a) / L
+            n = np.array([-u[1], u[0]])
+            others = np.flatnonzero(alive)
+            others = others[others != i]
+            S = segs[others]
+            du = S[:, 2:] - S[:, :2]
+            cosang = np.abs(du @ u) / np.maximum(np.linalg.norm(du, axis=1), 1e-9)
+            off = np.maximum(np.abs((S[:, :2] - a) @ n), np.abs((S[:, 2:] - a) @ n))
+            t0, t1 = (S[:, :2] - a) @ u, (S[:, 2:] - a) @ u
+            gap = np.maximum(np.minimum(t0, t1) - L, -np.maximum(t0, t1))
+            ok = (
+                (cosang > np.cos(params.merge_angle_rad))
+                & (off < params.merge_offset_px)
+                & (gap < params.merge_gap_px)
+            )
+            for j in others[ok]:
+                t = [0.0, L, *((segs[j, :2] - a) @ u, (segs[j, 2:] - a) @ u)]
+                segs[i] = np.concatenate([a + min(t) * u, a + max(t) * u])
+                alive[j] = False
+                changed = True
+                a, b = segs[i, :2], segs[i, 2:]
+                L = np.linalg.norm(b - a)
+    return segs[alive]
+
+
+def test_merge_collinear_equals_the_greedy_merge_one_by_one() -> None:
+    """Pairs tested all at once give exactly the greedy one-at-a-time result, on lines split
+    into fragments (with chains that only join after an earlier merge) among clutter."""
+    from work_site.vision.lines import LineParams, merge_collinear
+
+    params = LineParams()
+    rng = np.random.default_rng(12)
+    for _ in range(20):
+        rows = []
+        for _ in range(6):  # lines broken into 2–5 fragments with small gaps, jittered
+            p = rng.uniform(50, 550, 2)
+            ang = rng.uniform(0, np.pi)
+            u = np.array([np.cos(ang), np.sin(ang)])
+            t = 0.0
+            for _ in range(rng.integers(2, 6)):
+                length = rng.uniform(8, 40)
+                off = rng.normal(0, 0.15, 2)
+                rows.append([*(p + t * u + off[0]), *(p + (t + length) * u + off[1])])
+                t += length + rng.uniform(0.5, 6.0)
+        rows.extend(rng.uniform(0, 600, (30, 4)))  # clutter
+        segs = np.array(rows)
+        merged = merge_collinear(segs, params)
+        expected = _merge_reference(segs, params)
+        assert merged.shape == expected.shape
+        np.testing.assert_allclose(merged, expected, atol=1e-9)
+    assert len(merged) < len(segs)  # merges happened

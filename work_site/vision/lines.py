@@ -162,9 +162,42 @@ def refine_segments(
     return out
 
 
+def _mergeable(segs: np.ndarray, params: LineParams) -> np.ndarray:
+    """(n, n) bool: segment ``j`` may be joined to segment ``i`` (tested in ``i``'s frame:
+    parallel, on its line, and with a small gap), the test :func:`merge_collinear` makes."""
+    a = segs[:, :2]
+    d = segs[:, 2:] - a
+    L = np.linalg.norm(d, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = d / L[:, None]
+    n = np.column_stack([-u[:, 1], u[:, 0]])
+    lo = np.maximum(L, 1e-9)
+    cosang = np.abs(u @ d.T) / lo[None, :]
+    P0 = segs[None, :, :2] - a[:, None, :]  # (i, j, 2)
+    P1 = segs[None, :, 2:] - a[:, None, :]
+    off = np.maximum(
+        np.abs(np.einsum("ijk,ik->ij", P0, n)), np.abs(np.einsum("ijk,ik->ij", P1, n))
+    )
+    t0 = np.einsum("ijk,ik->ij", P0, u)
+    t1 = np.einsum("ijk,ik->ij", P1, u)
+    gap = np.maximum(np.minimum(t0, t1) - L[:, None], -np.maximum(t0, t1))
+    with np.errstate(invalid="ignore"):
+        ok = (
+            (cosang > np.cos(params.merge_angle_rad))
+            & (off < params.merge_offset_px)
+            & (gap < params.merge_gap_px)
+        )
+    np.fill_diagonal(ok, False)
+    return ok
+
+
 def merge_collinear(segs: np.ndarray, params: LineParams) -> np.ndarray:
     """Join segments that lie on one line with a small gap between them (greedy, longest
-    first); the joined segment spans both."""
+    first); the joined segment spans both.
+
+    Each pass first tests all pairs at once (:func:`_mergeable`); a segment is processed one
+    by one only if it has a partner there, or among the segments that grew earlier in the
+    pass (tested afresh). Most segments have no partner, so passes are cheap."""
     if len(segs) < 2:
         return segs
     order = np.argsort(-_lengths(segs))
@@ -173,9 +206,15 @@ def merge_collinear(segs: np.ndarray, params: LineParams) -> np.ndarray:
     changed = True
     while changed:
         changed = False
+        partner = _mergeable(segs, params)
+        grown = np.zeros(len(segs), dtype=bool)
         for i in range(len(segs)):
             if not alive[i]:
                 continue
+            if not (partner[i] & alive & ~grown).any():
+                g = np.flatnonzero(grown & alive)
+                if len(g) == 0 or not _mergeable(segs[np.r_[i, g]], params)[0].any():
+                    continue
             a, b = segs[i, :2], segs[i, 2:]
             L = np.linalg.norm(b - a)
             if L < 1e-9:
@@ -207,6 +246,7 @@ def merge_collinear(segs: np.ndarray, params: LineParams) -> np.ndarray:
                 segs[i] = np.concatenate([a + lo_t * u, a + hi_t * u])
                 alive[j] = False
                 changed = True
+                grown[i] = True
                 a, b = segs[i, :2], segs[i, 2:]
                 L = np.linalg.norm(b - a)
     return segs[alive]
