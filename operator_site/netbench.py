@@ -21,6 +21,11 @@ kinds interleaved sample by sample so they share the same conditions):
   site does) over the same session: median round trip with images minus without.
 - ``link_*``: the same over the emulated link of ``deploy/netns.py`` (default 50 ms each way,
   1 % loss each way): echo process in the work namespace, client in the operator namespace.
+- ``net_frames.*`` (written apart from ``net.json``; ``--net-only-frames`` runs just this):
+  camera frame size on the wire as a knob, per ``--net-frame-encodings`` (raw, png, jpeg:Q):
+  bytes per frame, encode and decode ms, the decoded pixels' error, frames from a real work
+  site on loopback, and over the emulated link (also rate-limited, ``--net-frame-rates-mbit``)
+  fps, latency and the command delay while a real work-site frame streams in that encoding.
 - Every zenoh session here uses two links as the sites do (``protocol.session.link_endpoints``:
   priorities 0-5 on one port, camera frames' 6-7 on the next); ``link_single_*`` repeats the
   link measurements over one link for all priorities, for comparison.
@@ -60,6 +65,7 @@ from protocol import (
     encode,
     key,
     make_config,
+    parse_image_encoding,
 )
 from protocol.session import link_endpoints, split_endpoints
 
@@ -110,22 +116,36 @@ def _tcp_echo_conn(conn: socket.socket) -> None:
 
 
 def _camera_frames(session: zenoh.Session, stop: threading.Event, spec: list[str]) -> None:
-    """Publish raw frames of ``spec = [width, height, rate_hz]`` until ``stop`` is set."""
+    """Publish frames of ``spec = [width, height, rate_hz[, encoding, quality[, image.npy]]]``
+    until ``stop`` is set: random pixels unless an image file is given, ``raw`` unless an
+    encoding is. Each frame is encoded anew (the encoding's CPU cost is part of its latency, as
+    at the work site)."""
     width, height, rate_hz = int(spec[0]), int(spec[1]), float(spec[2])
+    encoding, quality = (spec[3], int(spec[4])) if len(spec) > 4 else ("raw", 90)
     pub = session.declare_publisher(
         key(SITE_ID, "camera"),
         congestion_control=zenoh.CongestionControl.DROP,
         priority=zenoh.Priority.DATA_LOW,
     )
-    rng = np.random.default_rng(0)
-    image = rng.integers(0, 256, (height, width), dtype=np.uint8)
+    if len(spec) > 5:
+        image = np.load(spec[5])
+        height, width = image.shape
+    else:
+        image = np.random.default_rng(0).integers(0, 256, (height, width), dtype=np.uint8)
     K = np.array([[500.0, 0, width / 2], [0, 500.0, height / 2], [0, 0, 1]])
     seq, next_s = 0, time.monotonic()
     while not stop.is_set():
         pub.put(
             encode(
                 CameraFrame(
-                    seq=seq, stamp_s=time.time(), X_WC=np.eye(4), K=K, dist=np.zeros(5), image=image
+                    seq=seq,
+                    stamp_s=time.time(),
+                    X_WC=np.eye(4),
+                    K=K,
+                    dist=np.zeros(5),
+                    image=image,
+                    encoding=encoding,
+                    quality=quality,
                 )
             )
         )
@@ -292,8 +312,7 @@ def _image_phase(client: _Client, args: argparse.Namespace) -> dict[str, Any]:
             seqs.append(frame.seq)
 
     threading.Thread(target=_quietly, args=(frames,), daemon=True).start()
-    width, height, rate = args.frame.split(":")
-    client.control.put(f"camera on {width} {height} {rate}".encode())
+    client.control.put(("camera on " + " ".join(args.frame.split(":"))).encode())
     time.sleep(2.0)  # let the stream reach its steady state
     n0, t0 = len(seqs), time.monotonic()
     with_images = [client.command_rtt(1_000_000 + i) for i in range(args.image_count)]
@@ -403,11 +422,25 @@ def measure_pair(
         _stop(echo)
 
 
-def measure_work_site(seconds: float, program_samples: int) -> dict[str, Any]:
-    """A real ``work-site serve`` on loopback: camera frames, and a program's refusal round trip."""
+def measure_work_site(
+    seconds: float, program_samples: int, encoding: str | None = None
+) -> dict[str, Any]:
+    """A real ``work-site serve`` on loopback: camera frames (in ``encoding``, default the work
+    site's), and a program's refusal round trip; ``last_image`` is the last frame's pixels."""
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    extra = ["--camera-encoding", encoding] if encoding else []
     proc = subprocess.Popen(
-        [sys.executable, "-m", "work_site", "serve", "--listen", endpoint, "--site-id", SITE_ID],
+        [
+            sys.executable,
+            "-m",
+            "work_site",
+            "serve",
+            "--listen",
+            endpoint,
+            "--site-id",
+            SITE_ID,
+            *extra,
+        ],
         cwd=REPO,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -433,6 +466,7 @@ def measure_work_site(seconds: float, program_samples: int) -> dict[str, Any]:
                 frame = decode(cam.handler.recv().payload.to_bytes(), CameraFrame)
                 latencies.append((time.time() - frame.stamp_s) * 1000.0)
             fps = len(latencies) / (time.monotonic() - t0)
+            last_image = frame.image
             # Unsafe (the gripper would go to the robot's base): refused, never run.
             command = MotionCommand(
                 kind="move", X_WP=np.eye(4), speed_mps=0.05, force_limit_n=10.0, contacts=()
@@ -457,7 +491,12 @@ def measure_work_site(seconds: float, program_samples: int) -> dict[str, Any]:
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    return {"frame_fps": fps, "frame_latency_ms": latencies, "site_program_reply_ms": replies}
+    return {
+        "frame_fps": fps,
+        "frame_latency_ms": latencies,
+        "site_program_reply_ms": replies,
+        "last_image": last_image,
+    }
 
 
 def codec_cpu_us_per_round_trip(n: int = 5000) -> float:
@@ -482,6 +521,214 @@ def codec_cpu_us_per_round_trip(n: int = 5000) -> float:
     for _ in range(n):
         cycle()
     return (time.perf_counter() - t) / n * 1e6
+
+
+def codec_costs(image: np.ndarray, spec: str, n: int = 30) -> dict[str, float]:
+    """One camera frame in encoding ``spec`` (``raw``, ``png``, ``jpeg:Q``), in-process: bytes of
+    the whole encoded message, median ms to encode it (``protocol.encode``) and to decode and
+    validate it (``protocol.decode``), and the decoded pixels' error (grey levels)."""
+    from models.scene import load_scene
+
+    cam = load_scene().camera
+    encoding, quality = parse_image_encoding(spec)
+    msg = CameraFrame(
+        seq=0,
+        stamp_s=time.time(),
+        X_WC=cam.X_WC,
+        K=cam.K,
+        dist=cam.dist,
+        image=image,
+        encoding=encoding,
+        quality=quality,
+    )
+    encode_s, decode_s = [], []
+    for _ in range(n):
+        t = time.perf_counter()
+        payload = encode(msg)
+        encode_s.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        out = decode(payload, CameraFrame)
+        decode_s.append(time.perf_counter() - t)
+    err = np.abs(out.image.astype(np.int16) - image)
+    return {
+        "bytes_per_frame": len(payload),
+        "encode_ms": statistics.median(encode_s) * 1000.0,
+        "decode_ms": statistics.median(decode_s) * 1000.0,
+        "mean_abs_error_grey": float(err.mean()),
+        "max_abs_error_grey": int(err.max()),
+    }
+
+
+def measure_frames(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Camera frame size on the wire as a knob: each of ``--net-frame-encodings`` measured
+    (1) in-process on a real work-site frame (bytes, encode and decode ms, error), (2) from a
+    real ``work-site serve --camera-encoding`` on loopback (fps, latency), and (3) over the
+    emulated link (``--net-link-*``; and again at each ``--net-frame-rates-mbit``): the echo
+    process publishes that real frame in the encoding at the camera's rate while commands run
+    (fps, latency, and how much the stream delays commands). One row per encoding and link."""
+    import tempfile
+
+    from models.scene import load_scene
+
+    specs = [s.strip() for s in args.net_frame_encodings.split(",") if s.strip()]
+    for spec in specs:
+        parse_image_encoding(spec)  # a typo fails now, not after minutes of measuring
+    cam = load_scene().camera
+    rows: list[dict[str, Any]] = []
+    site: dict[str, dict[str, Any]] = {}
+    for spec in specs:
+        print(f"netbench: frames: a real work site sending {spec} frames...", flush=True)
+        site[spec] = measure_work_site(args.net_frame_seconds, 0, encoding=spec)
+    raw = [s for s in specs if s == "raw"]
+    image = (
+        site[raw[0]]["last_image"]
+        if raw
+        else measure_work_site(3.0, 0, encoding="raw")["last_image"]
+    )
+    for spec in specs:
+        fps, lat = site[spec]["frame_fps"], site[spec]["frame_latency_ms"]
+        med, p99 = _summary(lat)
+        rows.append(
+            {
+                "encoding": spec,
+                "link": "loopback, real work site",
+                **codec_costs(image, spec),
+                "frame_fps": fps,
+                "frame_latency_ms_median": med,
+                "frame_latency_ms_p99": p99,
+                "command_delay_by_images_ms": None,  # no commands to a real work site here
+            }
+        )
+    if args.net_no_link:
+        return rows
+    netns = _load_netns()
+    reason = netns.unavailable_reason()
+    if reason is not None:
+        print(f"netbench: frames over the emulated link skipped: {reason}", flush=True)
+        return rows
+    costs = {r["encoding"]: r for r in rows}
+    base = {
+        "delay_ms": args.net_link_delay_ms,
+        "loss": args.net_link_loss,
+        "seed": args.net_link_seed,
+    }
+    rates = [float(r) for r in args.net_frame_rates_mbit.split(",") if r.strip()]
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        netns.emulated_link(prefix="trframe", **base) as link,
+    ):
+        path = Path(tmp) / "frame.npy"
+        np.save(path, image)
+        for i, rate in enumerate(rates):
+            if i > 0 or rate > 0:
+                link.reconfigure(**base, rate_mbit=rate)
+            name = f"{base['delay_ms']:g} ms + {base['loss'] * 100:g} % loss" + (
+                f", {rate:g} Mbit/s" if rate > 0 else ""
+            )
+            for spec in specs:
+                print(f"netbench: frames: {spec} over the emulated link ({name})...", flush=True)
+                encoding, quality = parse_image_encoding(spec)
+                frame = f"{cam.width}:{cam.height}:{cam.frame_rate_hz}:{encoding}:{quality}:{path}"
+                res = measure_pair(
+                    ["ip", "netns", "exec", link.pair.work],
+                    ["ip", "netns", "exec", link.pair.ops],
+                    netns.WORK_ADDR,
+                    0,
+                    frame,
+                    args.net_frame_link_commands,
+                    3600,
+                    split=True,
+                )
+                med, p99 = _summary(res["frame_latency_ms"])
+                delay = statistics.median(res["command_with_images"]) - statistics.median(
+                    res["command_without_images"]
+                )
+                rows.append(
+                    {
+                        **{k: costs[spec][k] for k in CODEC_COLUMNS},
+                        "encoding": spec,
+                        "link": name,
+                        "frame_fps": res["frame_fps"],
+                        "frame_latency_ms_median": med,
+                        "frame_latency_ms_p99": p99,
+                        "command_delay_by_images_ms": delay,
+                    }
+                )
+    return rows
+
+
+CODEC_COLUMNS = (
+    "bytes_per_frame",
+    "encode_ms",
+    "decode_ms",
+    "mean_abs_error_grey",
+    "max_abs_error_grey",
+)
+FRAME_COLUMNS = (
+    "encoding",
+    "link",
+    "bytes_per_frame",
+    "encode_ms",
+    "decode_ms",
+    "mean_abs_error_grey",
+    "max_abs_error_grey",
+    "frame_fps",
+    "frame_latency_ms_median",
+    "frame_latency_ms_p99",
+    "command_delay_by_images_ms",
+)
+
+
+def write_frame_outputs(out: Path, rows: list[dict[str, Any]]) -> None:
+    """``net_frames.csv`` and ``net_frames.json`` (one row per encoding and link),
+    ``net_frames.png`` (bytes per frame, codec time, latency by link)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "net_frames.json").write_text(json.dumps(rows, indent=2) + "\n")
+    with (out / "net_frames.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=FRAME_COLUMNS)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow(
+                {k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in row.items()}
+            )
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("netbench: matplotlib missing (pip install -e '.[bench]'): no plot", flush=True)
+        return
+    specs = list(dict.fromkeys(r["encoding"] for r in rows))
+    links = list(dict.fromkeys(r["link"] for r in rows))
+    first = {s: next(r for r in rows if r["encoding"] == s) for s in specs}
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4))
+    x = np.arange(len(specs))
+    axes[0].bar(x, [first[s]["bytes_per_frame"] / 1000.0 for s in specs])
+    axes[0].set_ylabel("kB per frame (whole message)")
+    axes[0].set_title("frame size on the wire")
+    axes[1].bar(x - 0.2, [first[s]["encode_ms"] for s in specs], 0.4, label="encode")
+    axes[1].bar(x + 0.2, [first[s]["decode_ms"] for s in specs], 0.4, label="decode + check")
+    axes[1].set_ylabel("ms per frame")
+    axes[1].set_title("codec time (one core)")
+    axes[1].legend(fontsize=8)
+    width = 0.8 / max(1, len(links))
+    for j, link_name in enumerate(links):
+        lat = [
+            next((r["frame_latency_ms_median"] for r in rows
+                  if r["encoding"] == s and r["link"] == link_name), np.nan)
+            for s in specs
+        ]  # fmt: skip
+        axes[2].bar(x - 0.4 + width * (j + 0.5), lat, width, label=link_name)
+    axes[2].set_ylabel("frame latency, median (ms)")
+    axes[2].set_title("capture → decoded at the operator")
+    axes[2].legend(fontsize=7)
+    for ax in axes:
+        ax.set_xticks(x, specs)
+        ax.grid(True, axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "net_frames.png", dpi=100)
+    plt.close(fig)
 
 
 def _frame_spec(args: argparse.Namespace) -> str:
@@ -695,6 +942,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--net-link-count", type=int, default=500, help="round trips per kind over the link"
     )
     g.add_argument(
+        "--net-frame-encodings",
+        default="raw,png,jpeg:90",
+        metavar="LIST",
+        help="camera encodings to compare, as work-site serve --camera-encoding takes them "
+        "(default: %(default)s)",
+    )
+    g.add_argument(
+        "--net-frame-rates-mbit",
+        default="0,10",
+        metavar="LIST",
+        help="link rate limits (Mbit/s, 0: none) to compare the encodings over, on top of "
+        "--net-link-delay-ms and --net-link-loss (default: %(default)s)",
+    )
+    g.add_argument(
+        "--net-frame-link-commands",
+        type=int,
+        default=100,
+        help="command round trips with and without each encoding's frames over the link",
+    )
+    g.add_argument(
+        "--net-only-frames",
+        action="store_true",
+        help="measure only the camera encodings (net_frames.*), not the round trips (net.json)",
+    )
+    g.add_argument(
+        "--net-no-frames", action="store_true", help="skip the camera encodings' comparison"
+    )
+    g.add_argument(
         "--net-link-image-count",
         type=int,
         default=200,
@@ -719,12 +994,28 @@ def main(args: argparse.Namespace) -> int:
     if args.role == "client":
         print(json.dumps(run_client(args)), flush=True)
         return 0
-    summary, samples = run(args)
-    write_outputs(args.out, summary, samples)
-    for name, value in summary.items():
-        if isinstance(value, float):
-            print(f"  {name:48s} {value:10.3f}")
-    print(f"netbench: wrote {args.out}/net.json, net_samples.csv, net_rtt.png", flush=True)
+    summary: dict[str, Any] = {}
+    if not args.net_only_frames:
+        summary, samples = run(args)
+        write_outputs(args.out, summary, samples)
+        for name, value in summary.items():
+            if isinstance(value, float):
+                print(f"  {name:48s} {value:10.3f}")
+        print(f"netbench: wrote {args.out}/net.json, net_samples.csv, net_rtt.png", flush=True)
+    if not args.net_no_frames:
+        rows = measure_frames(args)
+        write_frame_outputs(args.out, rows)
+        print(f"  {'encoding':10s} {'link':34s} {'kB':>7s} {'enc ms':>7s} {'dec ms':>7s} "
+              f"{'fps':>5s} {'lat ms':>7s} {'p99 ms':>7s} {'cmd +ms':>7s}")  # fmt: skip
+        for r in rows:
+            print(
+                f"  {r['encoding']:10s} {r['link']:34s} {r['bytes_per_frame'] / 1000:7.1f} "
+                f"{r['encode_ms']:7.2f} {r['decode_ms']:7.2f} {r['frame_fps']:5.2f} "
+                f"{r['frame_latency_ms_median']:7.1f} {r['frame_latency_ms_p99']:7.1f} "
+                + (f"{d:7.1f}" if (d := r["command_delay_by_images_ms"]) is not None else "      -")
+            )
+        print(f"netbench: wrote {args.out}/net_frames.csv, net_frames.json, net_frames.png")
+        summary["frames"] = rows
     print(json.dumps(summary), flush=True)
     return 0
 

@@ -4,6 +4,7 @@ zenoh session configuration. See ``protocol/README.md`` for frames, units and th
 from ._spec import HOMOGENEOUS_ROW_TOL, ROTATION_ORTHONORMAL_TOL, UNIT_NORMAL_TOL
 from .codec import MAX_PAYLOAD_BYTES, decode, encode
 from .errors import ProtocolError
+from .images import IMAGE_ENCODINGS, decode_image, encode_image, parse_image_encoding
 from .keys import (
     DEFAULT_SITE_ID,
     KEY_PREFIX,
@@ -44,6 +45,7 @@ __all__ = [
     "DEFAULT_SITE_ID",
     "DEFAULT_WORK_SITE_ENDPOINT",
     "HOMOGENEOUS_ROW_TOL",
+    "IMAGE_ENCODINGS",
     "KEY_PREFIX",
     "MAX_PAYLOAD_BYTES",
     "MESSAGE_TYPES",
@@ -72,9 +74,12 @@ __all__ = [
     "alive_key",
     "check_site_id",
     "decode",
+    "decode_image",
     "encode",
+    "encode_image",
     "key",
     "make_config",
     "operator_site_config",
+    "parse_image_encoding",
     "work_site_config",
 ]

@@ -99,6 +99,16 @@ class ArrayField:
 
 
 @dataclass(frozen=True)
+class ImageField(ArrayField):
+    """A grey image, an :class:`ArrayField` of uint8 (h, w) in memory, whose wire form is the
+    image in the encoding named by the record's ``encoding_field`` (``protocol/images.py``),
+    with the JPEG quality in its ``quality_field``."""
+
+    encoding_field: str = "encoding"
+    quality_field: str = "quality"
+
+
+@dataclass(frozen=True)
 class NestedField:
     """One nested record of class ``cls``."""
 
@@ -114,7 +124,7 @@ class TupleField:
     max_len: int
 
 
-Field = IntField | FloatField | StrField | ArrayField | NestedField | TupleField
+Field = IntField | FloatField | StrField | ArrayField | ImageField | NestedField | TupleField
 
 FLOAT64 = np.dtype("<f8")
 UINT8 = np.dtype("u1")

@@ -20,6 +20,7 @@ import numpy as np
 from ._spec import (
     ArrayField,
     Field,
+    ImageField,
     NestedField,
     Record,
     TupleField,
@@ -28,6 +29,7 @@ from ._spec import (
     type_name,
 )
 from .errors import ProtocolError
+from .images import decode_image, encode_image
 from .messages import MESSAGE_TYPES, SCHEMA_VERSION, Message
 
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
@@ -62,7 +64,11 @@ def _to_wire(record: Record) -> dict[str, Any]:
     body: dict[str, Any] = {}
     for name, field in type(record)._SPEC.items():
         value = getattr(record, name)
-        if isinstance(field, ArrayField):
+        if isinstance(field, ImageField):
+            encoding = getattr(record, field.encoding_field)
+            quality = getattr(record, field.quality_field)
+            body[name] = [list(value.shape), encode_image(value, encoding, quality)]
+        elif isinstance(field, ArrayField):
             body[name] = _array_to_wire(value, field)
         elif isinstance(field, NestedField):
             body[name] = _to_wire(value)
@@ -96,7 +102,7 @@ def encode(msg: Message) -> bytes:
 # ------------------------------------------------------------------------------------ decode
 
 
-def _array_from_wire(field: ArrayField, value: Any, where: str) -> np.ndarray:
+def _wire_shape_and_data(field: ArrayField, value: Any, where: str) -> tuple[list[int], Any]:
     if not isinstance(value, list) or len(value) != 2:
         raise ProtocolError(f"{where}: expected array as [shape, data], got {type_name(value)}")
     shape, data = value
@@ -111,6 +117,19 @@ def _array_from_wire(field: ArrayField, value: Any, where: str) -> np.ndarray:
         raise ProtocolError(f"{where}: expected shape {field.shape_text()}, got {tuple(shape)}")
     if not isinstance(data, bytes):
         raise ProtocolError(f"{where}: array data must be bytes, got {type_name(data)}")
+    return shape, data
+
+
+def _image_from_wire(field: ImageField, value: Any, encoding: str, where: str) -> np.ndarray:
+    shape, data = _wire_shape_and_data(field, value, where)
+    try:
+        return decode_image(data, encoding, (shape[0], shape[1]))
+    except ProtocolError as e:
+        raise ProtocolError(f"{where}: {e}") from None
+
+
+def _array_from_wire(field: ArrayField, value: Any, where: str) -> np.ndarray:
+    shape, data = _wire_shape_and_data(field, value, where)
     expected_len = int(np.prod(shape, dtype=np.int64)) * field.dtype.itemsize
     if len(data) != expected_len:
         raise ProtocolError(
@@ -134,7 +153,13 @@ def _record_from_wire(cls: type, body: Any, where: str) -> Any:
     for name, field in spec.items():
         value = body[name]
         field_where = f"{where}.{name}"
-        if isinstance(field, ArrayField):
+        if isinstance(field, ImageField):
+            encoding_spec = spec[field.encoding_field]
+            encoding = check_field(
+                encoding_spec, body[field.encoding_field], f"{where}.{field.encoding_field}"
+            )
+            value = _image_from_wire(field, value, encoding, field_where)
+        elif isinstance(field, ArrayField):
             value = _array_from_wire(field, value, field_where)
         elif isinstance(field, NestedField):
             value = _record_from_wire(field.cls, value, field_where)

@@ -20,6 +20,7 @@ from ._spec import (
     ArrayField,
     Field,
     FloatField,
+    ImageField,
     IntField,
     Record,
     StrField,
@@ -29,9 +30,11 @@ from ._spec import (
     check_spec_matches_fields,
     check_unit_rows,
 )
+from .images import DEFAULT_JPEG_QUALITY, IMAGE_ENCODINGS
 
-SCHEMA_VERSION = 1
-"""Version of the wire schema; bump on any incompatible change to a message."""
+SCHEMA_VERSION = 2
+"""Version of the wire schema; bump on any incompatible change to a message.
+2: ``CameraFrame`` carries its image's ``encoding`` and ``quality``."""
 
 MAX_NAME_LEN = 256
 """Longest name or id (characters)."""
@@ -88,6 +91,11 @@ class CameraFrame(Message):
 
     ``X_WC``: camera pose (C: OpenCV, x right, y down, z forward); ``K`` (3, 3) intrinsics in
     pixels; ``dist`` (5,) OpenCV distortion ``[k1, k2, p1, p2, k3]``; ``image`` (h, w) uint8.
+
+    ``encoding`` is how ``image`` travels on the wire (:data:`~protocol.images.IMAGE_ENCODINGS`:
+    ``raw``, ``png`` lossless, ``jpeg`` lossy at ``quality`` 1..100, which the other encodings
+    ignore). In memory ``image`` is always the decoded pixels: a decoded ``jpeg`` frame holds what
+    the JPEG decoder gave, not the sender's original.
     """
 
     TYPE: ClassVar[str] = "camera_frame"
@@ -97,7 +105,9 @@ class CameraFrame(Message):
         "X_WC": _POSE,
         "K": ArrayField(((3, 3), (3, 3)), FLOAT64, check_camera_matrix),
         "dist": ArrayField(((5, 5),), FLOAT64),
-        "image": ArrayField(((1, MAX_IMAGE_SIDE), (1, MAX_IMAGE_SIDE)), UINT8),
+        "image": ImageField(((1, MAX_IMAGE_SIDE), (1, MAX_IMAGE_SIDE)), UINT8),
+        "encoding": StrField(16, choices=IMAGE_ENCODINGS),
+        "quality": IntField(1, 101),
     }
 
     seq: int
@@ -106,6 +116,8 @@ class CameraFrame(Message):
     K: np.ndarray
     dist: np.ndarray
     image: np.ndarray
+    encoding: str = "raw"
+    quality: int = DEFAULT_JPEG_QUALITY
 
 
 # ---------------------------------------------------------------------------- recognitions

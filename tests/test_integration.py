@@ -7,6 +7,7 @@ import signal
 import time
 import urllib.request
 
+import msgpack
 import numpy as np
 import pytest
 import zenoh
@@ -16,7 +17,7 @@ from models.scene import load_scene
 from models.transforms import make_pose, rpy_to_R
 from operator_site.link import WorkSiteLink
 from operator_site.ui import OperatorPage
-from protocol import MotionCommand, MotionProgram, key, make_config
+from protocol import MotionCommand, MotionProgram, encode, key, make_config
 from tests.conftest import free_port, wait_until
 
 pytestmark = pytest.mark.integration
@@ -65,6 +66,7 @@ def test_client_receives_state_and_frames_then_sees_the_server_die(work_site, li
     q_home = load_scene().robot.q_home_rad
     np.testing.assert_allclose(states[-1].q, q_home, atol=1e-3)
     frame = frames[-1]
+    assert frame.encoding == "jpeg"  # the default for a remote operator
     assert frame.image.shape == (480, 640) and frame.image.dtype == np.uint8
     assert frame.image.std() > 10
     np.testing.assert_allclose(frame.X_WC, load_scene().camera.X_WC)
@@ -75,6 +77,35 @@ def test_client_receives_state_and_frames_then_sees_the_server_die(work_site, li
         lambda: (link.poll(), not link.status.work_site_alive)[1], LIVELINESS_TIMEOUT_S
     ), "liveliness did not go down after SIGKILL"
     assert link.status.label == "not connected"
+
+
+@pytest.mark.parametrize("encoding", ["raw", "png", "jpeg:75"])
+def test_frames_arrive_in_the_encoding_the_work_site_was_given(work_site, link_to, encoding):
+    ws = work_site("--camera-encoding", encoding)
+    link = link_to(ws)
+    assert wait_until(lambda: (link.poll(), link.camera_frame is not None)[1], STARTUP_TIMEOUT_S), (
+        ws.log()
+    )
+    frame = link.camera_frame
+    name, _, quality = encoding.partition(":")
+    assert frame.encoding == name
+    if quality:
+        assert frame.quality == int(quality)
+    assert frame.image.shape == (480, 640) and frame.image.dtype == np.uint8
+    assert frame.image.std() > 10  # a real picture, not a blank
+    assert link.status.rejected == 0
+    # A frame whose image is not what its encoding says is refused by the link, counted, and
+    # the last good frame stays; the next good one still arrives.
+    env = msgpack.unpackb(encode(frame), raw=False)
+    for i, wrong in enumerate(("png" if name != "png" else "jpeg", "gif")):
+        env["b"]["encoding"] = wrong  # one at a time: the link's camera ring keeps the newest
+        link.session.put(key(ws.site_id, "camera"), msgpack.packb(env, use_bin_type=True))
+        assert wait_until(lambda i=i: (link.poll(), link.status.rejected == i + 1)[1], 5.0)
+        assert link.camera_frame.image.std() > 10
+    seq = link.camera_frame.seq
+    assert wait_until(lambda: (link.poll(), link.camera_frame.seq > seq)[1], STARTUP_TIMEOUT_S)
+    assert link.camera_frame.encoding == name
+    assert ws.proc.poll() is None
 
 
 def test_bad_payloads_are_refused_and_the_server_keeps_running(work_site, link_to) -> None:

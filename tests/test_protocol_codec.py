@@ -709,7 +709,10 @@ def test_random_structured_bodies_only_raise_protocol_error(tag: str, body: Any)
 def test_msgpack_extensions_and_non_string_keys_are_rejected() -> None:
     reject(pack(msgpack.ExtType(1, b"abc")), "not a valid msgpack document")
     reject(pack({1: 2}), "not a valid msgpack document")
-    reject(pack({"t": "stop", "v": 1, "b": {"reason": "x", "stamp_s": 0.0}}) + b"\x00", "msgpack")
+    reject(
+        pack({"t": "stop", "v": SCHEMA_VERSION, "b": {"reason": "x", "stamp_s": 0.0}}) + b"\x00",
+        "msgpack",
+    )
     reject(pack([1, 2, 3]), "envelope: expected a map")
     reject("not bytes", "payload: expected bytes")
     # A header claiming 2**32 - 1 array items must not allocate them.
@@ -761,5 +764,5 @@ def test_error_messages_name_the_field() -> None:
     stop["b"]["reason"] = msgpack.ExtType(0, b"")
     reject(pack(stop), "not a valid msgpack document")
     # invalid UTF-8 inside a msgpack str
-    raw = pack({"t": "stop", "v": 1, "b": {"reason": "ab", "stamp_s": 0.0}})
+    raw = pack({"t": "stop", "v": SCHEMA_VERSION, "b": {"reason": "ab", "stamp_s": 0.0}})
     reject(raw.replace(b"\xa2ab", b"\xa2\xff\xfe"), "not a valid msgpack document")

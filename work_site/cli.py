@@ -2,6 +2,7 @@
 
 work-site serve [--scene FILE] [--site-id ID] [--listen ENDPOINT] [--connect ENDPOINT]
                 [--single-link] [--certs DIR [--operators CN ...]] [--insecure]
+                [--camera-encoding raw|png|jpeg[:QUALITY]]
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from models.errors import ModelError
 from models.layout import perturbed_camera_pose, random_layout
 from models.scene import DEFAULT_SCENE, load_scene
 from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError, make_config
+from protocol.images import DEFAULT_JPEG_QUALITY, parse_image_encoding
 from protocol.keys import check_site_id
 from protocol.session import (
     TlsFiles,
@@ -164,6 +166,15 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         "default: %(default)s)",
     )
     parser.add_argument(
+        "--camera-encoding",
+        default="jpeg",
+        metavar="raw|png|jpeg[:QUALITY]",
+        help="how camera frames travel to operators (vision here always uses the uncompressed "
+        "frame): raw (308 kB a 640×480 frame), png (lossless, 133 kB), jpeg at QUALITY 1..100 "
+        f"(default {DEFAULT_JPEG_QUALITY}: 12 kB, within the sensor noise; docs/benchmarks.md) "
+        "(default: %(default)s)",
+    )
+    parser.add_argument(
         "--camera-noise",
         type=float,
         default=1.0,
@@ -247,7 +258,10 @@ def serve(args: argparse.Namespace) -> int:
                 ),
             )
             camera_X_WC = tuple(map(tuple, perturbed_camera_pose(scene.camera.X_WC, args.seed)))
+        camera_encoding, camera_quality = parse_image_encoding(args.camera_encoding)
         options = ServerOptions(
+            camera_encoding=camera_encoding,
+            camera_quality=camera_quality,
             camera_X_WC=camera_X_WC,
             time_scale=args.time_scale,
             surface_stiffness_n_per_m=args.surface_stiffness,

@@ -23,6 +23,7 @@ from models.robot import load_robot
 from models.scene import Scene
 from protocol import (
     DEFAULT_SITE_ID,
+    IMAGE_ENCODINGS,
     CameraFrame,
     ExecutionReport,
     Heartbeat,
@@ -39,6 +40,7 @@ from protocol import (
     encode,
     key,
 )
+from protocol.images import DEFAULT_JPEG_QUALITY
 from work_site.camera import CameraProcess, RenderRequest
 from work_site.control.controller import CONTROL_PERIOD_S, Impedance, TaskController
 from work_site.control.executor import Execution, check_program
@@ -115,6 +117,14 @@ class ServerOptions:
     (vision finds nothing in aliased 1× renders; see docs/benchmarks.md)."""
     camera_noise_grey: float = 1.0
     """Sensor noise added to each pixel (standard deviation, grey levels)."""
+    camera_encoding: str = "jpeg"
+    """How camera frames travel to operators: ``raw``, ``png`` or ``jpeg`` (protocol/images.py).
+    Vision always works on the uncompressed frame, here. JPEG by default: at quality 80 a frame
+    is 25× smaller than raw, differs from it by less than the sensor's own noise, and reaches
+    an operator 50 ms away in a third of raw's time (docs/benchmarks.md, "Camera frames on the
+    wire")."""
+    camera_quality: int = DEFAULT_JPEG_QUALITY
+    """JPEG quality 1..100 (with ``camera_encoding="jpeg"``)."""
     camera_X_WC: tuple | None = None
     """Where the camera really is (4×4 nested tuples), when not where its calibration says:
     frames are rendered from here, vision still uses the calibrated model."""
@@ -142,6 +152,12 @@ class ServerOptions:
             raise ValueError("heartbeat_rate_hz must be in (0, 100]")
         if self.camera_supersample < 1:
             raise ValueError("camera_supersample must be ≥ 1")
+        if self.camera_encoding not in IMAGE_ENCODINGS:
+            raise ValueError(
+                f"camera_encoding must be one of {IMAGE_ENCODINGS}, got {self.camera_encoding!r}"
+            )
+        if not 1 <= self.camera_quality <= 100:
+            raise ValueError(f"camera_quality must be in 1..100, got {self.camera_quality}")
         if not 0.0 <= self.camera_noise_grey <= 64.0:
             raise ValueError(f"camera_noise_grey must be in [0, 64], got {self.camera_noise_grey}")
         k = self.surface_stiffness_n_per_m
@@ -291,10 +307,13 @@ class WorkSiteServer:
                                     K=cam.K,
                                     dist=cam.dist,
                                     image=image,
+                                    encoding=opts.camera_encoding,
+                                    quality=opts.camera_quality,
                                 )
                             )
                         )
                         self.stats["frames"] += 1
+                        # Vision gets the renderer's pixels, never the wire's (possibly JPEG).
                         self._recognise(seq, stamp, image, elapsed)
                     if elapsed >= next_frame_s and not camera.busy:
                         q, fingers = world.robot_joint_positions()
