@@ -70,6 +70,8 @@ class LinkStatus:
     last_frame_age_s: float | None = None
     rejected: int = 0
     reports: list[ExecutionReport] = field(default_factory=list)
+    """The last 100 reports, each once; a program's reports in the order the work site sent
+    them (by their stamps), also when its replay of earlier ones arrives after newer ones."""
 
     @property
     def label(self) -> str:
@@ -189,8 +191,19 @@ class WorkSiteLink:
         self._seen_order.append(ident)
         if len(self._seen_order) > REMEMBERED_REPORTS:
             self._seen_reports.discard(self._seen_order.popleft())
-        self.status.reports.append(msg)
-        del self.status.reports[:-100]
+        # Each program's reports in the work site's order (their stamps), whatever the arrival
+        # order: an operator that comes back mid-program hears newer reports live before the
+        # work site's replay of the earlier ones answers its re-send.
+        reports = self.status.reports
+        later = next(
+            (i for i, r in enumerate(reports) if r.program_id == pid and r.stamp_s > msg.stamp_s),
+            None,
+        )
+        if later is None:
+            reports.append(msg)
+        else:
+            reports.insert(later, msg)
+        del reports[:-100]
 
     def send_program(self, program: MotionProgram) -> None:
         """Publish a motion program to the work site; sent again (same id) every

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
+import subprocess
+import sys
 import time
 import urllib.request
 
@@ -18,7 +21,7 @@ from models.transforms import make_pose, rpy_to_R
 from operator_site.link import WorkSiteLink
 from operator_site.ui import OperatorPage
 from protocol import MotionCommand, MotionProgram, encode, key, make_config
-from tests.conftest import free_port, wait_until
+from tests.conftest import REPO, free_port, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -363,3 +366,74 @@ def test_a_work_site_restarted_mid_program_never_runs_it_twice(work_site, link_t
     assert "restarted during this program" in reports_of(link, "slow")[-1].message
     assert link.pending_programs() == []
     assert "program slow received again" in again.log()
+
+
+def _operator_process(ws, program_id: str, *args: str) -> subprocess.Popen:
+    """A real operator process (tests/operator_process.py) sending a program of moves."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "tests.operator_process", ws.endpoint, ws.site_id, program_id,
+         *args],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )  # fmt: skip
+
+
+def _read_lines(proc: subprocess.Popen, until, timeout_s: float) -> list[dict]:
+    """JSON lines of ``proc``'s output until ``until(line)`` holds (or it ends)."""
+    lines: list[dict] = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        text = proc.stdout.readline()
+        if not text:
+            break
+        lines.append(json.loads(text))
+        if until(lines[-1]):
+            break
+    return lines
+
+
+def test_an_operator_killed_mid_program_and_restarted_loses_nothing(work_site) -> None:
+    """The operator's process dies (SIGKILL) while its program runs; a new process sends the
+    same program id: the work site runs it once, and the new process gets every report in
+    order through the end."""
+    ws = work_site("--no-camera")
+    points = ("0.40,-0.1,0.15", "0.45,-0.1,0.12", "0.45,0.0,0.12", "0.40,0.05,0.15")
+    first = _operator_process(ws, "relay", *points)
+    try:
+        seen = _read_lines(first, lambda ln: (ln.get("i"), ln.get("status")) == (1, "started"), 60)
+        assert [(ln["i"], ln["status"]) for ln in seen][-1] == (1, "started"), (seen, ws.log())
+        first.kill()  # SIGKILL: no goodbye, no undeclaring
+        first.wait()
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+        first.stdout.close()
+    # The new process sends once it has heard a live report of the program, the worst case:
+    # the work site's replay of the earlier reports then arrives after a newer one.
+    second = _operator_process(ws, "relay", "--send-after-a-report", *points)
+    try:
+        lines = _read_lines(second, lambda ln: "end" in ln or "error" in ln, 120)
+    finally:
+        if second.poll() is None:
+            second.kill()
+        second.wait()
+        second.stdout.close()
+    assert lines and lines[-1].get("end"), (lines, ws.log())
+    expected = [[-1, "accepted"]]
+    for i in range(len(points)):
+        expected += [[i, "started"], [i, "done"]]
+    expected.append([-1, "done"])
+    assert lines[-1]["reports"] == expected, (lines, ws.log())
+    assert lines[-1]["pending"] == []
+    # Every report arrived in the new process, none twice.
+    received = [[ln["i"], ln["status"]] for ln in lines[:-1]]
+    assert sorted(received) == sorted(expected)
+    # Run once: accepted once, started once per command; the second copy was answered from
+    # the reports kept.
+    log = ws.log()
+    assert log.count("program relay command -1: accepted") == 1, log
+    assert log.count("program relay command 0: started") == 1, log
+    assert "program relay received again" in log
