@@ -175,9 +175,7 @@ def _mergeable(segs: np.ndarray, params: LineParams) -> np.ndarray:
     cosang = np.abs(u @ d.T) / lo[None, :]
     P0 = segs[None, :, :2] - a[:, None, :]  # (i, j, 2)
     P1 = segs[None, :, 2:] - a[:, None, :]
-    off = np.maximum(
-        np.abs(np.einsum("ijk,ik->ij", P0, n)), np.abs(np.einsum("ijk,ik->ij", P1, n))
-    )
+    off = np.maximum(np.abs(np.einsum("ijk,ik->ij", P0, n)), np.abs(np.einsum("ijk,ik->ij", P1, n)))
     t0 = np.einsum("ijk,ik->ij", P0, u)
     t1 = np.einsum("ijk,ik->ij", P1, u)
     gap = np.maximum(np.minimum(t0, t1) - L[:, None], -np.maximum(t0, t1))
