@@ -133,3 +133,30 @@ def test_initial_poses_undo_a_known_image_similarity() -> None:
         np.testing.assert_array_equal(
             initial_pose(R_view[k], canonical[k], image[k], K, params), X[k]
         )
+
+
+def test_match_segments_pairs_each_image_line_with_its_own_edge() -> None:
+    """Parts of edges, shifted less than the tolerance, match their own edge; lines turned
+    beyond the angle, shifted beyond the tolerance or mostly off the edge do not."""
+    from work_site.vision.recognizer import match_segments
+
+    rng = np.random.default_rng(7)
+    model = np.column_stack([rng.uniform(50, 550, (12, 2)), rng.uniform(50, 550, (12, 2))])
+    a, b = model[:, :2], model[:, 2:]
+    u = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+    n = np.column_stack([-u[:, 1], u[:, 0]])
+    t0, t1 = rng.uniform(0.05, 0.3, (2, 12, 1))
+    shift = rng.uniform(-1.0, 1.0, (12, 1)) * n
+    image = np.column_stack([a + t0 * (b - a) + shift, b - t1 * (b - a) + shift])
+    mi, mj = match_segments(model, image, 1.5, np.deg2rad(5.0))
+    np.testing.assert_array_equal(mj, np.arange(12))
+    np.testing.assert_array_equal(mi, np.arange(12))
+    far = image + np.column_stack([3.0 * n, 3.0 * n])  # 2–4 px off
+    assert len(match_segments(model, far, 1.5, np.deg2rad(5.0))[0]) == 0
+    beyond = np.column_stack([b + 0.2 * (b - a), b + 1.2 * (b - a)])  # overlap < half
+    assert len(match_segments(model, beyond, 1.5, np.deg2rad(5.0))[0]) == 0
+    c, s = np.cos(np.deg2rad(8.0)), np.sin(np.deg2rad(8.0))
+    mid = 0.5 * (image[:, :2] + image[:, 2:])
+    half = 0.5 * (image[:, 2:] - image[:, :2]) @ np.array([[c, s], [-s, c]])
+    turned = np.column_stack([mid - 0.2 * half, mid + 0.2 * half])
+    assert len(match_segments(model, turned, 1.5, np.deg2rad(5.0))[0]) == 0

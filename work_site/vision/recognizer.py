@@ -214,21 +214,21 @@ def match_segments(
         return np.zeros(0, int), np.zeros(0, int)
     a = model_segs[:, :2]
     d = model_segs[:, 2:] - a
-    Lm = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
+    Lm = np.maximum(np.sqrt(np.einsum("mk,mk->m", d, d)), 1e-9)
     u = d / Lm[:, None]
     n = np.column_stack([-u[:, 1], u[:, 0]])
     p, q = image_segs[:, :2], image_segs[:, 2:]
     di = q - p
-    Li = np.maximum(np.linalg.norm(di, axis=1), 1e-9)
-    ui = di / Li[:, None]
-    # (m, i) arrays
-    cos = np.abs(u @ ui.T)
-    dp = np.abs(np.einsum("mk,mik->mi", n, p[None, :, :] - a[:, None, :]))
-    dq = np.abs(np.einsum("mk,mik->mi", n, q[None, :, :] - a[:, None, :]))
-    tp = np.einsum("mk,mik->mi", u, p[None, :, :] - a[:, None, :])
-    tq = np.einsum("mk,mik->mi", u, q[None, :, :] - a[:, None, :])
-    lo, hi = np.minimum(tp, tq), np.maximum(tp, tq)
-    overlap = np.minimum(hi, Lm[:, None]) - np.maximum(lo, 0.0)
+    Li = np.maximum(np.sqrt(np.einsum("ik,ik->i", di, di)), 1e-9)
+    # (m, i) arrays, by matrix products: rows of A = [n; u] applied to the end points − a
+    cos = np.abs(u @ di.T) / Li
+    A = np.vstack([n, u])
+    Aa = np.concatenate([np.einsum("mk,mk->m", n, a), np.einsum("mk,mk->m", u, a)])[:, None]
+    Pp, Pq = A @ p.T - Aa, A @ q.T - Aa
+    m = len(a)
+    dp, dq = np.abs(Pp[:m]), np.abs(Pq[:m])
+    tp, tq = Pp[m:], Pq[m:]
+    overlap = np.minimum(np.maximum(tp, tq), Lm[:, None]) - np.maximum(np.minimum(tp, tq), 0.0)
     ok = (cos > np.cos(angle_rad)) & (dp < tol_px) & (dq < tol_px) & (overlap >= 0.5 * Li[None, :])
     cost = np.where(ok, dp + dq, np.inf)
     best = np.argmin(cost, axis=0)
