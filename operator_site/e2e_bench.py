@@ -19,6 +19,12 @@ from operator_site.scripted import SUCCESS_DEG, SUCCESS_MM, TASKS, run_scripted
 STAGES = ("vision", "model", "operator", "program", "execute")
 
 
+def _nanmedian(values: list[float]) -> float:
+    """Median over the runs that reached a stage (NaN when none did)."""
+    kept = [v for v in values if not np.isnan(v)]
+    return float(np.median(kept)) if kept else float("nan")
+
+
 def summarise(rows: list[dict]) -> dict:
     """Success count, error percentiles and median stage times of one task's runs."""
     ok = [r for r in rows if r.get("success")]
@@ -35,7 +41,7 @@ def summarise(rows: list[dict]) -> dict:
         "computation_s_median": float(np.nanmedian(comp)) if comp.size else None,
         "computation_s_max": float(np.nanmax(comp)) if comp.size else None,
         "stage_s_median": {
-            s: float(np.median([r["stage_s"].get(s, np.nan) for r in rows])) for s in STAGES
+            s: _nanmedian([r["stage_s"].get(s, np.nan) for r in rows]) for s in STAGES
         },
         "failures": {
             r["seed"]: r.get("error") or r.get("execution") for r in rows if not r.get("success")
@@ -66,7 +72,7 @@ def _plot(out_dir: Path, by_task: dict[str, list[dict]]) -> None:
     a.legend()
     width = 0.8 / max(1, len(by_task))
     for k, (task, rows) in enumerate(by_task.items()):
-        med = [np.median([r["stage_s"].get(s, np.nan) for r in rows]) for s in STAGES]
+        med = [_nanmedian([r["stage_s"].get(s, np.nan) for r in rows]) for s in STAGES]
         b.bar(np.arange(len(STAGES)) + k * width, med, width, label=task)
     b.set_xticks(np.arange(len(STAGES)) + 0.4 - width / 2, STAGES)
     b.set(yscale="log", ylabel="median wall time (s)", title="Stages")
