@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import struct
 import zlib
 
@@ -255,4 +256,7 @@ def test_the_benchmark_measures_each_encoding(tmp_path) -> None:
     write_frame_outputs(tmp_path, rows)
     lines = (tmp_path / "net_frames.csv").read_text().splitlines()
     assert lines[0] == ",".join(FRAME_COLUMNS) and len(lines) == 1 + len(rows)
-    assert (tmp_path / "net_frames.png").stat().st_size > 0
+    if importlib.util.find_spec("matplotlib") is None:  # only the [bench] extra has it
+        print("matplotlib not installed: net_frames.png not drawn, not checked")
+    else:
+        assert (tmp_path / "net_frames.png").stat().st_size > 0
