@@ -54,6 +54,7 @@ bench: $(BENCH_STAMP)
 	$(VENV)/bin/operator-site bench deform --out docs/bench
 	$(VENV)/bin/work-site bench control --out docs/bench
 	$(VENV)/bin/work-site bench vision --out docs/bench
+	$(VENV)/bin/operator-site bench net --out docs/bench
 	$(PY) bench/bench_lcp.py > docs/bench/lcp.json
 	$(VENV)/bin/operator-site bench e2e --seeds $(E2E_SEEDS) --out docs/bench
 
