@@ -67,7 +67,7 @@ from protocol import (
     make_config,
     parse_image_encoding,
 )
-from protocol.session import link_endpoints, split_endpoints
+from protocol.session import free_port_pair, link_endpoints, split_endpoints
 
 REPO = Path(__file__).resolve().parents[1]
 RAW_PING, RAW_PONG, CONTROL = "bench/raw/ping", "bench/raw/pong", "bench/control"
@@ -427,7 +427,7 @@ def measure_work_site(
 ) -> dict[str, Any]:
     """A real ``work-site serve`` on loopback: camera frames (in ``encoding``, default the work
     site's), and a program's refusal round trip; ``last_image`` is the last frame's pixels."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port_pair()}"  # the work site listens on it and the next
     extra = ["--camera-encoding", encoding] if encoding else []
     proc = subprocess.Popen(
         [
