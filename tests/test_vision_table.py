@@ -106,3 +106,34 @@ def test_batch_support_prefers_the_true_pose(setup) -> None:
     shifted[0, 3] += 0.02
     s = batch_support(m, edge_faces(m), np.array([X_CO, shifted]), camera.K, gx, gy, 60.0, 0.35)
     assert s[0] > 0.8 and s[1] < 0.3
+
+
+def test_coarse_to_fine_support_is_exact_where_it_samples_in_full(setup) -> None:
+    """With ``coarse_min``, poses whose support at 2 of 6 points per edge reaches it get exactly
+    the full support; the others get that coarse support, below ``coarse_min``."""
+    camera, models, _ = setup
+    import cv2
+
+    m = models[1]
+    rng = np.random.default_rng(21)
+    X_WO = make_pose(_rot_z(0.7), [0.40, 0.05, 0.0125])
+    X_CO = invert_pose(camera.X_WC) @ X_WO
+    img = np.zeros((camera.height, camera.width), np.uint8)
+    uv = project(transform(X_CO, m.edges_O), camera.K)
+    for a, b in uv:
+        cv2.line(img, tuple(np.round(a).astype(int)), tuple(np.round(b).astype(int)), 255, 1)
+    f = img.astype(np.float32)
+    gx, gy = cv2.Scharr(f, cv2.CV_32F, 1, 0), cv2.Scharr(f, cv2.CV_32F, 0, 1)
+    poses = []
+    for _ in range(300):  # from the true pose to far off, so both branches are taken
+        X = X_CO.copy()
+        X[:3, 3] += rng.normal(0.0, 0.006, 3)
+        X[:3, :3] = X[:3, :3] @ _rot_z(rng.normal(0.0, 0.1))
+        poses.append(X)
+    poses = np.array(poses)
+    full = batch_support(m, edge_faces(m), poses, camera.K, gx, gy, 60.0, 0.35)
+    staged = batch_support(m, edge_faces(m), poses, camera.K, gx, gy, 60.0, 0.35, coarse_min=0.3)
+    in_full = staged >= 0.3
+    assert 10 < in_full.sum() < len(poses) - 10
+    np.testing.assert_array_equal(staged[in_full], full[in_full])
+    assert np.all(staged[~in_full] < 0.3)
