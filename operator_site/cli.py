@@ -72,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         metavar="N_PER_M",
-        help="e2e: the started work sites' `--surface-stiffness` (default: theirs, isotropic)",
+        help="e2e: the started work sites' `--surface-stiffness` (default: theirs)",
     )
     bench.add_argument(
         "--tasks",
@@ -173,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="N_PER_M",
         help="with --scripted: the started work site's `--surface-stiffness` (contact moves' "
-        "impedance stiffness along the surfaces; default: isotropic)",
+        "impedance stiffness along the surfaces; default: the work site's)",
     )
     return parser
 

@@ -30,6 +30,7 @@ from protocol.session import (
     link_endpoints,
     operator_only_access_control,
 )
+from work_site.control.controller import DEFAULT_SURFACE_STIFFNESS_N_PER_M
 from work_site.vision import cli as vision_cli
 
 
@@ -216,11 +217,11 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--surface-stiffness",
         type=float,
-        default=None,
+        default=DEFAULT_SURFACE_STIFFNESS_N_PER_M,
         metavar="N_PER_M",
-        help="contact moves' impedance stiffness along the contact surfaces (default: the same "
-        "1000 N/m as along the normals, isotropic as in the paper; 5000 keeps a slide within "
-        "0.4 mm of its path against friction, docs/benchmarks.md)",
+        help="contact moves' impedance stiffness along the contact surfaces; along the normals "
+        "it is 1000 N/m (default: %(default)s: a slide ends within 0.4 mm of its path against "
+        "friction, 2 mm at 1000, the paper's isotropic impedance; docs/benchmarks.md)",
     )
     parser.add_argument(
         "--time-scale",

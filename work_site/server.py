@@ -42,7 +42,12 @@ from protocol import (
 )
 from protocol.images import DEFAULT_JPEG_QUALITY
 from work_site.camera import CameraProcess, RenderRequest
-from work_site.control.controller import CONTROL_PERIOD_S, Impedance, TaskController
+from work_site.control.controller import (
+    CONTROL_PERIOD_S,
+    DEFAULT_SURFACE_STIFFNESS_N_PER_M,
+    Impedance,
+    TaskController,
+)
 from work_site.control.executor import Execution, check_program
 from work_site.recognition import VisionProcess, VisionResult
 from work_site.world import World
@@ -129,7 +134,7 @@ class ServerOptions:
     """Where the camera really is (4×4 nested tuples), when not where its calibration says:
     frames are rendered from here, vision still uses the calibrated model."""
     time_scale: float = 1.0
-    surface_stiffness_n_per_m: float | None = None
+    surface_stiffness_n_per_m: float = DEFAULT_SURFACE_STIFFNESS_N_PER_M
     """Contact moves' impedance stiffness along the contact surfaces (None: isotropic, §VI-B);
     see :class:`~work_site.control.controller.Impedance`."""
     """Simulated seconds per second of wall time: 1 is real time; more runs programs faster
@@ -161,7 +166,7 @@ class ServerOptions:
         if not 0.0 <= self.camera_noise_grey <= 64.0:
             raise ValueError(f"camera_noise_grey must be in [0, 64], got {self.camera_noise_grey}")
         k = self.surface_stiffness_n_per_m
-        if k is not None and not 100.0 <= k <= 1e5:
+        if not 100.0 <= k <= 1e5:
             raise ValueError(f"surface_stiffness_n_per_m must be in [100, 1e5] N/m, got {k}")
         if not 0.1 <= self.time_scale <= 100.0:
             raise ValueError(f"time_scale must be in [0.1, 100], got {self.time_scale}")

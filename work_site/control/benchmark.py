@@ -24,7 +24,12 @@ from models.scene import load_scene
 from models.transforms import invert_pose, make_pose, rpy_to_R, so3_log
 from protocol import ContactState, MotionCommand, MotionProgram
 from work_site.control.controller import TCP_ACCEL_MPS2, Guard, Impedance, TaskController
-from work_site.control.executor import CONTACT_VERIFY_N, Execution, check_program
+from work_site.control.executor import (
+    CONTACT_VERIFY_N,
+    Execution,
+    check_program,
+    default_impedance,
+)
 from work_site.world import World
 
 DOWN = rpy_to_R(np.array([math.pi, 0.0, math.pi]))
@@ -249,7 +254,7 @@ def slide(impedance: Impedance | None = None) -> dict:
     normal_n: list[float] = []
     try:
         execution = Execution(
-            program, c, lambda *r: reports.append(r), impedance=impedance or Impedance()
+            program, c, lambda *r: reports.append(r), impedance=impedance or default_impedance()
         )
         for _ in range(6000):
             execution.tick()

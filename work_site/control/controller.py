@@ -50,6 +50,14 @@ class Guard:
     threshold_n: float
 
 
+DEFAULT_SURFACE_STIFFNESS_N_PER_M = 5000.0
+"""The work site's contact moves: K = 1,000 N/m along the contact normals (§VI-B's low
+stiffness), this along the surfaces. A deviation from the paper's isotropic impedance, for what
+it measured: a 6 cm slide along a wall ends 0.36 mm from its goal instead of 2.0 mm short
+(friction), and the scripted around-corner task succeeds on 7 of 10 seeds instead of 3
+(docs/benchmarks.md). ``work-site serve --surface-stiffness 1000`` is the paper's."""
+
+
 @dataclass(frozen=True)
 class Impedance:
     """Translational admittance of a contact move: ``stiffness`` (N/m) and ``damping`` (N·s/m),

@@ -29,6 +29,7 @@ from models.transforms import invert_pose
 from protocol import ContactState, MotionProgram
 from protocol.messages import contact_directions
 from work_site.control.controller import (
+    DEFAULT_SURFACE_STIFFNESS_N_PER_M,
     HARD_FORCE_LIMIT_N,
     MAX_TCP_SPEED_MPS,
     Guard,
@@ -224,6 +225,12 @@ MIN_GRIP_OPENING_M = 0.005
 _UP_W = np.array([0.0, 0.0, 1.0])
 
 
+def default_impedance() -> Impedance:
+    """The contact moves' impedance unless told otherwise (see
+    :data:`~work_site.control.controller.DEFAULT_SURFACE_STIFFNESS_N_PER_M`)."""
+    return Impedance(tangential_stiffness_n_per_m=DEFAULT_SURFACE_STIFFNESS_N_PER_M)
+
+
 def expand(program: MotionProgram, index: int, impedance: Impedance | None = None) -> list:
     """The primitive actions of command ``index``; contact moves use ``impedance`` (default
     :class:`Impedance`) compliant along their contact normals."""
@@ -262,7 +269,7 @@ def expand(program: MotionProgram, index: int, impedance: Impedance | None = Non
                 cmd.speed_mps,
                 limit,
                 impedance=replace(
-                    impedance or Impedance(), compliant_W=compliant_projector(normals)
+                    impedance or default_impedance(), compliant_W=compliant_projector(normals)
                 ),
             ),
             VerifyContacts(cmd.contacts),
@@ -302,7 +309,7 @@ class Execution:
     report: Report
     index: int = -1
     finished: bool = False
-    impedance: Impedance = field(default_factory=Impedance)
+    impedance: Impedance = field(default_factory=lambda: default_impedance())
     """The contact moves' impedance (its ``compliant_W`` is set per move)."""
 
     def __post_init__(self) -> None:
