@@ -19,7 +19,8 @@ import pybullet as p
 from models.scene import CameraModel, Scene, load_scene
 from models.transforms import invert_pose, make_pose
 from work_site.camera import LIGHT_DIRECTION_W, opengl_matrices
-from work_site.vision.model import convex_overlap_depth, hull_facets, project, transform
+from work_site.vision.model import convex_overlap_depth, project, transform
+from work_site.vision.table import rest_rotations
 
 WORK_AREA_XY_M = ((0.22, 0.68), (-0.25, 0.32))
 """Where blocks are dropped: around the frame, inside and outside it (x range, y range)."""
@@ -38,29 +39,6 @@ class GroundTruth:
     visible_fraction: float
 
 
-def stable_rotations(vertices_O: np.ndarray, com_O: np.ndarray) -> list[np.ndarray]:
-    """Rotations ``R_WO`` that rest the object on a hull facet whose support polygon contains the
-    centre of mass (at least 2 mm inside), with the facet's normal pointing down."""
-    out = []
-    for n, d in hull_facets(vertices_O):
-        on = vertices_O[np.abs(vertices_O @ n - d) < 1e-9]
-        # Basis of the facet plane.
-        e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n, e1)
-        poly = np.column_stack([on @ e1, on @ e2]).astype(np.float32)
-        hull = cv2.convexHull(poly)
-        c = (float(com_O @ e1), float(com_O @ e2))
-        if cv2.pointPolygonTest(hull, c, True) < 2e-3:
-            continue
-        # R maps n to -z.
-        z = -n
-        x = e1
-        y = np.cross(z, x)
-        out.append(np.array([x, y, z]))
-    return out
-
-
 class SceneRenderer:
     """Places the scene's movable blocks at random and renders them; owns a pybullet World."""
 
@@ -72,7 +50,7 @@ class SceneRenderer:
         self.supersample = supersample
         self.movable = [o for o in self.scene.objects if not o.fixed]
         self._rotations = {
-            o.name: stable_rotations(
+            o.name: rest_rotations(
                 np.vstack([pt.vertices_O for pt in o.model.parts]), o.model.com_O
             )
             for o in self.movable
