@@ -23,7 +23,12 @@ from operator_site.program.contact_step import away_normal
 from operator_site.program.path import NodeContact, PathNode, WorkpiecePath
 from operator_site.program.poses import interpolate, log_batch
 from protocol import ContactState, MotionCommand, MotionProgram
-from protocol.messages import MAX_CONTACT_NORMALS, MAX_CONTACTS, contact_directions
+from protocol.messages import (
+    MAX_CONTACT_NORMALS,
+    MAX_CONTACTS,
+    contact_directions,
+    target_bias,
+)
 
 REFINE_STEP_M = 0.002
 """Point travel per contact step when a move in contact is refined round a corner (m)."""
@@ -56,22 +61,13 @@ class CommandParams:
     ``force_limit_n`` (N): the impedance presses each contact with about stiffness × d = 5 N, and
     the work site verifies each by a force along it. Round an outside corner the pivot meets
     friction and the real block's small turn in the grip on top of that: at 5 N per direction
-    (20 N for wall and table) five of ten scripted runs stopped on the limit; at 10 two of them,
+    (20 N for wall and table) six of ten scripted runs stopped on the limit; at 10 two of them,
     re-run, succeeded. The work site's own 40 N limit stays above every program's."""
     departure_m: float = 0.06
     """After the release the gripper rises this far (clears the 30 mm frame bars)."""
     target_bias_m: float = 0.005
     """d of §VI-B: the impedance target is biased this far into each contact normal (the work
     site applies its own d; :func:`program_to_json` shows the bias for reference)."""
-
-
-def target_bias(normals_W: np.ndarray, d_m: float) -> np.ndarray:
-    """Δp (3,) with n_i·Δp ≈ −d for each contact normal (rows of ``normals_W``, pointing into
-    the workpiece): the least-squares, least-norm solution of N Δp = −d·1 (§VI-B)."""
-    N = np.asarray(normals_W, dtype=np.float64).reshape(-1, 3)
-    if len(N) == 0:
-        return np.zeros(3)
-    return np.linalg.lstsq(N, -d_m * np.ones(len(N)), rcond=None)[0]
 
 
 def contact_states(node: PathNode) -> tuple[ContactState, ...]:

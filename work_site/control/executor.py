@@ -27,7 +27,7 @@ from scipy.optimize import nnls
 
 from models.transforms import invert_pose
 from protocol import ContactState, MotionProgram
-from protocol.messages import contact_directions
+from protocol.messages import contact_directions, target_bias
 from work_site.control.controller import (
     DEFAULT_SURFACE_STIFFNESS_N_PER_M,
     HARD_FORCE_LIMIT_N,
@@ -67,20 +67,10 @@ Report = Callable[[str, int, str, str], None]
 _MOVING_KINDS = ("guarded_grasp", "move", "guarded_move", "contact_move")
 
 
-BIAS_RCOND = 0.3
-"""Directions in which the contact normals disagree (singular value of the stacked normals below
-this fraction of the largest: nearly opposite walls) get no target bias: the least-squares
-bias there is large, along the surfaces, and presses nothing."""
-
-
 def target_bias_W(normals_W: np.ndarray, d_m: float = TARGET_BIAS_M) -> np.ndarray:
-    """Δp (m, W) with ``N Δp ≈ −d·1`` in the least-squares sense over the directions the
-    normals agree on (:data:`BIAS_RCOND`), its norm bounded by :data:`TARGET_BIAS_MAX_M`
-    (§VI-B)."""
-    N = np.asarray(normals_W, dtype=np.float64).reshape(-1, 3)
-    dp = np.linalg.lstsq(N, -d_m * np.ones(len(N)), rcond=BIAS_RCOND)[0]
-    size = float(np.linalg.norm(dp))
-    return dp * (TARGET_BIAS_MAX_M / size) if size > TARGET_BIAS_MAX_M else dp
+    """This work site's target bias Δp (m, W): :func:`protocol.messages.target_bias` with its
+    d, bounded by :data:`TARGET_BIAS_MAX_M`."""
+    return target_bias(normals_W, d_m, TARGET_BIAS_MAX_M)
 
 
 def contact_forces_n(force_W: np.ndarray, normals_W: np.ndarray) -> np.ndarray:
