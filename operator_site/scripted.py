@@ -204,7 +204,7 @@ def _clearance_to_blocks_m(session: TaskSession, X_WO: np.ndarray) -> float:
 def _centre_height_m(model: WorkSiteModel, name: str) -> float:
     """Height of block ``name``'s centre of mass above its lowest point, as it lies (m)."""
     X = model.poses[name]
-    obj = model.scene().object(name).model
+    obj = model.base.object(name).model
     V_W = np.vstack([part.vertices_O for part in obj.parts]) @ X[:3, :3].T
     return float((X[:3, :3] @ obj.com_O)[2] - V_W[:, 2].min())
 
