@@ -7,7 +7,7 @@ import numpy as np
 import pybullet as p
 import pytest
 
-from models.robot import load_robot
+from models.robot import HOME_Q, load_robot
 from models.scene import load_scene
 from work_site.camera import opengl_matrices, render_grey
 from work_site.world import World
@@ -95,3 +95,36 @@ def test_grey_render_has_the_camera_shape_and_content(world: World) -> None:
     assert small.shape == image.shape
     with pytest.raises(ValueError, match="supersample"):
         render_grey(world.cid, world.scene.camera, supersample=0)
+
+
+def test_camera_process_encodes_frames_with_the_calibration_not_the_real_pose() -> None:
+    """The renderer child encodes the wire frame itself (the physics loop only publishes bytes);
+    frames carry the calibrated camera even when the real one is off it."""
+    import time
+
+    from protocol import CameraFrame, decode
+    from work_site.camera import CameraProcess, FrameEncoding, RenderRequest
+
+    scene = load_scene()
+    real_X_WC = scene.camera.X_WC.copy()
+    real_X_WC[0, 3] += 0.002
+    camera = CameraProcess(scene.path, X_WC=real_X_WC, wire=FrameEncoding("png", 80, scene.camera))
+    try:
+        poses = {o.name: o.X_WO for o in scene.objects}
+        q = np.array(HOME_Q)
+        assert camera.request(RenderRequest(7, 12.5, poses, q, np.zeros(2)))
+        assert not camera.request(RenderRequest(8, 13.0, poses, q, np.zeros(2)))  # one in flight
+        deadline = time.monotonic() + 60.0
+        done = None
+        while done is None and time.monotonic() < deadline:
+            done = camera.poll()
+            time.sleep(0.01)
+        assert done is not None, "no frame within 60 s"
+    finally:
+        camera.close()
+    frame = decode(done.payload)
+    assert isinstance(frame, CameraFrame)
+    assert (frame.seq, frame.stamp_s, frame.encoding) == (7, 12.5, "png")
+    np.testing.assert_array_equal(frame.X_WC, scene.camera.X_WC)
+    np.testing.assert_array_equal(frame.image, done.image)  # PNG is lossless
+    assert done.image.std() > 10

@@ -24,7 +24,6 @@ from models.scene import Scene
 from protocol import (
     DEFAULT_SITE_ID,
     IMAGE_ENCODINGS,
-    CameraFrame,
     ExecutionReport,
     Heartbeat,
     MotionProgram,
@@ -41,7 +40,7 @@ from protocol import (
     key,
 )
 from protocol.images import DEFAULT_JPEG_QUALITY
-from work_site.camera import CameraProcess, RenderRequest
+from work_site.camera import CameraProcess, FrameEncoding, RenderRequest
 from work_site.control.controller import (
     CONTROL_PERIOD_S,
     DEFAULT_SURFACE_STIFFNESS_N_PER_M,
@@ -205,7 +204,11 @@ class WorkSiteServer:
         world = World(self.scene, time_step_s=1.0 / opts.physics_rate_hz)
         camera = (
             CameraProcess(
-                self.scene.path, opts.camera_supersample, opts.camera_X_WC, opts.camera_noise_grey
+                self.scene.path,
+                opts.camera_supersample,
+                opts.camera_X_WC,
+                opts.camera_noise_grey,
+                FrameEncoding(opts.camera_encoding, opts.camera_quality, self.scene.camera),
             )
             if opts.camera
             else None
@@ -301,25 +304,10 @@ class WorkSiteServer:
                 if camera is not None:
                     done = camera.poll()
                     if done is not None:
-                        seq, stamp, image = done
-                        cam = self.scene.camera
-                        pub_camera.put(
-                            encode(
-                                CameraFrame(
-                                    seq=seq,
-                                    stamp_s=stamp,
-                                    X_WC=cam.X_WC,
-                                    K=cam.K,
-                                    dist=cam.dist,
-                                    image=image,
-                                    encoding=opts.camera_encoding,
-                                    quality=opts.camera_quality,
-                                )
-                            )
-                        )
+                        pub_camera.put(done.payload)
                         self.stats["frames"] += 1
                         # Vision gets the renderer's pixels, never the wire's (possibly JPEG).
-                        self._recognise(seq, stamp, image, elapsed)
+                        self._recognise(done.seq, done.stamp_s, done.image, elapsed)
                     if elapsed >= next_frame_s and not camera.busy:
                         q, fingers = world.robot_joint_positions()
                         poses = world.object_poses()
