@@ -23,6 +23,7 @@ from models.scene import CameraModel, ObjectModel, Scene, load_scene
 from models.transforms import invert_pose
 from work_site.vision.index import (
     GroupParams,
+    Groups,
     IndexParams,
     ModelIndex,
     find_junctions,
@@ -58,7 +59,8 @@ ENV_MATCH_TOL_PX = 1.5
 class RecognizerParams:
     """Tuning of hypothesis testing and verification (pixels, radians, metres)."""
 
-    max_hypotheses: int = 400
+    max_hypotheses: int = 200  # indexed hypotheses, each chain of lines in one direction
+    # (ranking both directions gave every hypothesis twice: 400 then are these 200)
     refine_rounds: int = 3
     match_tol_px: tuple[float, ...] = (8.0, 3.0, 1.5)
     match_angle_rad: float = np.deg2rad(5.0)
@@ -554,6 +556,11 @@ class Recognizer:
         """(image group segments, junctions, index entry), most probable first; at most
         ``limit`` of them."""
         groups = group_segments(segs, self.group_params, self.index.params.ratio_weight)
+        # Each chain is listed in both directions, and so is every model chain in the index:
+        # the reversed chain finds the reversed entries at the same distances and gives the
+        # same pose. Look up one direction only.
+        one_way = groups.segs[:, 0] < groups.segs[:, 3]
+        groups = Groups(groups.segs[one_way], groups.junctions[one_way], groups.vectors[one_way])
         if len(groups.segs) == 0:
             return []
         ids, d2 = self.index.query(groups.vectors)
