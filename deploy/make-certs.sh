@@ -10,6 +10,8 @@
 #                                     (the netns work address) and every extra SAN given,
 #                                     e.g. DNS:robot.example.org or IP:192.0.2.10
 #   operator.pem, operator.key        CN=operator: the identity access control lets command
+#   router.pem, router.key            CN=router (deploy/router.py); SANs: localhost, 127.0.0.1,
+#                                     10.77.0.1 and the extra SANs
 #   viewer.pem, viewer.key            CN=viewer: authenticated, but not allowed to command
 #   rogue-ca.pem, intruder.pem/.key   CN=operator signed by ANOTHER CA: must be refused
 # Access control matches the client certificate's common name (CN), so the CN is the role.
@@ -18,7 +20,7 @@
 set -euo pipefail
 
 if [[ $# -lt 1 || $1 == -h || $1 == --help ]]; then
-  sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'
+  sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'
   exit $(( $# < 1 ? 2 : 0 ))
 fi
 out=$1
@@ -65,11 +67,12 @@ ca ca
 ca rogue-ca
 leaf work-site work-site "DNS:work-site,DNS:localhost,IP:127.0.0.1,IP:10.77.0.2${extra_sans}" ca
 leaf operator operator "DNS:operator" ca
+leaf router router "DNS:router,DNS:localhost,IP:127.0.0.1,IP:10.77.0.1${extra_sans}" ca
 leaf viewer viewer "DNS:viewer" ca
 leaf intruder operator "DNS:operator" rogue-ca
 rm -f ./*.srl rogue-ca.key
 chmod 600 ca.key
-for name in work-site operator viewer; do
+for name in work-site operator router viewer; do
   openssl verify -CAfile ca.pem "$name.pem" >/dev/null
 done
-echo "make-certs: wrote $(pwd)/{ca,work-site,operator,viewer,intruder,rogue-ca}.pem and keys"
+echo "make-certs: wrote $(pwd)/{ca,work-site,operator,router,viewer,intruder,rogue-ca}.pem and keys"

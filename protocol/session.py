@@ -22,6 +22,7 @@ from typing import Any
 import zenoh
 
 from .errors import ProtocolError
+from .keys import check_site_id
 
 DEFAULT_WORK_SITE_ENDPOINT = "tcp/127.0.0.1:7447"
 MODES = ("peer", "client", "router")
@@ -119,6 +120,100 @@ def operator_only_access_control(
             {"id": "operators-command", "rules": ["command"], "subjects": ["operators"]},
             {"id": "peers-observe", "rules": ["observe", "telemetry"], "subjects": ["tls-peers"]},
         ],
+    }
+
+
+COMMAND_TOPICS = ("program", "stop", "heartbeat")
+"""What an operator puts on a work site's keys (a work site's access control admits these)."""
+TELEMETRY_TOPICS = ("camera", "recognitions", "robot_state", "report", "heartbeat", "truth")
+"""What a work site puts on its own keys."""
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One work site behind a router: its ``site_id``, the common name of its certificate
+    (``work_site``), and those of the operators allowed to command it."""
+
+    site_id: str
+    work_site: str
+    operators: tuple[str, ...]
+
+    @classmethod
+    def parse(cls, text: str) -> Cell:
+        """``SITE=WORK_SITE_CN:OPERATOR_CN[,OPERATOR_CN...]`` (the router's ``--cell``)."""
+        site, eq, rest = text.partition("=")
+        work_site, colon, operators = rest.partition(":")
+        names = tuple(n for n in operators.split(",") if n)
+        if not (eq and colon and site and work_site and names):
+            raise ProtocolError(
+                f"cell: expected SITE=WORK_SITE_CN:OPERATOR_CN[,OPERATOR_CN...], got {text!r}"
+            )
+        return cls(check_site_id(site), work_site, names)
+
+
+def router_access_control(cells: Sequence[Cell]) -> dict[str, Any]:
+    """zenoh ``access_control`` for a router joining several cells, with mutual TLS.
+
+    Every authenticated peer may subscribe and receive (the router forwards all it admitted);
+    only a cell's work site (certificate CN ``work_site``) may put on that cell's
+    :data:`TELEMETRY_TOPICS`, and only its ``operators`` on its :data:`COMMAND_TOPICS`. Default
+    deny: any other put is dropped at the router. A work site behind the router sees routed
+    commands as the router's, so it admits the router's CN (``work-site serve --operators
+    router``) and leaves the per-operator check to this.
+    """
+    if not cells:
+        raise ProtocolError("cells: expected at least one cell")
+    observe = [
+        "declare_subscriber",
+        "declare_liveliness_subscriber",
+        "liveliness_token",
+        "liveliness_query",
+    ]
+    rules: list[dict[str, Any]] = [
+        {
+            "id": "observe",
+            "permission": "allow",
+            "flows": ["ingress", "egress"],
+            "messages": observe,
+            "key_exprs": ["telerobot/**"],
+        },
+        {
+            "id": "forward",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["put", "delete"],
+            "key_exprs": ["telerobot/**"],
+        },
+    ]
+    subjects: list[dict[str, Any]] = [{"id": "tls-peers", "link_protocols": ["tls"]}]
+    policies: list[dict[str, Any]] = [
+        {"id": "peers", "rules": ["observe", "forward"], "subjects": ["tls-peers"]}
+    ]
+    for i, cell in enumerate(cells):
+        site = f"telerobot/{cell.site_id}"
+        for role, topics, names in (
+            ("telemetry", TELEMETRY_TOPICS, [cell.work_site]),
+            ("command", COMMAND_TOPICS, list(cell.operators)),
+        ):
+            rules.append(
+                {
+                    "id": f"{role}-{i}",
+                    "permission": "allow",
+                    "flows": ["ingress"],
+                    "messages": ["put"],
+                    "key_exprs": [f"{site}/{t}" for t in topics],
+                }
+            )
+            subjects.append({"id": f"{role}-{i}", "cert_common_names": names})
+            policies.append(
+                {"id": f"{role}-{i}", "rules": [f"{role}-{i}"], "subjects": [f"{role}-{i}"]}
+            )
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
     }
 
 
@@ -236,10 +331,35 @@ def check_listeners(listen: Sequence[str], tls: TlsFiles | None, insecure: bool 
         )
 
 
-def _max_links(listen: Sequence[str], connect: Sequence[str]) -> int:
+def max_links_for(listen: Sequence[str], connect: Sequence[str]) -> int:
     """Links one transport needs: 1, or as many as endpoints with a ``prio=`` range."""
     n = max(sum("prio=" in e for e in eps) for eps in (listen, connect))
     return max(n, 2) if n else 1
+
+
+def add_security(
+    conf: zenoh.Config,
+    tls: TlsFiles | None = None,
+    access_control: Mapping[str, Any] | None = None,
+) -> None:
+    """Put ``tls`` (certificates for ``tls/`` endpoints, :class:`TlsFiles`) and
+    ``access_control`` (zenoh's section) into ``conf``; ProtocolError if zenoh refuses them."""
+    if tls is not None:
+        files = {
+            "root_ca_certificate": tls.root_ca_certificate,
+            "listen_certificate": tls.certificate,
+            "listen_private_key": tls.private_key,
+            "connect_certificate": tls.certificate,
+            "connect_private_key": tls.private_key,
+        }
+        for name, path in files.items():
+            conf.insert_json5(f"transport/link/tls/{name}", json.dumps(str(path)))
+        conf.insert_json5("transport/link/tls/enable_mtls", json.dumps(bool(tls.mutual)))
+    if access_control is not None:
+        try:
+            conf.insert_json5("access_control", json.dumps(dict(access_control)))
+        except Exception as e:  # zenoh checks the schema here
+            raise ProtocolError(f"access_control: {e}") from None
 
 
 def make_config(
@@ -269,26 +389,11 @@ def make_config(
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("listen/endpoints", json.dumps(_endpoints("listen", listen)))
     conf.insert_json5("connect/endpoints", json.dumps(_endpoints("connect", connect)))
-    if (links := _max_links(listen, connect)) > 1:
+    if (links := max_links_for(listen, connect)) > 1:
         conf.insert_json5("transport/unicast/max_links", json.dumps(links))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(bool(shared_memory)))
-    if tls is not None:
-        files = {
-            "root_ca_certificate": tls.root_ca_certificate,
-            "listen_certificate": tls.certificate,
-            "listen_private_key": tls.private_key,
-            "connect_certificate": tls.certificate,
-            "connect_private_key": tls.private_key,
-        }
-        for name, path in files.items():
-            conf.insert_json5(f"transport/link/tls/{name}", json.dumps(str(path)))
-        conf.insert_json5("transport/link/tls/enable_mtls", json.dumps(bool(tls.mutual)))
-    if access_control is not None:
-        try:
-            conf.insert_json5("access_control", json.dumps(dict(access_control)))
-        except Exception as e:  # zenoh checks the schema here
-            raise ProtocolError(f"access_control: {e}") from None
+    add_security(conf, tls, access_control)
     if lease_ms is not None:
         if not (isinstance(lease_ms, int) and 100 <= lease_ms <= 3_600_000):
             raise ProtocolError(f"lease_ms: expected an int in [100, 3600000], got {lease_ms!r}")

@@ -1,13 +1,18 @@
 """Several sites through one zenoh router (deploy/router.py, deploy/zenoh/router.json5): two
-work sites under their own site ids and one operator, all connected only to the router. Also
-keeps the example configs in deploy/zenoh/ loadable by zenoh."""
+work sites under their own site ids and one operator, all connected only to the router, with
+split links (the default) and with one link. The operator is a zenoh client, so that everything
+it sends and receives really goes through the router: a peer would connect directly to a work
+site that the router introduced, once it can reach it. Also keeps the example configs in
+deploy/zenoh/ loadable by zenoh."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -16,14 +21,27 @@ import zenoh
 
 from models.transforms import make_pose, rpy_to_R
 from operator_site.link import WorkSiteLink
-from protocol import MotionCommand, MotionProgram, make_config
-from tests.conftest import free_port, wait_until
+from protocol import MotionCommand, MotionProgram, RobotState, decode, encode, key, make_config
+from protocol.session import TlsFiles, free_port_pair, link_endpoints
+from tests.conftest import wait_until
 
 pytestmark = pytest.mark.integration
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((REPO / "deploy" / "zenoh").glob("*.json5"))
 DOWN = rpy_to_R(np.array([np.pi, 0.0, np.pi]))
+
+
+def _one_move(program_id: str) -> MotionProgram:
+    """A valid, reachable one-move program: it runs if it gets through."""
+    command = MotionCommand(
+        kind="move",
+        X_WP=make_pose(DOWN, (0.40, -0.1, 0.15)),
+        speed_mps=0.1,
+        force_limit_n=10.0,
+        contacts=(),
+    )
+    return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=(command,))
 
 
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
@@ -33,8 +51,10 @@ def test_example_configs_are_valid_zenoh_configs(path: Path) -> None:
     assert conf.get_json("transport/shared_memory/enabled") == "false"
 
 
-def test_two_work_sites_and_an_operator_through_a_router(tmp_path: Path) -> None:
-    router_ep = f"tcp/127.0.0.1:{free_port()}"
+@pytest.mark.parametrize("single_link", [False, True], ids=["split-links", "single-link"])
+def test_two_work_sites_and_an_operator_through_a_router(tmp_path: Path, single_link) -> None:
+    router_ep = f"tcp/127.0.0.1:{free_port_pair()}"
+    one = ["--single-link"] if single_link else []
     procs: list[subprocess.Popen] = []
     logs: list[Path] = []
 
@@ -58,33 +78,38 @@ def test_two_work_sites_and_an_operator_through_a_router(tmp_path: Path) -> None
         spawn(
             "router",
             [sys.executable, str(REPO / "deploy" / "router.py"),
-             str(REPO / "deploy" / "zenoh" / "router.json5"), "--listen", router_ep],
+             str(REPO / "deploy" / "zenoh" / "router.json5"), "--listen", router_ep, *one],
         )  # fmt: skip
         for site in ("cell-a", "cell-b"):
             spawn(
                 site,
-                [sys.executable, "-m", "work_site", "serve", "--site-id", site, "--no-camera",
-                 "--listen", "tcp/127.0.0.1:0", "--connect", router_ep,
+                [sys.executable, "-m", "work_site", "serve", "--site-id", site,
+                 "--listen", f"tcp/127.0.0.1:{free_port_pair()}", "--connect", router_ep, *one,
                  "--journal", str(tmp_path / f"{site}.jsonl")],
             )  # fmt: skip
-        # The operator knows only the router.
-        links = [WorkSiteLink(make_config(connect=[router_ep]), s) for s in ("cell-a", "cell-b")]
+        # A client's zenoh.open fails rather than retries while its router is not up yet.
+        assert wait_until(lambda: "router: up" in logs[0].read_text(), 30.0), logs[0].read_text()
+        # The operator knows only the router, and as a client talks to nobody else.
+        connect = link_endpoints([router_ep], single_link)[0]
+        assert len(connect) == (1 if single_link else 2)
+        links = [
+            WorkSiteLink(make_config(mode="client", connect=connect), s)
+            for s in ("cell-a", "cell-b")
+        ]
         a, b = links
 
         def both_connected() -> bool:
             a.poll(), b.poll()
-            return a.status.label == "connected" and b.status.label == "connected"
+            return all(
+                link.status.label == "connected" and link.camera_frame is not None for link in links
+            )
 
-        assert wait_until(both_connected, 30.0), [p.read_text() for p in logs]
+        assert wait_until(both_connected, 60.0), [p.read_text() for p in logs]
+        for link in links:
+            info = link.session.info
+            assert len(list(info.routers_zid())) == 1 and not list(info.peers_zid())
         q_b = b.robot_state.q.copy()
-        command = MotionCommand(
-            kind="move",
-            X_WP=make_pose(DOWN, (0.40, -0.1, 0.15)),
-            speed_mps=0.1,
-            force_limit_n=10.0,
-            contacts=(),
-        )
-        a.send_program(MotionProgram(program_id="to-a", X_GP=np.eye(4), commands=(command,)))
+        a.send_program(_one_move("to-a"))
 
         def a_done() -> bool:
             a.poll(), b.poll()
@@ -107,3 +132,154 @@ def test_two_work_sites_and_an_operator_through_a_router(tmp_path: Path) -> None
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
+
+
+# ------------------------------------------------------------ a secured router (mutual TLS, ACL)
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    if shutil.which("openssl") is None:
+        print("skipping the secured router test: no openssl")
+        pytest.skip("openssl is needed to make test certificates")
+    out = tmp_path_factory.mktemp("certs")
+    subprocess.run(
+        [str(REPO / "deploy" / "make-certs.sh"), str(out)], check=True, capture_output=True
+    )
+    return out
+
+
+def _tls(certs: Path, name: str, ca: str = "ca.pem") -> TlsFiles:
+    return TlsFiles(certs / ca, certs / f"{name}.pem", certs / f"{name}.key")
+
+
+def test_a_secured_router_admits_each_cells_operator_only(tmp_path: Path, certs: Path) -> None:
+    """Router with mutual TLS and --cell rules: cell-a is commanded by "operator", cell-b by
+    "viewer". The operator's program reaches cell-a only; the viewer cannot command cell-a nor
+    fake cell-a's robot state; a certificate of another CA gets no session."""
+    port = free_port_pair()
+    router_ep = f"tls/localhost:{port}"
+    procs: list[subprocess.Popen] = []
+    logs: list[Path] = []
+
+    def spawn(name: str, argv: list[str]) -> None:
+        log_path = tmp_path / f"{name}.log"
+        logs.append(log_path)
+        with log_path.open("w") as log:
+            procs.append(
+                subprocess.Popen(
+                    argv, cwd=REPO, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                    env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                )
+            )  # fmt: skip
+
+    links: list[WorkSiteLink] = []
+
+    def link(name: str, site: str, ca: str = "ca.pem") -> WorkSiteLink:
+        config = make_config(
+            mode="client", connect=link_endpoints([router_ep])[0], tls=_tls(certs, name, ca)
+        )
+        links.append(WorkSiteLink(config, site))
+        return links[-1]
+
+    try:
+        spawn(
+            "router",
+            [sys.executable, str(REPO / "deploy" / "router.py"),
+             str(REPO / "deploy" / "zenoh" / "router.json5"), "--listen", router_ep,
+             "--certs", str(certs), "--cell", "cell-a=work-site:operator",
+             "--cell", "cell-b=work-site:viewer"],
+        )  # fmt: skip
+        for site in ("cell-a", "cell-b"):
+            # The router has checked who sent a command: the work site admits the router's.
+            spawn(
+                site,
+                [sys.executable, "-m", "work_site", "serve", "--site-id", site, "--no-camera",
+                 "--listen", f"tcp/127.0.0.1:{free_port_pair()}", "--connect", router_ep,
+                 "--certs", str(certs), "--operators", "router",
+                 "--journal", str(tmp_path / f"{site}.jsonl")],
+            )  # fmt: skip
+        assert wait_until(lambda: "router: up" in logs[0].read_text(), 30.0), logs[0].read_text()
+        assert "mutual TLS; cells cell-a, cell-b" in logs[0].read_text()
+        op_a, op_b, viewer_a = (
+            link("operator", "cell-a"),
+            link("operator", "cell-b"),
+            link("viewer", "cell-a"),
+        )
+
+        def all_see_state() -> bool:
+            for each in (op_a, op_b, viewer_a):
+                each.poll()
+            return all(each.robot_state is not None for each in (op_a, op_b, viewer_a))
+
+        assert wait_until(all_see_state, 60.0), [p.read_text() for p in logs]
+        q_a, q_b = op_a.robot_state.q.copy(), op_b.robot_state.q.copy()
+        with pytest.raises(zenoh.ZError):  # another CA's certificate: no session at all
+            link("intruder", "cell-a")
+
+        # Refused at the router: the operator commanding cell-b, the viewer commanding cell-a,
+        # the viewer publishing a robot state for cell-a.
+        fake = RobotState(
+            seq=10**9, stamp_s=0.0, q=np.zeros(6), X_WF=np.eye(4), gripper_opening_m=0.0,
+            wrench_S=np.zeros(6),
+        )  # fmt: skip
+        seqs: list[int] = []  # every robot state of cell-a the operator receives
+        spy = op_a.session.declare_subscriber(
+            key("cell-a", "robot_state"), lambda s: seqs.append(decode(s.payload.to_bytes()).seq)
+        )
+        for _ in range(15):
+            op_b.send_program(_one_move("op-to-b"))
+            viewer_a.send_program(_one_move("viewer-to-a"))
+            viewer_a.send_stop("viewer")
+            viewer_a.session.put(key("cell-a", "robot_state"), encode(fake))
+            op_a.poll(), op_b.poll()
+            time.sleep(0.2)
+        spy.undeclare()
+        assert seqs and max(seqs) < 10**9, "a forged robot state got through"
+        assert op_a.status.reports == [] and op_b.status.reports == []
+        np.testing.assert_allclose(op_b.robot_state.q, q_b, atol=1e-4)
+        np.testing.assert_allclose(op_a.robot_state.q, q_a, atol=1e-4)
+
+        # The operator's program to its own cell runs.
+        op_a.send_program(_one_move("op-to-a"))
+
+        def a_done() -> bool:
+            op_a.poll(), op_b.poll()
+            return any(
+                r.program_id == "op-to-a" and r.status == "done" for r in op_a.status.reports
+            )
+
+        assert wait_until(a_done, 30.0), (op_a.status.reports, [p.read_text() for p in logs])
+        assert np.linalg.norm(op_a.robot_state.q - q_a) > 0.05
+        assert op_b.status.reports == []
+    finally:
+        for each in links:
+            each.close()
+        for proc in procs:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGTERM)
+        for proc in procs:
+            try:
+                proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+
+
+def test_the_router_refuses_a_plain_listener_on_the_network_and_bad_cells() -> None:
+    router = [sys.executable, str(REPO / "deploy" / "router.py")]
+    config = str(REPO / "deploy" / "zenoh" / "router.json5")
+    done = subprocess.run(
+        [*router, config, "--listen", f"tcp/0.0.0.0:{free_port_pair()}"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 2 and "without TLS" in done.stderr and "--insecure" in done.stderr
+    done = subprocess.run(
+        [*router, config, "--listen", "tcp/127.0.0.1:7", "--cell", "a=ws:op"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 2 and "--cell needs --certs" in done.stderr
+    done = subprocess.run(
+        [*router, config, "--cell", "no-operators=ws"], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 2 and "SITE=WORK_SITE_CN:OPERATOR_CN" in done.stderr

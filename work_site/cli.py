@@ -105,14 +105,17 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--single-link",
         action="store_true",
-        help="listen on the --listen endpoint alone, all priorities on one link (no PORT+1)",
+        help="listen on (and connect to) the one endpoint given, all priorities on one link (no "
+        "PORT+1)",
     )
     parser.add_argument(
         "--connect",
         action="append",
         default=[],
         metavar="ENDPOINT",
-        help="zenoh endpoint (router or peer) to connect to, used as given; repeatable",
+        help="zenoh endpoint (router or peer) to connect to; repeatable. One tcp/ or tls/ "
+        "HOST:PORT is split like --listen's (a router from deploy/router.py listens on both "
+        "ports); several are used as given",
     )
     security = parser.add_argument_group(
         "security",
@@ -292,8 +295,9 @@ def serve(args: argparse.Namespace) -> int:
             raise ValueError("--operators needs --certs (identities come from TLS certificates)")
         check_listeners(given, tls, args.insecure)  # the derived ones share host and protocol
         acl = operator_only_access_control(args.site_id, args.operators) if args.operators else None
+        connect = link_endpoints(args.connect, args.single_link)[0] if args.connect else []
         config = make_config(
-            listen=listen, connect=args.connect, tls=tls, access_control=acl, lease_ms=args.lease_ms
+            listen=listen, connect=connect, tls=tls, access_control=acl, lease_ms=args.lease_ms
         )
     except (ModelError, ProtocolError, ValueError) as e:
         print(f"work-site: {e}", file=sys.stderr)
@@ -308,7 +312,7 @@ def serve(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     print(
         f"work-site: serving site {args.site_id!r} on {', '.join(listen) or 'no listener'}"
-        + (f", connecting to {', '.join(args.connect)}" if args.connect else "")
+        + (f", connecting to {', '.join(connect)}" if connect else "")
         + f" ({links_note})"
         + ("; mutual TLS" if tls else "")
         + ("; commands only from " + ", ".join(args.operators) if args.operators else "")
