@@ -92,6 +92,8 @@ class RecognizerParams:
     # around a found part, before its full test; true ones measured ≥ 0.45 on 40 scenes
     grown_pre_length_min: float = 0.35  # and its verification before refitting (true ones
     grown_pre_score_min: float = 0.45  # measured ≥ 0.40 and ≥ 0.50 on 40 scenes)
+    grown_pre_gradient_min: float = 0.55  # its gradient agreement then: those that passed
+    # their full test measured ≥ 0.59 on scenes 0–79, a third of those that failed < 0.55
     prefilter_tilt_rad: float = np.deg2rad(30.0)
     prefilter_height_m: float = 0.06
     table_prior: bool = True
@@ -700,7 +702,11 @@ class Recognizer:
             return None
         if grown:
             v0 = self._verify(model, X, K, segs, gx, gy, occluders_C, vis[1])
-            if v0.length_fraction < p.grown_pre_length_min or v0.score < p.grown_pre_score_min:
+            if (
+                v0.length_fraction < p.grown_pre_length_min
+                or v0.score < p.grown_pre_score_min
+                or v0.gradient_fraction < p.grown_pre_gradient_min
+            ):
                 return None
         mi = mj = np.zeros(0, int)
         fit = None
