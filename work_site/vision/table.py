@@ -27,6 +27,8 @@ from work_site.vision.model import VisionModel, hull_facets
 
 HEIGHT_TOL_M = 1e-6
 """Corners whose heights above the table differ by less than this share a back-projection."""
+SUPPORT_OFFSETS_PX = (-1.5, 0.0, 1.5)
+"""Offsets across an edge at which :func:`batch_support` looks for the gradient."""
 
 
 @dataclass(frozen=True)
@@ -243,47 +245,53 @@ def batch_support(
         return np.zeros(0)
     R, t = X_CO[:, :3, :3], X_CO[:, :3, 3]
     n_e = len(model.edges_O)
-    RT = R.transpose(0, 2, 1)
-    E = (model.edges_O.reshape(1, -1, 3) @ RT + t[:, None, :]).reshape(n, n_e, 2, 3)
+    # Edge end points in C, (n, 3, 2e), by one matrix product: [k, j, p] = R_k[j]·e_p + t_k[j]
+    # (products of many 3×3 matrices with small arrays are slow in numpy; this is one call).
+    E = (R.reshape(3 * n, 3) @ model.edges_O.reshape(-1, 3).T).reshape(n, 3, 2 * n_e)
+    E += t[:, :, None]
     planes = np.vstack(model.planes_O)
-    nC = planes[None, :, :3] @ RT  # (n, f, 3)
-    dC = planes[:, 3][None, :] + np.einsum("nfi,ni->nf", nC, t)  # n·x ≤ d inside, in C
+    nC = (R.reshape(3 * n, 3) @ planes[:, :3].T).reshape(n, 3, -1)  # face normals in C
+    dC = planes[:, 3][None, :] + np.einsum("nif,ni->nf", nC, t)  # n·x ≤ d inside, in C
     # A face faces the camera (at C's origin) when the origin is outside its plane: d < 0.
     facing = dC < 0  # (n, f)
     seen = facing.astype(np.float64) @ on_face.T.astype(np.float64) > 0  # (n, e)
-    z = E[..., 2]
-    front = np.all(z > 1e-3, axis=2)
-    seen &= front
-    uv = E[..., :2] / np.where(z > 1e-3, z, 1.0)[..., None] @ K[:2, :2].T + K[:2, 2]
-    d = uv[:, :, 1] - uv[:, :, 0]  # (n, e, 2)
-    L = np.linalg.norm(d, axis=2)
+    z = E[:, 2]  # (n, 2e)
+    in_front = z > 1e-3
+    seen &= np.all(in_front.reshape(n, n_e, 2), axis=2)
+    iz = 1.0 / np.where(in_front, z, 1.0)
+    x, y = E[:, 0] * iz, E[:, 1] * iz
+    u = (K[0, 0] * x + K[0, 1] * y + K[0, 2]).reshape(n, n_e, 2)
+    v = (K[1, 0] * x + K[1, 1] * y + K[1, 2]).reshape(n, n_e, 2)
+    du, dv = u[:, :, 1] - u[:, :, 0], v[:, :, 1] - v[:, :, 0]
+    L = np.sqrt(du * du + dv * dv)
     h, w = gx.shape
-    inside = np.all((uv >= 0) & (uv <= np.array([w - 1, h - 1])), axis=(2, 3))
+    inside = np.all((u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1), axis=2)
     use = seen & (L >= 4.0) & inside
     k = points_per_edge
-    count = use.sum(axis=1) * k
+    n_used = use.sum(axis=1)
+    count = n_used * k
     # Sample only the edges that count: about half of all edges are hidden or off the image.
     ci, ei = np.nonzero(use)
     if len(ci) == 0:
         return np.zeros(n)
-    du, Lu = d[ci, ei], L[ci, ei]
-    nrm = np.column_stack([-du[:, 1] / Lu, du[:, 0] / Lu])  # (m, 2)
+    du, dv, Lu = du[ci, ei], dv[ci, ei], L[ci, ei]
+    nx, ny = -dv / Lu, du / Lu  # the edges' unit normals
+    u0, v0 = u[ci, ei, 0], v[ci, ei, 0]
     ts = (np.arange(k) + 0.5) / k
-    a0 = uv[ci, ei, 0]
     cos2 = np.float32(np.cos(gradient_angle_rad) ** 2)
     g2 = np.float32(gradient_min**2)
+    offsets = np.array(SUPPORT_OFFSETS_PX)[:, None, None]
 
     def hits_at(rows: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Points along used edges ``rows`` at fractions ``t`` where the gradient agrees."""
-        nr = nrm[rows]
-        P = a0[rows][:, None, :] + t[None, :, None] * du[rows][:, None, :]  # (r, t, 2)
-        offsets = np.array([-1.5, 0.0, 1.5])
-        Q = P[None] + offsets[:, None, None, None] * nr[None, :, None, :]  # (3, r, t, 2)
-        sx, sy = sample_gradient(gx, gy, Q.reshape(-1, 2))
-        sx, sy = sx.reshape(Q.shape[:3]), sy.reshape(Q.shape[:3])
+        tq = t[None, None, :]
+        nxr, nyr = nx[rows][None, :, None], ny[rows][None, :, None]
+        X = u0[rows][None, :, None] + tq * du[rows][None, :, None] + offsets * nxr  # (3, r, t)
+        Y = v0[rows][None, :, None] + tq * dv[rows][None, :, None] + offsets * nyr
+        sx, sy = sample_gradient_xy(gx, gy, X, Y)
         # mag > min and |cos| > cos_min, without roots or divisions
         mag2 = sx * sx + sy * sy
-        dot = sx * nr[:, None, 0].astype(np.float32) + sy * nr[:, None, 1].astype(np.float32)
+        dot = sx * nxr.astype(np.float32) + sy * nyr.astype(np.float32)
         good = np.any((mag2 > g2) & (dot * dot > cos2 * mag2), axis=0)
         return good.sum(axis=1)
 
@@ -293,7 +301,6 @@ def batch_support(
         return np.where(count > 0, hits / np.maximum(count, 1), 0.0)
     first = np.array([1, 4])
     coarse_hits = np.bincount(ci, weights=hits_at(all_rows, ts[first]), minlength=n)
-    n_used = use.sum(axis=1)
     coarse = np.where(n_used > 0, coarse_hits / np.maximum(2 * n_used, 1), 0.0)
     full = coarse >= coarse_min
     rows = np.flatnonzero(full[ci])
@@ -307,12 +314,21 @@ def sample_gradient(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Bilinear samples of both gradient images at points (m, 2) px, 0 outside the image;
     any number of points (``cv2.remap`` maps must stay below 32767 rows)."""
-    m = len(pts)
+    return sample_gradient_xy(gx, gy, pts[:, 0], pts[:, 1], width)
+
+
+def sample_gradient_xy(
+    gx: np.ndarray, gy: np.ndarray, x: np.ndarray, y: np.ndarray, width: int = 1024
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sample_gradient` at points given as two arrays of coordinates of any (equal)
+    shape; the samples have that shape."""
+    m = x.size
     rows = -(-m // width)
-    Q = np.zeros((rows * width, 2), dtype=np.float32)
-    Q[:m] = pts
-    Q[m:] = -10.0
-    mx, my = Q[:, 0].reshape(rows, width), Q[:, 1].reshape(rows, width)
+    mx = np.full(rows * width, -10.0, dtype=np.float32)
+    my = np.full(rows * width, -10.0, dtype=np.float32)
+    mx[:m] = x.ravel()
+    my[:m] = y.ravel()
+    mx, my = mx.reshape(rows, width), my.reshape(rows, width)
     sx = cv2.remap(gx, mx, my, cv2.INTER_LINEAR).ravel()[:m]
     sy = cv2.remap(gy, mx, my, cv2.INTER_LINEAR).ravel()[:m]
-    return sx, sy
+    return sx.reshape(x.shape), sy.reshape(x.shape)
