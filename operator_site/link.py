@@ -191,12 +191,12 @@ class WorkSiteLink:
         self._seen_order.append(ident)
         if len(self._seen_order) > REMEMBERED_REPORTS:
             self._seen_reports.discard(self._seen_order.popleft())
-        # Each program's reports in the work site's order (their stamps), whatever the arrival
+        # Each program's reports in the work site's order (their seq), whatever the arrival
         # order: an operator that comes back mid-program hears newer reports live before the
         # work site's replay of the earlier ones answers its re-send.
         reports = self.status.reports
         later = next(
-            (i for i, r in enumerate(reports) if r.program_id == pid and r.stamp_s > msg.stamp_s),
+            (i for i, r in enumerate(reports) if r.program_id == pid and r.seq > msg.seq),
             None,
         )
         if later is None:

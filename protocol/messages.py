@@ -32,9 +32,10 @@ from ._spec import (
 )
 from .images import DEFAULT_JPEG_QUALITY, IMAGE_ENCODINGS
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 """Version of the wire schema; bump on any incompatible change to a message.
-2: ``CameraFrame`` carries its image's ``encoding`` and ``quality``."""
+2: ``CameraFrame`` carries its image's ``encoding`` and ``quality``.
+3: ``ExecutionReport`` carries its number within its program (``seq``)."""
 
 MAX_NAME_LEN = 256
 """Longest name or id (characters)."""
@@ -280,7 +281,9 @@ class ExecutionReport(Message):
     """Progress of program ``program_id`` at command ``command_index`` (-1: the whole program).
 
     ``status`` is one of :data:`REPORT_STATUSES`; ``wrench_S`` (6,) the wrist wrench (N, N·m) in S;
-    ``message`` free text for the operator.
+    ``message`` free text for the operator; ``seq`` this report's number within its program
+    (0, 1, 2, …: the work site's order, which replays after a reconnection or a restart keep;
+    the operator orders and de-duplicates by it, whatever the arrival order).
     """
 
     TYPE: ClassVar[str] = "execution_report"
@@ -291,6 +294,7 @@ class ExecutionReport(Message):
         "wrench_S": _WRENCH,
         "message": _TEXT,
         "stamp_s": _STAMP,
+        "seq": _SEQ,
     }
 
     program_id: str
@@ -299,6 +303,7 @@ class ExecutionReport(Message):
     wrench_S: np.ndarray
     message: str
     stamp_s: float
+    seq: int = 0
 
 
 # ------------------------------------------------------------------------------------ control

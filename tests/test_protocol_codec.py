@@ -178,6 +178,7 @@ execution_reports = st.builds(
     wrench_S=float_arrays((6,)),
     message=texts,
     stamp_s=nonneg,
+    seq=seqs,
 )
 stops = st.builds(Stop, reason=texts, stamp_s=nonneg)
 heartbeats = st.builds(
@@ -258,7 +259,7 @@ def random_message(cls: type, seed: int) -> Any:
     if cls is ExecutionReport:
         status = str(rng.choice(REPORT_STATUSES))
         return ExecutionReport(
-            name, int(rng.integers(-1, 5)), status, rng.normal(size=6), "ok", stamp
+            name, int(rng.integers(-1, 5)), status, rng.normal(size=6), "ok", stamp, seq
         )
     if cls is Stop:
         return Stop("operator pressed stop", stamp)

@@ -67,7 +67,7 @@ def read_journal(
 ) -> tuple[collections.OrderedDict[str, list[bytes]], list[tuple[str, bytes]]]:
     """The programs and reports of a journal (the newest REMEMBERED_PROGRAMS), and the closing
     "failed" reports added for programs a restart interrupted. Unreadable lines are skipped
-    (a crash may leave the last one half written)."""
+    (a crash may leave the last one half written; an older schema's reports do not decode)."""
     reports: collections.OrderedDict[str, list[bytes]] = collections.OrderedDict()
     added: list[tuple[str, bytes]] = []
     if not path.exists():
@@ -78,15 +78,16 @@ def read_journal(
             pid, payload = str(entry["program_id"]), bytes.fromhex(entry["report"])
         except (ValueError, KeyError, TypeError):
             continue
+        try:  # a journal written by an older schema cannot be replayed to today's operators
+            decode(payload, expected=ExecutionReport)
+        except ProtocolError:
+            continue
         reports.setdefault(pid, []).append(payload)
         reports.move_to_end(pid)
     while len(reports) > REMEMBERED_PROGRAMS:
         reports.popitem(last=False)
     for pid, payloads in reports.items():
-        try:
-            last = decode(payloads[-1], expected=ExecutionReport)
-        except ProtocolError:
-            continue
+        last = decode(payloads[-1], expected=ExecutionReport)
         if not (last.command_index == -1 and last.status in FINAL_STATUSES):
             closing = encode(
                 ExecutionReport(
@@ -96,6 +97,7 @@ def read_journal(
                     wrench_S=np.zeros(6),
                     message="interrupted: the work site restarted during this program",
                     stamp_s=time.time(),
+                    seq=len(payloads),
                 )
             )
             payloads.append(closing)
@@ -412,6 +414,7 @@ class WorkSiteServer:
                 wrench_S=self._controller.world.robot_snapshot().wrench_S,
                 message=message[:4096],
                 stamp_s=time.time(),
+                seq=len(self._reports.get(program_id, ())),
             )
         )
         if program_id in self._reports:
