@@ -46,6 +46,7 @@ import statistics
 import struct
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -499,6 +500,87 @@ def measure_work_site(
     }
 
 
+def measure_programs_over_link(netns: ModuleType, params: dict[str, Any], runs: int) -> dict:
+    """The issue's harsh link (e.g. 100 ± 20 ms each way, 2 % loss): per run, a fresh real work
+    site in the work namespace (link seed ``params["seed"] + run``) and
+    ``deploy/operator_probe.py``'s pick-and-place from the operators' namespace. Per run: the
+    sends, the acknowledgement time (program sent → "accepted" back: the command latency), the
+    reports the operator got (in order?) and the times the work site's journal accepted it."""
+    probe = REPO / "deploy" / "operator_probe.py"
+    endpoint = f"tcp/{netns.WORK_ADDR}:7447"
+    rows: list[dict[str, Any]] = []
+    for run in range(runs):
+        run_params = {**params, "seed": int(params["seed"]) + run}
+        journal = Path(tempfile.mkdtemp(prefix="netbench-")) / "journal.jsonl"
+        with netns.emulated_link(prefix="trharsh", **run_params) as link:
+            site = subprocess.Popen(
+                link.pair.exec_argv(
+                    link.pair.work,
+                    [sys.executable, "-m", "work_site", "serve", "--listen", endpoint,
+                     "--site-id", SITE_ID, "--no-camera", "--insecure",
+                     "--journal", str(journal)],
+                ),
+                cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                start_new_session=True,
+            )  # fmt: skip
+            try:
+                done = subprocess.run(
+                    link.pair.exec_argv(
+                        link.pair.ops,
+                        [sys.executable, str(probe), "program", f"--connect={endpoint}",
+                         f"--site-id={SITE_ID}", "--connect-timeout=60", "--timeout=120"],
+                    ),
+                    cwd=REPO, capture_output=True, text=True, timeout=300,
+                )  # fmt: skip
+            finally:
+                os.killpg(site.pid, signal.SIGTERM)
+                try:
+                    site.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    os.killpg(site.pid, signal.SIGKILL)
+                    site.wait()
+        try:
+            result = json.loads(done.stdout.strip().splitlines()[-1])
+        except (IndexError, ValueError):
+            result = {"error": f"the probe printed no result: {done.stderr[-2000:]}"}
+        pid = result.get("program_id")
+        journaled = [
+            decode(bytes.fromhex(json.loads(line)["report"]), ExecutionReport)
+            for line in (journal.read_text().splitlines() if journal.exists() else ())
+            if json.loads(line)["program_id"] == pid
+        ]
+        journal_statuses = [r.status for r in journaled if r.command_index == -1]
+        reports = [tuple(r) for r in result.get("reports", [])]
+        steps = [i for i, _ in reports[1:-1]]
+        row = {
+            "seed": run_params["seed"],
+            "error": result.get("error"),
+            "sends": result.get("sends"),
+            "ack_ms": result.get("ack_ms"),
+            "reports": len(reports),
+            "reports_in_order": bool(reports)
+            and reports[0] == (-1, "accepted")
+            and reports[-1] == (-1, "done")
+            and steps == sorted(steps),
+            "accepted_at_work_site": journal_statuses.count("accepted"),
+            "done_at_work_site": journal_statuses.count("done"),
+        }
+        rows.append(row)
+        print(f"netbench:   run {run}: {row}", flush=True)
+    acks = [r["ack_ms"] for r in rows if r["ack_ms"] is not None]
+    return {
+        "harsh_link": params,
+        "harsh_runs": rows,
+        "harsh_programs_delivered_exactly_once": sum(
+            r["accepted_at_work_site"] == 1 and r["done_at_work_site"] == 1 for r in rows
+        ),
+        "harsh_programs_reports_in_order": sum(bool(r["reports_in_order"]) for r in rows),
+        "harsh_programs": len(rows),
+        "harsh_command_latency_ms_median": statistics.median(acks) if acks else None,
+        "harsh_command_latency_ms_max": max(acks) if acks else None,
+    }
+
+
 def codec_cpu_us_per_round_trip(n: int = 5000) -> float:
     """CPU time (µs) of the codec work in one command round trip, in-process: encode a Stop,
     decode it, build and encode the ExecutionReport, decode that."""
@@ -816,6 +898,15 @@ def run(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, list[float]
                 split=False,
             )
     summary["link_relay_counters"] = link.counters
+    if args.net_harsh_runs > 0:
+        harsh = {
+            "delay_ms": args.net_harsh_delay_ms,
+            "jitter_ms": args.net_harsh_jitter_ms,
+            "loss": args.net_harsh_loss,
+            "seed": args.net_link_seed,
+        }
+        print(f"netbench: programs over a harsher link {harsh} ({args.net_harsh_runs} runs)...")
+        summary.update(measure_programs_over_link(netns, harsh, args.net_harsh_runs))
     if single is not None:
         for name in ("command", "command_with_images", "command_without_images"):
             samples[f"link_single_{name}"] = single[name]
@@ -969,6 +1060,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--net-no-frames", action="store_true", help="skip the camera encodings' comparison"
     )
+    g.add_argument(
+        "--net-harsh-runs",
+        type=int,
+        default=3,
+        help="pick-and-place programs run by a real work site over the harsher link (0: none)",
+    )
+    g.add_argument("--net-harsh-delay-ms", type=float, default=100.0, help="its one-way delay")
+    g.add_argument("--net-harsh-jitter-ms", type=float, default=20.0, help="its jitter (± ms)")
+    g.add_argument("--net-harsh-loss", type=float, default=0.02, help="its loss each way")
     g.add_argument(
         "--net-link-image-count",
         type=int,
