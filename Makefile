@@ -45,7 +45,8 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-# Every benchmark; figures land in docs/bench/ (CSV, PNG) and docs/benchmarks.md shows them.
+# Every benchmark; figures land in docs/bench/ (JSON, CSV, PNG), then bench/report.py rewrites
+# the summary at the top of docs/benchmarks.md from the JSON (the sections below it discuss them).
 # e2e: E2E_SEEDS seeds per task (each runs the robot in real time, about a minute); the issue's
 # 100 seeds: `make bench E2E_SEEDS=100`.
 E2E_SEEDS ?= 10
@@ -57,6 +58,7 @@ bench: $(BENCH_STAMP)
 	$(VENV)/bin/operator-site bench net --out docs/bench
 	$(PY) bench/bench_lcp.py > docs/bench/lcp.json
 	$(VENV)/bin/operator-site bench e2e --seeds $(E2E_SEEDS) --out docs/bench
+	$(PY) bench/report.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

@@ -346,7 +346,8 @@ timings wander by ±50 % between runs)."""
 
 
 def main(out_dir: Path, quick: bool = False) -> list[dict]:
-    """Run the scenes (and, unless ``quick``, the sweeps); write CSV + PNG; return the JSON."""
+    """Run the scenes (and, unless ``quick``, the sweeps); write sim.json, CSV and PNG; return
+    the JSON."""
     out_dir.mkdir(parents=True, exist_ok=True)
     params = SimParams()
     runs = [scenes(params) for _ in range(1 if quick else REPEATS)]
@@ -357,6 +358,7 @@ def main(out_dir: Path, quick: bool = False) -> list[dict]:
         results.append(ordered[len(ordered) // 2])
     results.append(rotation_drift(100_000 if quick else 1_000_000))
     _write_csv(results, out_dir / "sim.csv")
+    (out_dir / "sim.json").write_text(json.dumps(results, indent=1))
     if not quick:
         rows = sweeps(params)
         _write_csv(rows, out_dir / "sim_sweeps.csv")

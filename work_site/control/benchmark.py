@@ -14,6 +14,7 @@ Prints a JSON object; writes ``control.csv``, ``control_guarded.csv`` and ``cont
 from __future__ import annotations
 
 import csv
+import json
 import math
 from pathlib import Path
 
@@ -337,7 +338,8 @@ def slide_sweep() -> list[dict]:
 
 
 def main(out_dir: Path) -> dict:
-    """Run every case; write CSVs and the plot under ``out_dir``; the JSON summary."""
+    """Run every case; write control.json, the CSVs and the plot under ``out_dir``; return the
+    JSON summary."""
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = [tracking(v) for v in SPEEDS_MPS]
     _write_csv(out_dir / "control.csv", rows)
@@ -348,7 +350,7 @@ def main(out_dir: Path) -> dict:
     _write_csv(out_dir / "control_slide.csv", sweep)
     at_tenth = next(r for r in rows if r["speed_mps"] == 0.1)
     at_20 = next(r for r in guarded if r["speed_mps"] == 0.02)
-    return {
+    summary = {
         "tracking_mm_max": at_tenth["tracking_mm_max"],
         "guarded_overshoot_n": at_20["overshoot_n"],
         **corner(),
@@ -357,3 +359,5 @@ def main(out_dir: Path) -> dict:
         "tracking_by_speed": rows,
         "guarded_by_speed": guarded,
     }
+    (out_dir / "control.json").write_text(json.dumps(summary, indent=1))
+    return summary
