@@ -275,24 +275,28 @@ def _check_tuple(spec: TupleField, value: Any, where: str) -> tuple[Any, ...]:
     return tuple(value)
 
 
+_CHECKS: dict[type, Callable[[Any, Any, str, bool], Any]] = {
+    IntField: lambda spec, value, where, owned: _check_int(spec, value, where),
+    FloatField: lambda spec, value, where, owned: _check_float(spec, value, where),
+    StrField: lambda spec, value, where, owned: _check_str(spec, value, where),
+    ArrayField: _check_array,
+    ImageField: _check_array,
+    NestedField: lambda spec, value, where, owned: _check_nested(spec.cls, value, where),
+    TupleField: lambda spec, value, where, owned: _check_tuple(spec, value, where),
+}
+"""The validator of each field kind (looked up by the spec's exact type: this runs for every
+field of every message, on the command path)."""
+
+
 def check_field(spec: Field, value: Any, where: str, owned: bool = False) -> Any:
     """Validate one field value and return its normalised form (read-only arrays, tuples).
 
     ``owned``: the array is ours (fresh from the decoder), so it need not be copied.
     """
-    if isinstance(spec, IntField):
-        return _check_int(spec, value, where)
-    if isinstance(spec, FloatField):
-        return _check_float(spec, value, where)
-    if isinstance(spec, StrField):
-        return _check_str(spec, value, where)
-    if isinstance(spec, ArrayField):
-        return _check_array(spec, value, where, owned)
-    if isinstance(spec, NestedField):
-        return _check_nested(spec.cls, value, where)
-    if isinstance(spec, TupleField):
-        return _check_tuple(spec, value, where)
-    raise TypeError(f"unknown field kind {spec!r}")  # a bug in a spec table, not bad input
+    check = _CHECKS.get(type(spec))
+    if check is None:
+        raise TypeError(f"unknown field kind {spec!r}")  # a bug in a spec table, not bad input
+    return check(spec, value, where, owned)
 
 
 def validate_fields(

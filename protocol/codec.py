@@ -11,6 +11,7 @@ schema); nested records as maps; tuples of records as lists of maps.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from typing import Any, TypeVar, overload
 
@@ -60,22 +61,41 @@ def _array_to_wire(arr: np.ndarray, field: ArrayField) -> list[Any]:
     return [list(arr.shape), data]
 
 
+_SCALAR, _ARRAY, _IMAGE, _NESTED, _TUPLE = range(5)
+
+
+@functools.cache
+def _plan(cls: type) -> tuple[tuple[str, Field, int], ...]:
+    """``(name, field, kind)`` of each field of record class ``cls``, the kind worked out once:
+    the codec runs on the command path, where a chain of isinstance tests per field showed."""
+    kinds = (
+        (ImageField, _IMAGE),
+        (ArrayField, _ARRAY),
+        (NestedField, _NESTED),
+        (TupleField, _TUPLE),
+    )
+    return tuple(
+        (name, field, next((k for t, k in kinds if isinstance(field, t)), _SCALAR))
+        for name, field in cls._SPEC.items()
+    )
+
+
 def _to_wire(record: Record) -> dict[str, Any]:
     body: dict[str, Any] = {}
-    for name, field in type(record)._SPEC.items():
+    for name, field, kind in _plan(type(record)):
         value = getattr(record, name)
-        if isinstance(field, ImageField):
+        if kind == _SCALAR:
+            body[name] = value
+        elif kind == _ARRAY:
+            body[name] = _array_to_wire(value, field)
+        elif kind == _IMAGE:
             encoding = getattr(record, field.encoding_field)
             quality = getattr(record, field.quality_field)
             body[name] = [list(value.shape), encode_image(value, encoding, quality)]
-        elif isinstance(field, ArrayField):
-            body[name] = _array_to_wire(value, field)
-        elif isinstance(field, NestedField):
+        elif kind == _NESTED:
             body[name] = _to_wire(value)
-        elif isinstance(field, TupleField):
-            body[name] = [_to_wire(item) for item in value]
         else:
-            body[name] = value
+            body[name] = [_to_wire(item) for item in value]
     return body
 
 
@@ -143,27 +163,29 @@ def _record_from_wire(cls: type, body: Any, where: str) -> Any:
     if not isinstance(body, dict):
         raise ProtocolError(f"{where}: expected a map, got {type_name(body)}")
     spec: Mapping[str, Field] = cls._SPEC
-    missing = [name for name in spec if name not in body]
-    if missing:
-        raise ProtocolError(f"{where}: missing field(s) {missing}")
-    extra = [key for key in body if key not in spec]
-    if extra:
+    if body.keys() != spec.keys():
+        missing = [name for name in spec if name not in body]
+        if missing:
+            raise ProtocolError(f"{where}: missing field(s) {missing}")
+        extra = [key for key in body if key not in spec]
         raise ProtocolError(f"{where}: unknown field(s) {short_repr(extra)}")
     values: dict[str, Any] = {}
-    for name, field in spec.items():
+    for name, field, kind in _plan(cls):
         value = body[name]
         field_where = f"{where}.{name}"
-        if isinstance(field, ImageField):
+        if kind == _SCALAR:
+            pass
+        elif kind == _IMAGE:
             encoding_spec = spec[field.encoding_field]
             encoding = check_field(
                 encoding_spec, body[field.encoding_field], f"{where}.{field.encoding_field}"
             )
             value = _image_from_wire(field, value, encoding, field_where)
-        elif isinstance(field, ArrayField):
+        elif kind == _ARRAY:
             value = _array_from_wire(field, value, field_where)
-        elif isinstance(field, NestedField):
+        elif kind == _NESTED:
             value = _record_from_wire(field.cls, value, field_where)
-        elif isinstance(field, TupleField):
+        else:
             if not isinstance(value, list):
                 raise ProtocolError(f"{field_where}: expected a list, got {type_name(value)}")
             if len(value) > field.max_len:  # before decoding the items
