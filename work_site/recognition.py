@@ -88,9 +88,7 @@ def _vision_worker(scene_path: str, conn) -> None:
                 error = ""
             except Exception as e:  # one bad frame must not end vision
                 objects, error = (), f"{type(e).__name__}: {e}"
-            conn.send(
-                VisionResult(seq, stamp_s, time.perf_counter() - t0, objects, error, note)
-            )
+            conn.send(VisionResult(seq, stamp_s, time.perf_counter() - t0, objects, error, note))
             note = ""
     except (EOFError, KeyboardInterrupt):
         return
