@@ -45,3 +45,42 @@ def test_occlusion_by_several_parts_is_the_union_of_each_part() -> None:
     np.testing.assert_array_equal(together, np.any(each, axis=0))
     assert 0 < together.sum() < len(points)  # the test exercises both outcomes
     assert not occluded(points, []).any()
+
+
+def test_occluders_set_aside_only_parts_that_hide_nothing() -> None:
+    """Visible edges with the culled occluders equal those with every part, over random
+    poses of a block among boxes, some of which hide part of it (and some reach behind the
+    camera, so their images are unknown)."""
+    from models.scene import load_scene
+    from models.transforms import make_pose, so3_exp
+    from work_site.vision.model import (
+        Occluders,
+        planes_in,
+        transform,
+        visible_edges,
+        vision_model,
+    )
+
+    scene = load_scene()
+    model = vision_model(next(o.model for o in scene.movable if o.name == "l_block"))
+    K = np.array([[580.0, 0.0, 320.0], [0.0, 580.0, 240.0], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(3)
+    culled = hidden = 0
+    for trial in range(60):
+        verts, planes = [], []
+        for _ in range(6):
+            V = _box([0, 0, 0], rng.uniform(0.01, 0.06, 3))
+            lo = [-0.15, -0.15, -0.2 if trial % 3 == 0 else 0.2]
+            X = make_pose(so3_exp(rng.normal(size=3)), rng.uniform(lo, [0.15, 0.15, 0.7]))
+            verts.append(V @ X[:3, :3].T + X[:3, 3])
+            planes.append(planes_in(X, np.array([[*n, d] for n, d in hull_facets(V)])))
+        occ = Occluders.of_parts(verts, planes, K)
+        t = rng.uniform([-0.1, -0.1, 0.4], [0.1, 0.1, 0.8])
+        X_CO = make_pose(so3_exp(rng.normal(size=3)), t)
+        ref = visible_edges(model, X_CO, K, planes)
+        got = visible_edges(model, X_CO, K, occ)
+        for a, b in zip(ref, got, strict=True):
+            np.testing.assert_array_equal(a, b)
+        culled += len(planes) - len(occ.relevant(transform(X_CO, model.edges_O).reshape(-1, 3), K))
+        hidden += not np.array_equal(ref[2], visible_edges(model, X_CO, K)[2])
+    assert culled > 0 and hidden > 0  # the test exercises culling and occlusion

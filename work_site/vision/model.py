@@ -7,7 +7,7 @@ frame C follows OpenCV (x right, y down, z forward), ``K`` is the 3×3 intrinsic
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -17,6 +17,8 @@ EDGE_SAMPLES = 12
 """Points per model edge at which visibility is tested (ray casting against the parts)."""
 VISIBILITY_EPS_M = 2e-5
 """A surface point counts as hidden only if a part is entered this far (m) before reaching it."""
+CULL_MARGIN = 1e-6
+"""Slack (px, and m) of the tests that set aside occluders which cannot hide anything."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -138,11 +140,63 @@ def occluded(points_C: np.ndarray, occluders_C: list[np.ndarray]) -> np.ndarray:
     return np.any(hit, axis=1)
 
 
+@dataclass(frozen=True)
+class Occluders:
+    """Convex parts that may hide others, in C: ``planes`` one (k, 4) half-space array per
+    part, ``boxes_px`` (parts, 4) the bounding box ``(u_min, v_min, u_max, v_max)`` of each
+    part's image (infinite where the part reaches behind the camera). Knowing the boxes, most
+    parts are set aside at once for any one object: see :meth:`relevant`."""
+
+    planes: list[np.ndarray]
+    boxes_px: np.ndarray
+    _stacked: np.ndarray = field(init=False, repr=False)
+    _starts: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        stacked = np.vstack(self.planes) if self.planes else np.zeros((0, 4))
+        starts = np.cumsum([0] + [len(q) for q in self.planes[:-1]]).astype(np.intp)
+        object.__setattr__(self, "_stacked", stacked)
+        object.__setattr__(self, "_starts", starts)
+
+    @staticmethod
+    def of_parts(vertices_C: list[np.ndarray], planes_C: list[np.ndarray], K: np.ndarray):
+        """The occluders of convex parts given by their vertices and half-spaces in C."""
+        boxes = np.tile([-np.inf, -np.inf, np.inf, np.inf], (len(planes_C), 1))
+        for k, V in enumerate(vertices_C):
+            if np.all(V[:, 2] > 1e-9):  # wholly in front: its image is its vertices' hull
+                uv = project(V, K)
+                boxes[k] = [*uv.min(0), *uv.max(0)]
+        return Occluders(list(planes_C), boxes)
+
+    def __add__(self, other: list[np.ndarray]) -> Occluders:
+        """These and more parts whose images are not known."""
+        extra = np.tile([-np.inf, -np.inf, np.inf, np.inf], (len(other), 1))
+        return Occluders(self.planes + list(other), np.vstack([self.boxes_px, extra]))
+
+    def relevant(self, points_C: np.ndarray, K: np.ndarray) -> list[np.ndarray]:
+        """The parts that may hide some point of the convex hull of ``points_C`` (n, 3): a
+        part hides a point only where it covers the point's image, and never when one of its
+        faces has both the camera and all the points on its outer side. Exact: the parts set
+        aside hide nothing that :func:`occluded` would find hidden."""
+        if not self.planes:
+            return []
+        keep = np.ones(len(self.planes), dtype=bool)
+        if np.all(points_C[:, 2] > 1e-9):  # the hull's image is the points' images' hull
+            uv = project(points_C, K)
+            lo, hi = uv.min(0) - CULL_MARGIN, uv.max(0) + CULL_MARGIN
+            b = self.boxes_px
+            keep = (b[:, 0] <= hi[0]) & (b[:, 2] >= lo[0]) & (b[:, 1] <= hi[1]) & (b[:, 3] >= lo[1])
+        P = self._stacked
+        outside = np.all(points_C @ P[:, :3].T > P[:, 3] + CULL_MARGIN, axis=0) & (P[:, 3] < 0)
+        keep &= ~np.logical_or.reduceat(outside, self._starts)
+        return [q for q, k in zip(self.planes, keep.tolist(), strict=True) if k]
+
+
 def visible_edges(
     model: VisionModel,
     X_CO: np.ndarray,
     K: np.ndarray,
-    occluders_C: list[np.ndarray] | None = None,
+    occluders_C: list[np.ndarray] | Occluders | None = None,
     min_fraction: float = 0.3,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Projected visible parts of the model's edges under pose ``X_CO``.
@@ -152,6 +206,8 @@ def visible_edges(
     ray casting against the model's own parts and ``occluders_C``).
     """
     edges_C = transform(X_CO, model.edges_O)  # (m, 2, 3)
+    if isinstance(occluders_C, Occluders):
+        occluders_C = occluders_C.relevant(edges_C.reshape(-1, 3), K)
     ts = (np.arange(EDGE_SAMPLES) + 0.5) / EDGE_SAMPLES
     samples = (
         edges_C[:, 0, None, :] + ts[None, :, None] * (edges_C[:, 1] - edges_C[:, 0])[:, None, :]
@@ -189,31 +245,25 @@ def convex_overlap_depth(
     and extra axes never create a false overlap). Pass the facet normals if known: finding
     them is the slow part.
     """
-    na = _unique_dirs(list(normals_A) if normals_A is not None else [n for n, _ in hull_facets(A)])
-    nb = _unique_dirs(list(normals_B) if normals_B is not None else [n for n, _ in hull_facets(B)])
-    ea = _unique_dirs([np.cross(a, b) for a, b in itertools.combinations(na, 2)])
-    eb = _unique_dirs([np.cross(a, b) for a, b in itertools.combinations(nb, 2)])
-    axes = na + nb + _unique_dirs([np.cross(a, b) for a in ea for b in eb])
-    depth = np.inf
-    for n in axes:
-        pa, pb = A @ n, B @ n
-        overlap = min(pa.max(), pb.max()) - max(pa.min(), pb.min())
-        if overlap <= 0:
-            return 0.0
-        depth = min(depth, overlap)
-    return float(depth)
+    na = _unit_rows(normals_A if normals_A is not None else [n for n, _ in hull_facets(A)])
+    nb = _unit_rows(normals_B if normals_B is not None else [n for n, _ in hull_facets(B)])
+    # All axes at once; repeated axes do not change the smallest overlap.
+    ia, ja = np.triu_indices(len(na), 1)
+    ib, jb = np.triu_indices(len(nb), 1)
+    ea = _unit_rows(np.cross(na[ia], na[ja]))
+    eb = _unit_rows(np.cross(nb[ib], nb[jb]))
+    axes = np.vstack([na, nb, _unit_rows(np.cross(ea[:, None, :], eb[None, :, :]).reshape(-1, 3))])
+    pa, pb = A @ axes.T, B @ axes.T
+    depth = float(np.min(np.minimum(pa.max(0), pb.max(0)) - np.maximum(pa.min(0), pb.min(0))))
+    return max(depth, 0.0)
 
 
-def _unique_dirs(vs: list[np.ndarray]) -> list[np.ndarray]:
-    out: list[np.ndarray] = []
-    for v in vs:
-        norm = np.linalg.norm(v)
-        if norm < 1e-9:
-            continue
-        v = v / norm
-        if not any(abs(v @ m) > 1 - 1e-9 for m in out):
-            out.append(v)
-    return out
+def _unit_rows(v) -> np.ndarray:
+    """The rows of ``v`` (k, 3) at least 1e-9 long, scaled to unit length."""
+    v = np.asarray(v, dtype=np.float64).reshape(-1, 3)
+    norm = np.linalg.norm(v, axis=1)
+    keep = norm >= 1e-9
+    return v[keep] / norm[keep, None]
 
 
 def hull_facets(V: np.ndarray) -> list[tuple[np.ndarray, float]]:

@@ -32,6 +32,7 @@ from work_site.vision.index import (
 )
 from work_site.vision.lines import LineParams, check_grey_image, detect_lines
 from work_site.vision.model import (
+    Occluders,
     VisionModel,
     containments,
     convex_overlap_depth,
@@ -388,9 +389,11 @@ class Recognizer:
             img = cv2.undistort(img, K, dist)
         segs = detect_lines(img, self.line_params)
         X_CW = invert_pose(camera.X_WC)
-        env_C = [
-            planes_in(X_CW @ X_WO, P) for _, X_WO, _, planes in self.environment for P in planes
-        ]
+        env_C = Occluders.of_parts(
+            [transform(X_CW, V) for _, _, parts, _ in self.environment for V, _ in parts],
+            [planes_in(X_CW @ X_WO, P) for _, X_WO, _, planes in self.environment for P in planes],
+            K,
+        )
         segs = self._drop_environment(segs, X_CW, K, env_C)
         if len(segs) < 4:
             return []
