@@ -50,6 +50,8 @@ lint: $(STAMP)
 # e2e: E2E_SEEDS seeds per task (each runs the robot in real time, about a minute); the issue's
 # 100 seeds: `make bench E2E_SEEDS=100`.
 E2E_SEEDS ?= 10
+# trade: each user knob's values on `corner`, TRADE_SEEDS seeds a value (the defaults' runs shared).
+TRADE_SEEDS ?= 5
 bench: $(BENCH_STAMP)
 	$(VENV)/bin/operator-site bench sim --out docs/bench
 	$(VENV)/bin/operator-site bench deform --out docs/bench
@@ -58,6 +60,7 @@ bench: $(BENCH_STAMP)
 	$(VENV)/bin/operator-site bench net --out docs/bench
 	$(PY) bench/bench_lcp.py > docs/bench/lcp.json
 	$(VENV)/bin/operator-site bench e2e --seeds $(E2E_SEEDS) --out docs/bench
+	$(VENV)/bin/operator-site bench trade --seeds $(TRADE_SEEDS) --tasks corner --out docs/bench
 	$(PY) bench/report.py
 
 clean:

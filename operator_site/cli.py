@@ -52,12 +52,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument(
         "name",
-        choices=["sim", "deform", "net", "e2e"],
+        choices=["sim", "deform", "net", "e2e", "trade"],
         help="sim: the task simulator (issue 3 scenes, MuJoCo comparison if installed, knob "
         "sweeps); deform: the program generator's path deformation (issue 6); net: round trips "
         "and frames over zenoh against plain TCP, on loopback and an emulated link (issue 8); "
-        "e2e: the "
-        "scripted tasks end to end over --seeds seeds (issue 9)",
+        "e2e: the scripted tasks end to end over --seeds seeds (issue 9); trade: each user "
+        "knob's effect on the first of --tasks end to end, --seeds seeds per value",
     )
     bench.add_argument(
         "--seeds", type=int, default=100, help="e2e: seeds per task (default: %(default)s)"
@@ -80,6 +80,13 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["corner", "around-corner"],
         default=["corner", "around-corner"],
         help="e2e: which scripted tasks (default: both)",
+    )
+    bench.add_argument(
+        "--knobs",
+        nargs="+",
+        default=None,
+        metavar="KNOB",
+        help="trade: which knobs (default: all; see operator_site/e2e_trade.py KNOBS)",
     )
     bench.add_argument(
         "--out",
@@ -330,6 +337,17 @@ def run_bench(args: argparse.Namespace) -> int:
             oracle=args.oracle_vision,
             work_site_args=_work_site_args(args),
         )
+        print(json.dumps(results))
+        return 0
+    if args.name == "trade":
+        from operator_site import e2e_trade
+
+        knobs = tuple(args.knobs) if args.knobs else tuple(e2e_trade.KNOBS)
+        if unknown := [k for k in knobs if k not in e2e_trade.KNOBS]:
+            print(f"operator-site bench trade: unknown knob(s) {unknown} (known: "
+                  f"{', '.join(e2e_trade.KNOBS)})", file=sys.stderr)  # fmt: skip
+            return 2
+        results = e2e_trade.main(args.out, args.seeds, args.tasks[0], knobs)
         print(json.dumps(results))
         return 0
     from operator_site.simulator import benchmark

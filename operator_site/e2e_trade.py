@@ -1,0 +1,212 @@
+"""``operator-site bench trade``: each user knob's effect on the scripted task end to end (issue 9).
+
+For every knob, the scripted task (:func:`operator_site.scripted.run_scripted`) runs over the
+same seeds at each of the knob's values, all other knobs at their defaults; the defaults' runs
+are shared by all knobs. Writes ``trade.csv`` (one row a run), ``trade.json`` (per knob and
+value: successes, final error, computation and execution time) and ``trade.png`` (per knob:
+success and final error against the value, the default marked) into the output directory.
+The component benchmarks plot each knob's cost against its own accuracy (sim_sweeps.png,
+vision_sweeps.png, deform_trade.png, control.png); this one says what that does to the task.
+
+Knobs of the operator site's program generator apply to the program made from the scripted
+demonstration (the demonstration itself is dragged with the default simulator); the work
+site's apply to the work site the run starts.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from operator_site.program import CommandParams, DeformParams, choose_grasp_yaw, generate_program
+from operator_site.scripted import run_scripted
+from operator_site.simulator import SimParams
+from operator_site.task import TaskSession
+from protocol import MotionProgram
+
+
+@dataclass(frozen=True)
+class Knob:
+    """A setting users may turn: its values to try (the default among them) and where it goes:
+    ``target`` is ``sim`` (SimParams), ``deform`` (DeformParams), ``command`` (CommandParams)
+    or ``work_site`` (a ``work-site serve`` option named ``field``)."""
+
+    label: str
+    target: str
+    field: str
+    values: tuple[float, ...]
+    default: float
+
+
+KNOBS: dict[str, Knob] = {
+    "contact_speed": Knob(
+        "execution speed in contact (m/s)", "command", "contact_speed_mps",
+        (0.005, CommandParams().contact_speed_mps, 0.02), CommandParams().contact_speed_mps,
+    ),
+    "surface_stiffness": Knob(
+        "impedance along the surfaces (N/m)", "work_site", "--surface-stiffness",
+        (1000.0, 5000.0), 1000.0,
+    ),
+    "deform_sweeps": Knob(
+        "deformation sweeps (at most)", "deform", "max_sweeps",
+        (10, 30, DeformParams().max_sweeps), DeformParams().max_sweeps,
+    ),
+    "sim_dt": Knob(
+        "program generator's simulator Δt (s)", "sim", "dt_s",
+        (0.025, SimParams().dt_s, 0.1), SimParams().dt_s,
+    ),
+    "eps_barrier": Knob(
+        "barrier ε_b (m)", "sim", "eps_barrier_m",
+        (0.05e-3, SimParams().eps_barrier_m, 0.5e-3), SimParams().eps_barrier_m,
+    ),
+    "golden_tol": Knob(
+        "golden-section tolerance (fraction of Δt)", "sim", "golden_rel_tol",
+        (1e-3, SimParams().golden_rel_tol, 1e-8), SimParams().golden_rel_tol,
+    ),
+}  # fmt: skip
+
+
+def _program_maker(knob: Knob, value: float) -> Callable[[TaskSession, str], MotionProgram]:
+    """The scripted run's program generator with ``knob`` at ``value``."""
+    field = {knob.field: type(knob.default)(value)}
+    sim = dataclasses.replace(SimParams(), **field) if knob.target == "sim" else None
+    deform = DeformParams(**field) if knob.target == "deform" else None
+    command = CommandParams(**field) if knob.target == "command" else None
+
+    def make(session: TaskSession, program_id: str) -> MotionProgram:
+        return generate_program(
+            program_id,
+            session.scene,
+            session.workpiece,
+            session.path_history(),
+            choose_grasp_yaw(session.start_X_WO, session.X_GP),
+            attached_O=session.fingers_O,
+            sim_params=sim or session.params,
+            deform_params=deform,
+            command_params=command,
+            X_WO=session.X_WO,
+        ).program
+
+    return make
+
+
+def _summary(rows: list[dict]) -> dict[str, Any]:
+    def median(key: str, only_ok: bool = False) -> float | None:
+        values = [r[key] for r in rows if r.get(key) is not None and (r["success"] or not only_ok)]
+        return float(np.median(values)) if values else None
+
+    return {
+        "runs": len(rows),
+        "success": sum(bool(r["success"]) for r in rows),
+        "final_error_mm_median": median("final_error_mm", only_ok=True),
+        "computation_s_median": median("computation_s"),
+        "execute_s_median": median("execute_s"),
+        "failures": {r["seed"]: r["outcome"] for r in rows if not r["success"]},
+    }
+
+
+def _plot(out_dir: Path, task: str, summary: dict[str, dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, len(summary), figsize=(3.2 * len(summary), 6), squeeze=False)
+    for col, (name, by_value) in enumerate(summary.items()):
+        knob = KNOBS[name]
+        xs = [float(v) for v in by_value]
+        rate = [s["success"] / s["runs"] for s in by_value.values()]
+        err = [s["final_error_mm_median"] or np.nan for s in by_value.values()]
+        comp = [s["computation_s_median"] or np.nan for s in by_value.values()]
+        top, bottom = axes[0][col], axes[1][col]
+        top.plot(xs, rate, "o-")
+        top.set(title=knob.label, ylim=(-0.05, 1.05), ylabel="success" if col == 0 else None)
+        bottom.plot(xs, err, "o-", label="final error (mm, successes)")
+        bottom.plot(xs, comp, "s--", label="computation (s)")
+        bottom.set(xlabel=knob.field)
+        for ax in (top, bottom):
+            ax.axvline(knob.default, color="grey", ls=":", label="default")
+            if min(xs) > 0 and max(xs) / min(xs) > 20:
+                ax.set_xscale("log")
+        if col == 0:
+            bottom.legend(fontsize=7)
+    fig.suptitle(f"{task}: each knob's effect end to end (other knobs at their defaults)")
+    fig.tight_layout()
+    fig.savefig(out_dir / "trade.png", dpi=90)
+    plt.close(fig)
+
+
+def main(
+    out_dir: Path,
+    seeds: int,
+    task: str = "corner",
+    knobs: tuple[str, ...] = tuple(KNOBS),
+    log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+) -> dict:
+    """Run ``seeds`` seeds of ``task`` per knob value; write the files; the summary."""
+    unknown = [k for k in knobs if k not in KNOBS]
+    if unknown:
+        raise ValueError(f"unknown knob(s) {unknown} (known: {', '.join(KNOBS)})")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows: list[dict] = []
+    runs: dict[tuple[str, float], list[dict]] = {}
+
+    def run(name: str, value: float) -> list[dict]:
+        knob = KNOBS[name]
+        shared = value == knob.default
+        cache_key = ("default", 0.0) if shared else (name, value)
+        if cache_key in runs:
+            return runs[cache_key]
+        work_site_args: tuple[str, ...] = ()
+        make = _program_maker(knob, value) if knob.target != "work_site" and not shared else None
+        if knob.target == "work_site" and not shared:
+            work_site_args = (knob.field, str(value))
+        done = []
+        for seed in range(seeds):
+            r = run_scripted(
+                task, seed, log=lambda _: None, work_site_args=work_site_args,
+                **({"make_program": make} if make is not None else {}),
+            )  # fmt: skip
+            row = {
+                "knob": "default" if shared else name,
+                "value": value,
+                "seed": seed,
+                "success": bool(r.get("success")),
+                "final_error_mm": r.get("final_error_mm"),
+                "final_error_deg": r.get("final_error_deg"),
+                "computation_s": r["stage_s"].get("computation"),
+                "execute_s": r["stage_s"].get("execute"),
+                "commands": r.get("commands"),
+                "outcome": r.get("error") or r.get("execution") or "",
+            }
+            done.append(row)
+            rows.append(row)
+            log(f"trade {row['knob']}={value:g} seed {seed}: "
+                f"{'ok' if row['success'] else 'FAILED ' + row['outcome']}")  # fmt: skip
+        runs[cache_key] = done
+        return done
+
+    summary: dict[str, dict] = {}
+    for name in knobs:
+        summary[name] = {str(v): _summary(run(name, v)) for v in KNOBS[name].values}
+    with (out_dir / "trade.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    result = {
+        "task": task,
+        "seeds": seeds,
+        "defaults": {n: KNOBS[n].default for n in knobs},
+        "knobs": summary,
+    }
+    (out_dir / "trade.json").write_text(json.dumps(result, indent=1))
+    _plot(out_dir, task, summary)
+    return result

@@ -1,0 +1,59 @@
+"""operator_site/e2e_trade.py: knobs reach the program generator; the summary counts right."""
+
+from __future__ import annotations
+
+import pytest
+
+from operator_site import e2e_trade
+from operator_site.e2e_trade import KNOBS
+
+
+@pytest.mark.parametrize("name", list(KNOBS))
+def test_every_knob_lists_its_default_among_its_values(name: str) -> None:
+    knob = KNOBS[name]
+    assert knob.default in knob.values and len(set(knob.values)) == len(knob.values) >= 2
+    assert knob.target in ("sim", "deform", "command", "work_site")
+
+
+def test_a_knob_value_reaches_the_program_generator(monkeypatch) -> None:
+    seen = {}
+
+    class _Generated:
+        program = "the program"
+
+    def fake_generate(program_id, scene, workpiece, history, X_GP, **kw):
+        seen.update(kw)
+        return _Generated()
+
+    class _Session:
+        scene = workpiece = X_GP = start_X_WO = X_WO = None
+        fingers_O = ()
+        params = "session params"
+
+        def path_history(self):
+            return []
+
+    monkeypatch.setattr(e2e_trade, "generate_program", fake_generate)
+    monkeypatch.setattr(e2e_trade, "choose_grasp_yaw", lambda *a: None)
+    make = e2e_trade._program_maker(KNOBS["sim_dt"], 0.1)
+    assert make(_Session(), "p") == "the program"
+    assert seen["sim_params"].dt_s == 0.1 and seen["command_params"] is None
+    make = e2e_trade._program_maker(KNOBS["deform_sweeps"], 10)
+    make(_Session(), "p")
+    assert seen["deform_params"].max_sweeps == 10 and isinstance(
+        seen["deform_params"].max_sweeps, int
+    )
+    assert seen["sim_params"] == "session params"  # untouched knobs keep the session's own
+
+
+def test_summary_counts_successes_and_takes_errors_of_successes_only() -> None:
+    rows = [
+        {"seed": 0, "success": True, "final_error_mm": 0.2, "computation_s": 1.0,
+         "execute_s": 20.0, "outcome": "done"},
+        {"seed": 1, "success": False, "final_error_mm": 40.0, "computation_s": 3.0,
+         "execute_s": None, "outcome": "failed: force"},
+    ]  # fmt: skip
+    s = e2e_trade._summary(rows)
+    assert (s["runs"], s["success"], s["final_error_mm_median"]) == (2, 1, 0.2)
+    assert s["computation_s_median"] == 2.0 and s["execute_s_median"] == 20.0
+    assert s["failures"] == {1: "failed: force"}
