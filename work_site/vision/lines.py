@@ -135,9 +135,14 @@ def refine_segments(
     P = base + off[:, None] * ns
     w = jc
     # Drop samples whose peak is weak (another edge, a junction, or the line's end).
+    # Per segment, its samples' median (np.median's: the mean of the middle two of an even
+    # count): sort by strength within each segment's run, then pick the middle.
+    ws = w[np.lexsort((w, sid))]
     med = np.zeros(len(segs))
-    for i in np.flatnonzero(counts):
-        med[i] = np.median(w[first[i] : first[i] + counts[i]])
+    has = np.flatnonzero(counts)
+    mid_lo = first[has] + (counts[has] - 1) // 2
+    mid_hi = first[has] + counts[has] // 2
+    med[has] = (ws[mid_lo] + ws[mid_hi]) / 2
     keep = inner & (w > 0.5 * med[sid])
     wk = np.where(keep, w, 0.0)
     n_seg = len(segs)

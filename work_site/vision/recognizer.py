@@ -878,17 +878,15 @@ def _clip_segments(segs: np.ndarray, w: int, h: int) -> np.ndarray:
     outside → zero length at the first end point."""
     x0, y0, x1, y1 = segs.T
     dx, dy = x1 - x0, y1 - y0
-    t0 = np.zeros(len(segs))
-    t1 = np.ones(len(segs))
-    out_par = np.zeros(len(segs), dtype=bool)
-    for pp, qq in ((-dx, x0), (dx, w - 1 - x0), (-dy, y0), (dy, h - 1 - y0)):
-        par = pp == 0
-        out_par |= par & (qq < 0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = qq / np.where(par, 1.0, pp)
-        t0 = np.where(~par & (pp < 0), np.maximum(t0, r), t0)
-        t1 = np.where(~par & (pp > 0), np.minimum(t1, r), t1)
-    gone = out_par | (t0 >= t1)
+    # The four boundaries at once: inside where q − t·p ≥ 0 for each row (p, q).
+    pp = np.stack([-dx, dx, -dy, dy])
+    qq = np.stack([x0, w - 1 - x0, y0, h - 1 - y0])
+    par = pp == 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = qq / np.where(par, 1.0, pp)
+    t0 = np.maximum(np.max(np.where(pp < 0, r, 0.0), axis=0), 0.0)
+    t1 = np.minimum(np.min(np.where(pp > 0, r, 1.0), axis=0), 1.0)
+    gone = np.any(par & (qq < 0), axis=0) | (t0 >= t1)
     t0 = np.where(gone, 0.0, t0)
     t1 = np.where(gone, 0.0, t1)
     return np.column_stack([x0 + t0 * dx, y0 + t0 * dy, x0 + t1 * dx, y0 + t1 * dy])
