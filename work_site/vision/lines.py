@@ -194,6 +194,30 @@ def _mergeable(segs: np.ndarray, params: LineParams) -> np.ndarray:
     return ok
 
 
+def _mergeable_to(segs: np.ndarray, i: int, js: np.ndarray, params: LineParams) -> np.ndarray:
+    """Row ``i`` of :func:`_mergeable` at columns ``js`` (not containing ``i``), alone."""
+    a = segs[i, :2]
+    d = segs[i, 2:] - a
+    L = float(np.hypot(d[0], d[1]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = d / L
+    n = np.array([-u[1], u[0]])
+    S = segs[js]
+    dj = S[:, 2:] - S[:, :2]
+    lo = np.maximum(np.linalg.norm(dj, axis=1), 1e-9)
+    cosang = np.abs(dj @ u) / lo
+    P0, P1 = S[:, :2] - a, S[:, 2:] - a
+    off = np.maximum(np.abs(P0 @ n), np.abs(P1 @ n))
+    t0, t1 = P0 @ u, P1 @ u
+    gap = np.maximum(np.minimum(t0, t1) - L, -np.maximum(t0, t1))
+    with np.errstate(invalid="ignore"):
+        return (
+            (cosang > np.cos(params.merge_angle_rad))
+            & (off < params.merge_offset_px)
+            & (gap < params.merge_gap_px)
+        )
+
+
 def merge_collinear(segs: np.ndarray, params: LineParams) -> np.ndarray:
     """Join segments that lie on one line with a small gap between them (greedy, longest
     first); the joined segment spans both.
@@ -216,7 +240,7 @@ def merge_collinear(segs: np.ndarray, params: LineParams) -> np.ndarray:
                 continue
             if not (partner[i] & alive & ~grown).any():
                 g = np.flatnonzero(grown & alive)
-                if len(g) == 0 or not _mergeable(segs[np.r_[i, g]], params)[0].any():
+                if len(g) == 0 or not _mergeable_to(segs, i, g, params).any():
                     continue
             a, b = segs[i, :2], segs[i, 2:]
             L = np.linalg.norm(b - a)

@@ -704,12 +704,9 @@ class Recognizer:
         if self._quick_support(model, X, K, gx, gy, occluders_C, vis[1]) < p.quick_support_min:
             return None
         if grown:
-            v0 = self._verify(model, X, K, segs, gx, gy, occluders_C, vis[1])
-            if (
-                v0.length_fraction < p.grown_pre_length_min
-                or v0.score < p.grown_pre_score_min
-                or v0.gradient_fraction < p.grown_pre_gradient_min
-            ):
+            need = (p.grown_pre_length_min, p.grown_pre_score_min, p.grown_pre_gradient_min)
+            v0 = self._verify(model, X, K, segs, gx, gy, occluders_C, vis[1], need)
+            if v0.length_fraction < need[0] or v0.score < need[1] or v0.gradient_fraction < need[2]:
                 return None
         mi = mj = np.zeros(0, int)
         fit = None
@@ -736,8 +733,9 @@ class Recognizer:
         if fit.rms_px > p.final_rms_max_px or len(np.unique(mi)) < p.min_matched_edges:
             return None
         proj = vis[1] if seen_at is X else None
-        v = self._verify(model, X, K, segs, gx, gy, occluders_C, proj)
-        if v.length_fraction < p.min_length_fraction or v.score < p.min_score:
+        need = (p.min_length_fraction, p.min_score, 0.0)
+        v = self._verify(model, X, K, segs, gx, gy, occluders_C, proj, need)
+        if v.length_fraction < need[0] or v.score < need[1]:
             return None
         return X, fit.rms_px, v
 
@@ -770,10 +768,14 @@ class Recognizer:
         best = np.any((mag > p.gradient_min) & (cos > np.cos(p.gradient_angle_rad)), axis=0)
         return float(best.mean())
 
-    def _verify(self, model: VisionModel, X_CO, K, segs, gx, gy, occluders_C, proj=None):
+    def _verify(
+        self, model: VisionModel, X_CO, K, segs, gx, gy, occluders_C, proj=None, need=None
+    ) -> Verification:
         """Fractions of the visible projected edge length matched by image lines and with the
         image gradient across them, plus the image segments matched. ``proj``: the visible
-        edges if already known."""
+        edges if already known. ``need``: minima ``(length, score, gradient)`` fractions; a
+        pose below one of them is returned as soon as that is known, without the rest
+        (fractions not computed are 0)."""
         p = self.params
         if proj is None:
             _, proj, _ = visible_edges(model, X_CO, K, occluders_C)
@@ -785,18 +787,8 @@ class Recognizer:
         proj, L = proj[keep], L[keep]
         if len(proj) == 0 or L.sum() < 20:
             return Verification(0.0, 0.0, 0.0, [], 0.0)
-        mi, mj = match_segments(proj, segs, p.verify_tol_px, p.verify_angle_rad)
         a = proj[:, :2]
         u = (proj[:, 2:] - a) / L[:, None]
-        covered = 0.0
-        if len(mi):
-            # Each matched image segment as an interval along its edge; the union per edge.
-            ta = np.sum((segs[mj, :2] - a[mi]) * u[mi], axis=1)
-            tb = np.sum((segs[mj, 2:] - a[mi]) * u[mi], axis=1)
-            lo = np.clip(np.minimum(ta, tb), 0.0, L[mi])
-            hi = np.clip(np.maximum(ta, tb), 0.0, L[mi])
-            covered = _covered_length(mi, lo, hi, L)
-        frac_len = covered / L.sum()
         # Gradient direction agreement sampled every 1.5 px along every visible edge.
         counts = np.maximum(np.ceil((L - 2.0) / 1.5), 0).astype(int)  # len(arange(1, L−1, 1.5))
         e = np.repeat(np.arange(len(proj)), counts)
@@ -808,13 +800,27 @@ class Recognizer:
         cosang = np.abs(sx * N[:, 0] + sy * N[:, 1]) / np.maximum(mag, 1e-9)
         good = (mag > p.gradient_min) & (cosang > np.cos(p.gradient_angle_rad))
         frac_grad = float(np.mean(good)) if len(good) else 0.0
+        if need is not None and frac_grad < need[2]:
+            return Verification(0.0, frac_grad, 0.0, [], 0.0)
+        mi, mj = match_segments(proj, segs, p.verify_tol_px, p.verify_angle_rad)
+        covered = 0.0
+        if len(mi):
+            # Each matched image segment as an interval along its edge; the union per edge.
+            ta = np.sum((segs[mj, :2] - a[mi]) * u[mi], axis=1)
+            tb = np.sum((segs[mj, 2:] - a[mi]) * u[mi], axis=1)
+            lo = np.clip(np.minimum(ta, tb), 0.0, L[mi])
+            hi = np.clip(np.maximum(ta, tb), 0.0, L[mi])
+            covered = _covered_length(mi, lo, hi, L)
+        frac_len = float(covered / L.sum())
+        if need is not None and (frac_len < need[0] or 0.5 * (frac_len + frac_grad) < need[1]):
+            return Verification(frac_len, frac_grad, 0.0, mj.tolist(), float(covered))
         # The outline against the background must show in the image almost everywhere: a
         # hypothesis that explains one block and hangs over empty table fails here.
         uv = project(transform(X_CO, model.vertices_O), K).astype(np.float32)
         hull = cv2.convexHull(uv).reshape(-1, 2).astype(np.float64)
         on_hull = _distance_to_polygon(P.astype(np.float64), hull) < 1.0
         frac_sil = float(np.mean(good[on_hull])) if on_hull.any() else 0.0
-        return Verification(float(frac_len), frac_grad, frac_sil, mj.tolist(), float(covered))
+        return Verification(frac_len, frac_grad, frac_sil, mj.tolist(), float(covered))
 
     def _plausible(
         self, parts_W: list[tuple], accepted: list[list[tuple]], environment: bool = True
