@@ -160,3 +160,34 @@ def test_match_segments_pairs_each_image_line_with_its_own_edge() -> None:
     half = 0.5 * (image[:, 2:] - image[:, :2]) @ np.array([[c, s], [-s, c]])
     turned = np.column_stack([mid - 0.2 * half, mid + 0.2 * half])
     assert len(match_segments(model, turned, 1.5, np.deg2rad(5.0))[0]) == 0
+
+
+def test_pose_set_adds_many_as_one_by_one() -> None:
+    """``add_new`` records and reports the same poses as ``seen`` then ``add`` in turn,
+    with poses equal to recorded ones, to earlier ones of the batch, and up to symmetry."""
+    scene = load_scene()
+    cube = vision_model(next(o.model for o in scene.movable if o.name == "cube"))
+    rng = np.random.default_rng(4)
+    base = [make_pose(so3_exp(rng.normal(size=3)), rng.uniform(-0.05, 0.05, 3)) for _ in range(6)]
+    for trial in range(20):
+        batch = []
+        for _ in range(30):
+            X = base[int(rng.integers(len(base)))].copy()
+            X[:3, :3] = X[:3, :3] @ cube.symmetries[int(rng.integers(len(cube.symmetries)))]
+            X[:3, :3] = so3_exp(rng.normal(scale=0.025, size=3)) @ X[:3, :3]
+            X[:3, 3] += rng.normal(scale=0.0015, size=3)
+            batch.append(X)
+        batch = np.array(batch)
+        one, many = PoseSet(0.004, np.deg2rad(4.0)), PoseSet(0.004, np.deg2rad(4.0))
+        for X in base[: trial % 4]:
+            one.add(cube, X)
+            many.add(cube, X)
+        expected = []
+        for X in batch:
+            fresh = not one.seen(cube, X)
+            if fresh:
+                one.add(cube, X)
+            expected.append(fresh)
+        got = many.add_new(cube, batch)
+        np.testing.assert_array_equal(got, expected)
+        assert 0 < sum(expected) < len(batch)

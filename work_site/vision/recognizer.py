@@ -278,6 +278,39 @@ class PoseSet:
         X[n] = X_CO
         self._n[model.name] = n + 1
 
+    def add_new(self, model: VisionModel, X_CO: np.ndarray) -> np.ndarray:
+        """Poses (k, 4, 4) in turn: each is recorded unless equal to one recorded before it
+        (earlier in ``X_CO`` included), as :meth:`seen` then :meth:`add` one by one would
+        do; returns (k,) bool, True for those recorded."""
+        k = len(X_CO)
+        new = np.zeros(k, dtype=bool)
+        if k == 0:
+            return new
+        n = self._n.get(model.name, 0)
+        R = X_CO[:, :3, :3]
+        RS = R[:, None] @ model.symmetries[None]  # (k, s, 3, 3)
+        old = np.zeros(k, dtype=bool)
+        if n:
+            X = self._X[model.name][:n]
+            d = X_CO[:, None, :3, 3] - X[None, :, :3, 3]
+            near = np.einsum("kni,kni->kn", d, d) <= self.same_pose_m**2  # (k, n)
+            ki, ni = np.nonzero(near)
+            if len(ki):
+                tr = np.einsum("mij,msij->ms", X[ni, :3, :3], RS[ki])
+                old[ki[np.any(tr > self.cos_min, axis=1)]] = True
+        d = X_CO[:, None, :3, 3] - X_CO[None, :, :3, 3]
+        close = np.einsum("abi,abi->ab", d, d) <= self.same_pose_m**2  # (k, k)
+        ai, bi = np.nonzero(np.tril(close, -1))  # b recorded before a
+        same = np.zeros((k, k), dtype=bool)
+        if len(ai):
+            tr = np.einsum("mij,msij->ms", R[bi], RS[ai])
+            same[ai, bi] = np.any(tr > self.cos_min, axis=1)
+        for a in range(k):
+            new[a] = not old[a] and not (same[a, :a] & new[:a]).any()
+        for a in np.flatnonzero(new):
+            self.add(model, X_CO[a])
+        return new
+
     def seen(self, model: VisionModel, X_CO: np.ndarray) -> bool:
         """Whether a pose of ``model`` equal to ``X_CO`` up to its symmetries was recorded."""
         n = self._n.get(model.name, 0)
@@ -443,11 +476,9 @@ class Recognizer:
                     whole, self._edge_faces[whole.name], X_CB_all, K, gx, gy,
                     p.gradient_min, p.gradient_angle_rad,
                 )  # fmt: skip
-                for X_CB, s in zip(X_CB_all, support, strict=True):
-                    if tested.seen(whole, X_CB):
-                        continue
-                    tested.add(whole, X_CB)
-                    if s < p.grow_support_min:
+                fresh = tested.add_new(whole, X_CB_all)
+                for X_CB, s, untested in zip(X_CB_all, support, fresh, strict=True):
+                    if not untested or s < p.grow_support_min:
                         continue
                     r2 = self._test(whole, X_CB, segs, K, gx, gy, env_C, camera.X_WC, grown=True)
                     if r2 is not None:
@@ -841,10 +872,16 @@ class Recognizer:
             others += [
                 q for name, _, parts, _ in self.environment if name != "table" for q in parts
             ]
+        if not others:
+            return True
+        # Bounding spheres first: only parts whose spheres meet can interpenetrate.
+        centres = np.array([b.mean(0) for b, _ in others])
+        radii = np.array([_radius(b) for b, _ in others])
         for a, na in parts_W:
-            for b, nb in others:
-                if np.linalg.norm(a.mean(0) - b.mean(0)) > _radius(a) + _radius(b):
-                    continue
+            ca = a.mean(0)
+            near = np.sqrt(np.sum((centres - ca) ** 2, axis=1)) <= _radius(a) + radii
+            for k in np.flatnonzero(near):
+                b, nb = others[k]
                 if convex_overlap_depth(a, b, na, nb) > p.max_penetration_m:
                     return False
         return True
