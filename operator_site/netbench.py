@@ -1034,7 +1034,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--net-frame-encodings",
-        default="raw,png,jpeg:90",
+        default="raw,png,jpeg:90,jpeg:80",
         metavar="LIST",
         help="camera encodings to compare, as work-site serve --camera-encoding takes them "
         "(default: %(default)s)",
