@@ -42,7 +42,7 @@ def test_the_link_orders_each_programs_reports_by_seq_and_drops_replays() -> Non
         link.close()
 
 
-def test_the_journal_keeps_seq_and_skips_what_it_cannot_replay(tmp_path: Path) -> None:
+def test_the_journal_keeps_seq_and_remembers_what_it_cannot_replay(tmp_path: Path) -> None:
     journal = tmp_path / "journal.jsonl"
     old_schema = msgpack.unpackb(encode(report("old", 0, -1, "accepted", 1.0)), raw=False)
     old_schema["v"] -= 1  # written by the previous release
@@ -55,9 +55,10 @@ def test_the_journal_keeps_seq_and_skips_what_it_cannot_replay(tmp_path: Path) -
         "".join(json.dumps(line) + "\n" for line in lines) + '{"program_id": "p", "rep'
     )  # the last line half written by a crash
     reports, added = read_journal(journal)
-    assert list(reports) == ["p"]
-    assert [pid for pid, _ in added] == ["p"]  # interrupted by the restart: closed as failed
-
-    closing = decode(added[0][1], expected=ExecutionReport)
+    assert list(reports) == ["old", "p"]  # "old" is remembered: a re-send never runs it again
+    assert [pid for pid, _ in added] == ["old", "p"]  # both closed as failed
+    old = decode(added[0][1], expected=ExecutionReport)
+    assert (old.seq, old.status) == (0, "failed") and "earlier version" in old.message
+    closing = decode(added[1][1], expected=ExecutionReport)  # interrupted by the restart
     assert (closing.seq, closing.command_index, closing.status) == (2, -1, "failed")
-    assert len(reports["p"]) == 3
+    assert len(reports["p"]) == 3 and len(reports["old"]) == 1

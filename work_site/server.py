@@ -66,9 +66,12 @@ def read_journal(
     path: Path,
 ) -> tuple[collections.OrderedDict[str, list[bytes]], list[tuple[str, bytes]]]:
     """The programs and reports of a journal (the newest REMEMBERED_PROGRAMS), and the closing
-    "failed" reports added for programs a restart interrupted. Unreadable lines are skipped
-    (a crash may leave the last one half written; an older schema's reports do not decode)."""
+    "failed" reports added for programs a restart interrupted. Unreadable lines are skipped (a
+    crash may leave the last one half written). A report an older schema wrote cannot be
+    replayed to today's operators, but its program id is still remembered, so that a re-send
+    never runs that program again."""
     reports: collections.OrderedDict[str, list[bytes]] = collections.OrderedDict()
+    last: dict[str, ExecutionReport | None] = {}
     added: list[tuple[str, bytes]] = []
     if not path.exists():
         return reports, added
@@ -78,30 +81,39 @@ def read_journal(
             pid, payload = str(entry["program_id"]), bytes.fromhex(entry["report"])
         except (ValueError, KeyError, TypeError):
             continue
-        try:  # a journal written by an older schema cannot be replayed to today's operators
-            decode(payload, expected=ExecutionReport)
-        except ProtocolError:
-            continue
-        reports.setdefault(pid, []).append(payload)
+        payloads = reports.setdefault(pid, [])
         reports.move_to_end(pid)
+        try:
+            last[pid] = decode(payload, expected=ExecutionReport)
+        except ProtocolError:
+            last.setdefault(pid, None)
+            continue
+        payloads.append(payload)
     while len(reports) > REMEMBERED_PROGRAMS:
         reports.popitem(last=False)
     for pid, payloads in reports.items():
-        last = decode(payloads[-1], expected=ExecutionReport)
-        if not (last.command_index == -1 and last.status in FINAL_STATUSES):
-            closing = encode(
-                ExecutionReport(
-                    program_id=pid,
-                    command_index=-1,
-                    status="failed",
-                    wrench_S=np.zeros(6),
-                    message="interrupted: the work site restarted during this program",
-                    stamp_s=time.time(),
-                    seq=len(payloads),
-                )
+        final = last[pid]
+        if final is not None and final.command_index == -1 and final.status in FINAL_STATUSES:
+            continue
+        message = (
+            "interrupted: the work site restarted during this program"
+            if final is not None
+            else "run by an earlier version of the work site, whose reports cannot be "
+            "replayed; not run again"
+        )
+        closing = encode(
+            ExecutionReport(
+                program_id=pid,
+                command_index=-1,
+                status="failed",
+                wrench_S=np.zeros(6),
+                message=message,
+                stamp_s=time.time(),
+                seq=len(payloads),
             )
-            payloads.append(closing)
-            added.append((pid, closing))
+        )
+        payloads.append(closing)
+        added.append((pid, closing))
     return reports, added
 
 
