@@ -26,6 +26,7 @@ from operator_site.program import (
     scenarios,
     target_bias,
 )
+from operator_site.program.commands import CORNER_CLEARANCE_M
 from operator_site.program.poses import interpolate
 from protocol import MotionCommand, MotionProgram, decode, encode
 
@@ -357,3 +358,28 @@ def test_around_corner_demonstrations_become_programs_that_pass_the_check(seed: 
     assert {c.object for c in last.contacts} == {"frame", "table"}
     X_end = np.asarray(last.X_WP)
     assert np.linalg.norm(X_end[:3, 3] - demo.ideal_X_WO[:3, 3]) < 1e-3
+    # Round the outside corner the block leaves the frame, turns and comes back (the robot's
+    # block, a millimetre off the simulated one, otherwise jams on the corner): a run of
+    # table-only contact moves between the two faces, each target clear of the frame.
+    with_frame = ["frame" in {c.object for c in cmd.contacts} for cmd in program.commands]
+    first = with_frame.index(True)
+    back = first + with_frame[first:].index(False)
+    rejoin = back + with_frame[back:].index(True)
+    assert all(with_frame[rejoin:-2]), "the frame is kept from the rejoin to the release"
+    session = demo.session
+    sweeper = Sweeper(
+        session.scene, demo.workpiece, attached_O=session.fingers_O, X_WO=session.X_WO
+    )
+    for k, cmd in enumerate(program.commands[back:rejoin]):
+        assert cmd.kind == "contact_move" and {c.object for c in cmd.contacts} == {"table"}
+        clear_m = sweeper.stepper.probe(np.asarray(cmd.X_WP)).distance_m("frame")
+        # The first backs off the corner (obliquely to its face), the rest are off the new face.
+        assert clear_m >= (1e-3 if k == 0 else CORNER_CLEARANCE_M - 1e-4), (k, clear_m)
+    # … and it is a turn: the frame's normal at the rejoin is not one it had before leaving.
+    n_before = program.commands[back - 1].contacts
+    n_after = program.commands[rejoin].contacts
+    normals = [
+        np.vstack([c.normals_W for c in contacts if c.object == "frame"])
+        for contacts in (n_before, n_after)
+    ]
+    assert float((normals[0] @ normals[1].T).max()) < np.cos(np.radians(20.0))

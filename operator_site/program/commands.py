@@ -26,6 +26,7 @@ from protocol import ContactState, MotionCommand, MotionProgram
 from protocol.messages import (
     MAX_CONTACT_NORMALS,
     MAX_CONTACTS,
+    SAME_CONTACT_DIRECTION_RAD,
     contact_directions,
     target_bias,
 )
@@ -41,6 +42,12 @@ MAX_BISECTIONS = 6
 """A move the drag cannot refine is halved at most this deep (at most 2^6 = 64 moves)."""
 CLEAR_ROUNDS = 4
 """Pushes out of nearby objects tried on a midpoint before the bisection gives up."""
+CORNER_CLEARANCE_M = 0.003
+"""Round an outside corner, the targets just past it are held this far off the new face (m):
+see :func:`clear_outside_corners`."""
+CORNER_REJOIN_M = 0.01
+"""… until the workpiece's centre has gone this far past the corner; the next target comes
+back onto the face (m)."""
 
 
 @dataclass(frozen=True)
@@ -261,6 +268,71 @@ def plan_targets(
     return out
 
 
+def _turned_directions(a: PathNode, b: PathNode) -> np.ndarray:
+    """The contact directions (k, 3) at ``b`` that ``a`` does not have while ``a`` has one of the
+    same object that ``b`` lost: the workpiece went round an outside corner of that object
+    between them (a face sliding over an edge became a vertex on the next face). Empty if
+    none."""
+    cos_same = float(np.cos(SAME_CONTACT_DIRECTION_RAD))
+    at_a, at_b = contact_directions(contact_states(a)), contact_directions(contact_states(b))
+    turned = []
+    for name in {o for o, _ in at_a} & {o for o, _ in at_b}:
+        ns_a = [n for o, n in at_a if o == name]
+        ns_b = [n for o, n in at_b if o == name]
+        new = [n for n in ns_b if all(float(n @ m) < cos_same for m in ns_a)]
+        lost = [m for m in ns_a if all(float(n @ m) < cos_same for n in ns_b)]
+        if new and lost:
+            turned += new
+    return np.array(turned).reshape(-1, 3)
+
+
+def clear_outside_corners(
+    start: PathNode, targets: list[PathNode], sweeper: Sweeper
+) -> list[PathNode]:
+    """``targets`` with each turn round an outside corner made as leave, turn, come back: the
+    workpiece first backs straight off the corner by :data:`CORNER_CLEARANCE_M` along the new
+    face's normals, the targets from the turn until the centre has gone
+    :data:`CORNER_REJOIN_M` further are moved as far off the new face, and the next target
+    comes back onto it with its contact. Kept as they are where a moved move fails the sweep.
+
+    Why: the simulated workpiece passes the corner by a fraction of a millimetre before the
+    new face's contact begins, and the robot biases its target into that face from then on
+    (§VI-B). The real block in the grip is a millimetre or two off the simulated one, so its
+    edge is often still on the corner: the new bias then pushes it back round the corner and
+    it jams there (scripted around-corner: 30 N stops and faces not felt just after the turn,
+    docs/benchmarks.md). Off the face, the block passes the corner clear of both faces."""
+    chain = [start, *targets]
+    out: list[PathNode] = []
+    i = 1
+    while i < len(chain):
+        normals = _turned_directions(chain[i - 1], chain[i]) if i < len(chain) - 1 else []
+        if not len(normals):
+            out.append(chain[i])
+            i += 1
+            continue
+        away = normals.sum(axis=0)
+        away *= CORNER_CLEARANCE_M / np.linalg.norm(away)
+        c_turn = chain[i].X_WO[:3, :3] @ sweeper.c_O + chain[i].X_WO[:3, 3]
+        j = i
+        while j < len(chain) - 1:
+            X = chain[j].X_WO
+            if np.linalg.norm(X[:3, :3] @ sweeper.c_O + X[:3, 3] - c_turn) >= CORNER_REJOIN_M:
+                break
+            j += 1
+        moved = []
+        for node in chain[i - 1 : j]:  # from the last target on the corner: back off first
+            X = node.X_WO.copy()
+            X[:3, 3] += away
+            moved.append(_node_at(sweeper, X, frozenset()))
+        legs = itertools.pairwise([chain[i - 1], *moved, chain[j]])
+        if all(_sweep_ok(a, b, sweeper) for a, b in legs):
+            out += [*moved, chain[j]]
+        else:
+            out += chain[i : j + 1]
+        i = j + 1
+    return out
+
+
 def build_program(
     program_id: str,
     path: WorkpiecePath,
@@ -280,8 +352,11 @@ def build_program(
             contacts=contact_states(first),
         )
     ]
+    targets = plan_targets(path, params, sweeper)
+    if sweeper is not None:
+        targets = clear_outside_corners(first, targets, sweeper)
     prev = first
-    for node in plan_targets(path, params, sweeper):
+    for node in targets:
         contacts = contact_states(node)
         slow = bool(contacts) or bool(prev.contacts)
         commands.append(
