@@ -50,13 +50,15 @@ class Guard:
     threshold_n: float
 
 
-DEFAULT_SURFACE_STIFFNESS_N_PER_M = 1000.0
-"""The work site's contact moves' stiffness along the contact surfaces: by default the same
-1,000 N/m as along the normals, §VI-B's low isotropic impedance. Stiffer (``work-site serve
---surface-stiffness 5000``) the scripted around-corner task succeeded on 7 of 10 seeds against 3
-of 10 (docs/benchmarks.md): promising, to be confirmed over a hundred seeds before it becomes the
-default. A 6 cm slide along a wall ends within 0.5 mm of its goal at every setting from 1,000 to
-20,000 N/m."""
+DEFAULT_SURFACE_STIFFNESS_N_PER_M = 5000.0
+"""The work site's contact moves' stiffness along the contact surfaces (N/m); along the normals
+it stays §VI-B's low 1,000 N/m. The paper found an isotropic impedance sufficient; here, at
+1,000 N/m along the surfaces, friction holds the block 2–5 mm behind its path, which round the
+frame's outside corner left its edge on the corner when the next face's bias began (the
+scripted around-corner task: 4 of 20 seeds against 12 of 20 at 5,000 N/m, and on replays of
+the same programs 2 of 16 against 11 of 16, docs/benchmarks.md). `work-site serve
+--surface-stiffness 1000` gives the isotropic impedance back. A 6 cm slide along a wall ends
+within 0.5 mm of its goal at every setting from 1,000 to 20,000 N/m."""
 
 
 @dataclass(frozen=True)
@@ -102,6 +104,18 @@ def compliant_projector(normals_W: np.ndarray) -> np.ndarray:
     _, sv, Vt = np.linalg.svd(N, full_matrices=False)
     basis = Vt[sv > NORMAL_RANK_TOL * sv[0]]
     return basis.T @ basis
+
+
+def carried_offset_W(offset_W: np.ndarray, impedance: Impedance) -> np.ndarray:
+    """The part of the last contact move's offset δ (m, W) that the next one, with
+    ``impedance``, keeps as its offset: the part along its contact normals when it is stiffer
+    along the surfaces (isotropic: all of it). The rest becomes part of its path's start, so
+    that the hand is not pulled back to where the last target's bias pointed: leaving a
+    contact, that is into the surface it leaves (round the frame's outside corner, into the
+    corner: 21 N at 5,000 N/m on the move off it)."""
+    if impedance.compliant_W is None or impedance.tangential_stiffness_n_per_m is None:
+        return offset_W
+    return impedance.compliant_W @ offset_W
 
 
 @dataclass(frozen=True)
@@ -171,7 +185,8 @@ class TaskController:
         start = self.commanded_tcp_W()
         if impedance is None:
             self.offset_W = np.zeros(3)
-        else:  # compliant moves chain: the path goes on from the last one's end, δ kept
+        else:  # compliant moves chain: the path goes on from where the hand is commanded
+            self.offset_W = carried_offset_W(self.offset_W, impedance)
             start[:3, 3] -= self.offset_W
         self.move = LinearMove(
             start, np.array(X_WG_goal, dtype=np.float64), speed_mps, TCP_ACCEL_MPS2
