@@ -191,3 +191,18 @@ def test_pose_set_adds_many_as_one_by_one() -> None:
         got = many.add_new(cube, batch)
         np.testing.assert_array_equal(got, expected)
         assert 0 < sum(expected) < len(batch)
+
+
+def test_turned_poses_keep_the_centre_and_differ_up_to_symmetry() -> None:
+    """The turns tried for a pose fitted to few edges: about the bounding-box centre, none
+    equal to the model's own pose or to each other up to its symmetries (a cube has none)."""
+    from work_site.vision.recognizer import _turned_poses
+
+    scene = load_scene()
+    for name, expected in (("cube", 0), ("wedge", 11), ("tall_block", 2)):
+        m = vision_model(next(o.model for o in scene.movable if o.name == name))
+        T = _turned_poses(m)
+        assert len(T) == expected == 24 // len(m.symmetries) - 1
+        c = 0.5 * (m.vertices_O.min(0) + m.vertices_O.max(0))
+        for X in T:
+            np.testing.assert_allclose(X[:3, :3] @ c + X[:3, 3], c, atol=1e-12)

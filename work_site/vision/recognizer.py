@@ -71,6 +71,10 @@ class RecognizerParams:
     init_rms_max_px: float = 4.0
     final_rms_max_px: float = 1.0
     min_matched_edges: int = 5
+    min_matched_edges_few: int = 4  # down to this many, with score ≥ few_edges_min_score,
+    few_edges_min_score: float = 0.6  # and the pose turned about its centre tried too (200
+    # scenes: wedges fitted to 4 edges, 40 % of the misses, +2.0 points of recall, one false
+    # object more; scores of 0.7 / 0.8 here gave less recall and no fewer false objects)
     verify_tol_px: float = 1.5
     verify_angle_rad: float = np.deg2rad(4.0)
     gradient_min: float = 60.0
@@ -382,6 +386,7 @@ class Recognizer:
             ]
             for a in self.models
         }
+        self._turned = {m.name: _turned_poses(m) for m in self.models}
         self._facets = {
             m.name: (
                 np.array([n for n, _ in hull_facets(m.vertices_O)]),
@@ -464,10 +469,15 @@ class Recognizer:
             result = self._test(model, X0, segs, K, gx, gy, env_C, camera.X_WC)
             if result is None:
                 continue
-            found = [(model, result, False)]
+            found = [(model, result[:3], False)]
             # The object may be part of a bigger one (an L's bar is a tall block): try those
-            # too, and let the selection prefer whichever explains more of the image.
-            for whole, X_AB_all in self._wholes[model.name]:
+            # too, and let the selection prefer whichever explains more of the image. A pose
+            # fitted to few edges may be the object turned about its centre (a wedge turned
+            # by 90° shows nearly the same outline): try those turns too.
+            others = self._wholes[model.name]
+            if result[3] < p.min_matched_edges:
+                others = [*others, (model, self._turned[model.name])]
+            for whole, X_AB_all in others:
                 X_CB_all = result[0] @ X_AB_all  # (k, 4, 4)
                 X_WB = camera.X_WC @ X_CB_all
                 z_W = X_WB[:, 2, :3] @ whole.vertices_O.T + X_WB[:, 2, 3:]  # (k, v)
@@ -487,7 +497,7 @@ class Recognizer:
                 for X_CB in X_CB_all[order[: p.grown_max_tests]]:
                     r2 = self._test(whole, X_CB, segs, K, gx, gy, env_C, camera.X_WC, grown=True)
                     if r2 is not None:
-                        found.append((whole, r2, True))
+                        found.append((whole, r2[:3], True))
             for m, (X_CO, rms, v), grown in found:
                 X_WO = camera.X_WC @ X_CO
                 parts_W = [
@@ -766,14 +776,17 @@ class Recognizer:
             X = fit.X_CO
         if fit is None:
             return None
-        if fit.rms_px > p.final_rms_max_px or len(np.unique(mi)) < p.min_matched_edges:
+        n_edges = len(np.unique(mi))
+        if fit.rms_px > p.final_rms_max_px or n_edges < p.min_matched_edges_few:
             return None
+        # Fewer edges than min_matched_edges pass only if the image supports them strongly.
+        few = n_edges < p.min_matched_edges
+        need = (p.min_length_fraction, p.few_edges_min_score if few else p.min_score, 0.0)
         proj = vis[1] if seen_at is X else None
-        need = (p.min_length_fraction, p.min_score, 0.0)
         v = self._verify(model, X, K, segs, gx, gy, occluders_C, proj, need)
         if v.length_fraction < need[0] or v.score < need[1]:
             return None
-        return X, fit.rms_px, v
+        return X, fit.rms_px, v, n_edges
 
     def _quick_support(self, model: VisionModel, X_CO, K, gx, gy, occluders_C, proj=None) -> float:
         """Cheap test of a pose before any refinement: the fraction of points along its
@@ -890,6 +903,39 @@ class Recognizer:
                 if convex_overlap_depth(a, b, na, nb) > p.max_penetration_m:
                     return False
         return True
+
+
+def _turned_poses(model: VisionModel) -> np.ndarray:
+    """``X_OT`` (k, 4, 4): the model turned about its bounding-box centre by each of the
+    cube's rotations that give a pose different from the model's own (up to its
+    symmetries)."""
+    c = 0.5 * (model.vertices_O.min(0) + model.vertices_O.max(0))
+    out: list[np.ndarray] = []
+    for S in _cube_rotations():
+        if any(np.allclose(S, Q, atol=1e-9) for Q in model.symmetries):
+            continue
+        if any(np.allclose(S @ Q, X[:3, :3], atol=1e-9) for X in out for Q in model.symmetries):
+            continue
+        X = np.eye(4)
+        X[:3, :3] = S
+        X[:3, 3] = c - S @ c
+        out.append(X)
+    return np.array(out).reshape(-1, 4, 4)
+
+
+def _cube_rotations() -> np.ndarray:
+    """The 24 rotations that map the axes onto the axes."""
+    import itertools
+
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            R = np.zeros((3, 3))
+            for i, j in enumerate(perm):
+                R[i, j] = signs[i]
+            if np.linalg.det(R) > 0:
+                out.append(R)
+    return np.array(out)
 
 
 def _radius(V: np.ndarray) -> float:
