@@ -378,6 +378,16 @@ def _stop(proc: subprocess.Popen) -> None:
         proc.stdout.close()
 
 
+def _stop_group(proc: subprocess.Popen) -> None:
+    """SIGTERM a process started in its own session (and its children), SIGKILL after 15 s."""
+    os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout=15)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
 def _run_client(argv: list[str], timeout_s: float) -> dict[str, Any]:
     done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=timeout_s)
     if done.returncode != 0:
@@ -486,12 +496,7 @@ def measure_work_site(
             cam.undeclare()
             reports.undeclare()
     finally:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        _stop_group(proc)
     return {
         "frame_fps": fps,
         "frame_latency_ms": latencies,
@@ -533,12 +538,7 @@ def measure_programs_over_link(netns: ModuleType, params: dict[str, Any], runs: 
                     cwd=REPO, capture_output=True, text=True, timeout=300,
                 )  # fmt: skip
             finally:
-                os.killpg(site.pid, signal.SIGTERM)
-                try:
-                    site.wait(timeout=15)
-                except subprocess.TimeoutExpired:
-                    os.killpg(site.pid, signal.SIGKILL)
-                    site.wait()
+                _stop_group(site)
         try:
             result = json.loads(done.stdout.strip().splitlines()[-1])
         except (IndexError, ValueError):

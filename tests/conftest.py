@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -86,3 +87,17 @@ def work_site(tmp_path: Path) -> Iterator[Callable[..., WorkSiteProcess]]:
         if ws.proc.poll() is None:
             os.killpg(ws.proc.pid, signal.SIGKILL)
             ws.proc.wait()
+
+
+@pytest.fixture(scope="session")
+def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Test certificates from deploy/make-certs.sh (CA, work-site, operator, router, viewer, and
+    an intruder of another CA); the test is skipped, saying why, without openssl."""
+    if shutil.which("openssl") is None:
+        print("skipping TLS tests: no openssl")
+        pytest.skip("openssl is needed to make test certificates")
+    out = tmp_path_factory.mktemp("certs")
+    subprocess.run(
+        [str(REPO / "deploy" / "make-certs.sh"), str(out)], check=True, capture_output=True
+    )
+    return out

@@ -8,11 +8,12 @@ deploy/zenoh/ loadable by zenoh."""
 from __future__ import annotations
 
 import os
-import shutil
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +45,66 @@ def _one_move(program_id: str) -> MotionProgram:
     return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=(command,))
 
 
+@dataclass
+class _Spawned:
+    """Processes started by a test, each logging to its own file; all stopped afterwards."""
+
+    tmp_path: Path
+    procs: list[subprocess.Popen] = field(default_factory=list)
+    logs: list[Path] = field(default_factory=list)
+
+    def __call__(self, name: str, argv: list[str]) -> Path:
+        log_path = self.tmp_path / f"{name}.log"
+        self.logs.append(log_path)
+        with log_path.open("w") as log:
+            self.procs.append(
+                subprocess.Popen(
+                    argv, cwd=REPO, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                    env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                )
+            )  # fmt: skip
+        return log_path
+
+    def texts(self) -> list[str]:
+        return [p.read_text(errors="replace") for p in self.logs]
+
+    def stop(self) -> None:
+        for proc in self.procs:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGTERM)
+        for proc in self.procs:
+            try:
+                proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+
+
+@pytest.fixture
+def spawn(tmp_path: Path) -> Iterator[_Spawned]:
+    spawned = _Spawned(tmp_path)
+    try:
+        yield spawned
+    finally:
+        spawned.stop()
+
+
+@pytest.fixture
+def links() -> Iterator[list[WorkSiteLink]]:
+    """Links a test opens; closed (before its processes stop) afterwards."""
+    opened: list[WorkSiteLink] = []
+    yield opened
+    for link in opened:
+        link.close()
+
+
+ROUTER = [
+    sys.executable,
+    str(REPO / "deploy" / "router.py"),
+    str(REPO / "deploy" / "zenoh" / "router.json5"),
+]
+
+
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
 def test_example_configs_are_valid_zenoh_configs(path: Path) -> None:
     conf = zenoh.Config.from_file(str(path))
@@ -52,128 +113,62 @@ def test_example_configs_are_valid_zenoh_configs(path: Path) -> None:
 
 
 @pytest.mark.parametrize("single_link", [False, True], ids=["split-links", "single-link"])
-def test_two_work_sites_and_an_operator_through_a_router(tmp_path: Path, single_link) -> None:
+def test_two_work_sites_and_an_operator_through_a_router(spawn, links, single_link) -> None:
     router_ep = f"tcp/127.0.0.1:{free_port_pair()}"
     one = ["--single-link"] if single_link else []
-    procs: list[subprocess.Popen] = []
-    logs: list[Path] = []
-
-    def spawn(name: str, argv: list[str]) -> None:
-        log_path = tmp_path / f"{name}.log"
-        logs.append(log_path)
-        with log_path.open("w") as log:
-            procs.append(
-                subprocess.Popen(
-                    argv,
-                    cwd=REPO,
-                    stdout=log,
-                    stderr=subprocess.STDOUT,
-                    start_new_session=True,
-                    env={**os.environ, "PYTHONUNBUFFERED": "1"},
-                )
-            )
-
-    links: list[WorkSiteLink] = []
-    try:
+    router_log = spawn("router", [*ROUTER, "--listen", router_ep, *one])
+    for site in ("cell-a", "cell-b"):
         spawn(
-            "router",
-            [sys.executable, str(REPO / "deploy" / "router.py"),
-             str(REPO / "deploy" / "zenoh" / "router.json5"), "--listen", router_ep, *one],
+            site,
+            [sys.executable, "-m", "work_site", "serve", "--site-id", site,
+             "--listen", f"tcp/127.0.0.1:{free_port_pair()}", "--connect", router_ep, *one,
+             "--journal", str(spawn.tmp_path / f"{site}.jsonl")],
         )  # fmt: skip
-        for site in ("cell-a", "cell-b"):
-            spawn(
-                site,
-                [sys.executable, "-m", "work_site", "serve", "--site-id", site,
-                 "--listen", f"tcp/127.0.0.1:{free_port_pair()}", "--connect", router_ep, *one,
-                 "--journal", str(tmp_path / f"{site}.jsonl")],
-            )  # fmt: skip
-        # A client's zenoh.open fails rather than retries while its router is not up yet.
-        assert wait_until(lambda: "router: up" in logs[0].read_text(), 30.0), logs[0].read_text()
-        # The operator knows only the router, and as a client talks to nobody else.
-        connect = link_endpoints([router_ep], single_link)[0]
-        assert len(connect) == (1 if single_link else 2)
-        links = [
-            WorkSiteLink(make_config(mode="client", connect=connect), s)
-            for s in ("cell-a", "cell-b")
-        ]
-        a, b = links
+    # A client's zenoh.open fails rather than retries while its router is not up yet.
+    assert wait_until(lambda: "router: up" in router_log.read_text(), 30.0), spawn.texts()
+    # The operator knows only the router, and as a client talks to nobody else.
+    connect = link_endpoints([router_ep], single_link)[0]
+    assert len(connect) == (1 if single_link else 2)
+    for site in ("cell-a", "cell-b"):
+        links.append(WorkSiteLink(make_config(mode="client", connect=connect), site))
+    a, b = links
 
-        def both_connected() -> bool:
-            a.poll(), b.poll()
-            return all(
-                link.status.label == "connected" and link.camera_frame is not None for link in links
-            )
+    def both_connected() -> bool:
+        a.poll(), b.poll()
+        return all(
+            link.status.label == "connected" and link.camera_frame is not None for link in links
+        )
 
-        assert wait_until(both_connected, 60.0), [p.read_text() for p in logs]
-        for link in links:
-            info = link.session.info
-            assert len(list(info.routers_zid())) == 1 and not list(info.peers_zid())
-        q_b = b.robot_state.q.copy()
-        a.send_program(_one_move("to-a"))
+    assert wait_until(both_connected, 60.0), spawn.texts()
+    for link in links:
+        info = link.session.info
+        assert len(list(info.routers_zid())) == 1 and not list(info.peers_zid())
+    q_b = b.robot_state.q.copy()
+    a.send_program(_one_move("to-a"))
 
-        def a_done() -> bool:
-            a.poll(), b.poll()
-            return any(r.program_id == "to-a" and r.status == "done" for r in a.status.reports)
+    def a_done() -> bool:
+        a.poll(), b.poll()
+        return any(r.program_id == "to-a" and r.status == "done" for r in a.status.reports)
 
-        assert wait_until(a_done, 30.0), (a.status.reports, [p.read_text() for p in logs])
-        # Site b heard nothing of it and did not move; site a did.
-        assert b.status.reports == []
-        np.testing.assert_allclose(b.robot_state.q, q_b, atol=1e-4)
-        assert np.linalg.norm(a.robot_state.q - q_b) > 0.05
-    finally:
-        for link in links:
-            link.close()
-        for proc in procs:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGTERM)
-        for proc in procs:
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+    assert wait_until(a_done, 30.0), (a.status.reports, spawn.texts())
+    # Site b heard nothing of it and did not move; site a did.
+    assert b.status.reports == []
+    np.testing.assert_allclose(b.robot_state.q, q_b, atol=1e-4)
+    assert np.linalg.norm(a.robot_state.q - q_b) > 0.05
 
 
 # ------------------------------------------------------------ a secured router (mutual TLS, ACL)
-
-
-@pytest.fixture(scope="module")
-def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    if shutil.which("openssl") is None:
-        print("skipping the secured router test: no openssl")
-        pytest.skip("openssl is needed to make test certificates")
-    out = tmp_path_factory.mktemp("certs")
-    subprocess.run(
-        [str(REPO / "deploy" / "make-certs.sh"), str(out)], check=True, capture_output=True
-    )
-    return out
 
 
 def _tls(certs: Path, name: str, ca: str = "ca.pem") -> TlsFiles:
     return TlsFiles(certs / ca, certs / f"{name}.pem", certs / f"{name}.key")
 
 
-def test_a_secured_router_admits_each_cells_operator_only(tmp_path: Path, certs: Path) -> None:
+def test_a_secured_router_admits_each_cells_operator_only(spawn, links, certs: Path) -> None:
     """Router with mutual TLS and --cell rules: cell-a is commanded by "operator", cell-b by
     "viewer". The operator's program reaches cell-a only; the viewer cannot command cell-a nor
     fake cell-a's robot state; a certificate of another CA gets no session."""
-    port = free_port_pair()
-    router_ep = f"tls/localhost:{port}"
-    procs: list[subprocess.Popen] = []
-    logs: list[Path] = []
-
-    def spawn(name: str, argv: list[str]) -> None:
-        log_path = tmp_path / f"{name}.log"
-        logs.append(log_path)
-        with log_path.open("w") as log:
-            procs.append(
-                subprocess.Popen(
-                    argv, cwd=REPO, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                    env={**os.environ, "PYTHONUNBUFFERED": "1"},
-                )
-            )  # fmt: skip
-
-    links: list[WorkSiteLink] = []
+    router_ep = f"tls/localhost:{free_port_pair()}"
 
     def link(name: str, site: str, ca: str = "ca.pem") -> WorkSiteLink:
         config = make_config(
@@ -182,104 +177,85 @@ def test_a_secured_router_admits_each_cells_operator_only(tmp_path: Path, certs:
         links.append(WorkSiteLink(config, site))
         return links[-1]
 
-    try:
+    router_log = spawn(
+        "router",
+        [*ROUTER, "--listen", router_ep, "--certs", str(certs),
+         "--cell", "cell-a=work-site:operator", "--cell", "cell-b=work-site:viewer"],
+    )  # fmt: skip
+    for site in ("cell-a", "cell-b"):
+        # The router has checked who sent a command: the work site admits the router's.
         spawn(
-            "router",
-            [sys.executable, str(REPO / "deploy" / "router.py"),
-             str(REPO / "deploy" / "zenoh" / "router.json5"), "--listen", router_ep,
-             "--certs", str(certs), "--cell", "cell-a=work-site:operator",
-             "--cell", "cell-b=work-site:viewer"],
+            site,
+            [sys.executable, "-m", "work_site", "serve", "--site-id", site, "--no-camera",
+             "--listen", f"tcp/127.0.0.1:{free_port_pair()}", "--connect", router_ep,
+             "--certs", str(certs), "--operators", "router",
+             "--journal", str(spawn.tmp_path / f"{site}.jsonl")],
         )  # fmt: skip
-        for site in ("cell-a", "cell-b"):
-            # The router has checked who sent a command: the work site admits the router's.
-            spawn(
-                site,
-                [sys.executable, "-m", "work_site", "serve", "--site-id", site, "--no-camera",
-                 "--listen", f"tcp/127.0.0.1:{free_port_pair()}", "--connect", router_ep,
-                 "--certs", str(certs), "--operators", "router",
-                 "--journal", str(tmp_path / f"{site}.jsonl")],
-            )  # fmt: skip
-        assert wait_until(lambda: "router: up" in logs[0].read_text(), 30.0), logs[0].read_text()
-        assert "mutual TLS; cells cell-a, cell-b" in logs[0].read_text()
-        op_a, op_b, viewer_a = (
-            link("operator", "cell-a"),
-            link("operator", "cell-b"),
-            link("viewer", "cell-a"),
-        )
+    assert wait_until(lambda: "router: up" in router_log.read_text(), 30.0), spawn.texts()
+    assert "mutual TLS; cells cell-a, cell-b" in router_log.read_text()
+    op_a, op_b, viewer_a = (
+        link("operator", "cell-a"),
+        link("operator", "cell-b"),
+        link("viewer", "cell-a"),
+    )
 
-        def all_see_state() -> bool:
-            for each in (op_a, op_b, viewer_a):
-                each.poll()
-            return all(each.robot_state is not None for each in (op_a, op_b, viewer_a))
+    def all_see_state() -> bool:
+        for each in (op_a, op_b, viewer_a):
+            each.poll()
+        return all(each.robot_state is not None for each in (op_a, op_b, viewer_a))
 
-        assert wait_until(all_see_state, 60.0), [p.read_text() for p in logs]
-        q_a, q_b = op_a.robot_state.q.copy(), op_b.robot_state.q.copy()
-        with pytest.raises(zenoh.ZError):  # another CA's certificate: no session at all
-            link("intruder", "cell-a")
+    assert wait_until(all_see_state, 60.0), spawn.texts()
+    q_a, q_b = op_a.robot_state.q.copy(), op_b.robot_state.q.copy()
+    with pytest.raises(zenoh.ZError):  # another CA's certificate: no session at all
+        link("intruder", "cell-a")
 
-        # Refused at the router: the operator commanding cell-b, the viewer commanding cell-a,
-        # the viewer publishing a robot state for cell-a.
-        fake = RobotState(
-            seq=10**9, stamp_s=0.0, q=np.zeros(6), X_WF=np.eye(4), gripper_opening_m=0.0,
-            wrench_S=np.zeros(6),
-        )  # fmt: skip
-        seqs: list[int] = []  # every robot state of cell-a the operator receives
-        spy = op_a.session.declare_subscriber(
-            key("cell-a", "robot_state"), lambda s: seqs.append(decode(s.payload.to_bytes()).seq)
-        )
-        for _ in range(15):
-            op_b.send_program(_one_move("op-to-b"))
-            viewer_a.send_program(_one_move("viewer-to-a"))
-            viewer_a.send_stop("viewer")
-            viewer_a.session.put(key("cell-a", "robot_state"), encode(fake))
-            op_a.poll(), op_b.poll()
-            time.sleep(0.2)
-        spy.undeclare()
-        assert seqs and max(seqs) < 10**9, "a forged robot state got through"
-        assert op_a.status.reports == [] and op_b.status.reports == []
-        np.testing.assert_allclose(op_b.robot_state.q, q_b, atol=1e-4)
-        np.testing.assert_allclose(op_a.robot_state.q, q_a, atol=1e-4)
+    # Refused at the router: the operator commanding cell-b, the viewer commanding cell-a,
+    # the viewer publishing a robot state for cell-a.
+    fake = RobotState(
+        seq=10**9, stamp_s=0.0, q=np.zeros(6), X_WF=np.eye(4), gripper_opening_m=0.0,
+        wrench_S=np.zeros(6),
+    )  # fmt: skip
+    seqs: list[int] = []  # every robot state of cell-a the operator receives
+    spy = op_a.session.declare_subscriber(
+        key("cell-a", "robot_state"), lambda s: seqs.append(decode(s.payload.to_bytes()).seq)
+    )
+    for _ in range(15):
+        op_b.send_program(_one_move("op-to-b"))
+        viewer_a.send_program(_one_move("viewer-to-a"))
+        viewer_a.send_stop("viewer")
+        viewer_a.session.put(key("cell-a", "robot_state"), encode(fake))
+        op_a.poll(), op_b.poll()
+        time.sleep(0.2)
+    spy.undeclare()
+    assert seqs and max(seqs) < 10**9, "a forged robot state got through"
+    assert op_a.status.reports == [] and op_b.status.reports == []
+    np.testing.assert_allclose(op_b.robot_state.q, q_b, atol=1e-4)
+    np.testing.assert_allclose(op_a.robot_state.q, q_a, atol=1e-4)
 
-        # The operator's program to its own cell runs.
-        op_a.send_program(_one_move("op-to-a"))
+    # The operator's program to its own cell runs.
+    op_a.send_program(_one_move("op-to-a"))
 
-        def a_done() -> bool:
-            op_a.poll(), op_b.poll()
-            return any(
-                r.program_id == "op-to-a" and r.status == "done" for r in op_a.status.reports
-            )
+    def a_done() -> bool:
+        op_a.poll(), op_b.poll()
+        return any(r.program_id == "op-to-a" and r.status == "done" for r in op_a.status.reports)
 
-        assert wait_until(a_done, 30.0), (op_a.status.reports, [p.read_text() for p in logs])
-        assert np.linalg.norm(op_a.robot_state.q - q_a) > 0.05
-        assert op_b.status.reports == []
-    finally:
-        for each in links:
-            each.close()
-        for proc in procs:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGTERM)
-        for proc in procs:
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+    assert wait_until(a_done, 30.0), (op_a.status.reports, spawn.texts())
+    assert np.linalg.norm(op_a.robot_state.q - q_a) > 0.05
+    assert op_b.status.reports == []
 
 
 def test_the_router_refuses_a_plain_listener_on_the_network_and_bad_cells() -> None:
-    router = [sys.executable, str(REPO / "deploy" / "router.py")]
-    config = str(REPO / "deploy" / "zenoh" / "router.json5")
     done = subprocess.run(
-        [*router, config, "--listen", f"tcp/0.0.0.0:{free_port_pair()}"],
+        [*ROUTER, "--listen", f"tcp/0.0.0.0:{free_port_pair()}"],
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert done.returncode == 2 and "without TLS" in done.stderr and "--insecure" in done.stderr
     done = subprocess.run(
-        [*router, config, "--listen", "tcp/127.0.0.1:7", "--cell", "a=ws:op"],
+        [*ROUTER, "--listen", "tcp/127.0.0.1:7", "--cell", "a=ws:op"],
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert done.returncode == 2 and "--cell needs --certs" in done.stderr
     done = subprocess.run(
-        [*router, config, "--cell", "no-operators=ws"], capture_output=True, text=True, timeout=60
+        [*ROUTER, "--cell", "no-operators=ws"], capture_output=True, text=True, timeout=60
     )
     assert done.returncode == 2 and "SITE=WORK_SITE_CN:OPERATOR_CN" in done.stderr

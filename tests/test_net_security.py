@@ -5,7 +5,6 @@ make it move. The work site is a real process (deploy/serve_work_site.py: the se
 from __future__ import annotations
 
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -49,18 +48,6 @@ def program(
         contacts=(),
     )
     return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=(command,))
-
-
-@pytest.fixture(scope="module")
-def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    if shutil.which("openssl") is None:
-        print("skipping TLS tests: no openssl")
-        pytest.skip("openssl is needed to make test certificates")
-    out = tmp_path_factory.mktemp("certs")
-    subprocess.run(
-        [str(REPO / "deploy" / "make-certs.sh"), str(out)], check=True, capture_output=True
-    )
-    return out
 
 
 @pytest.fixture
