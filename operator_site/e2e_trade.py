@@ -31,6 +31,7 @@ from operator_site.scripted import run_scripted
 from operator_site.simulator import SimParams
 from operator_site.task import TaskSession
 from protocol import MotionProgram
+from work_site.control.controller import DEFAULT_SURFACE_STIFFNESS_N_PER_M
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,7 @@ KNOBS: dict[str, Knob] = {
     ),
     "surface_stiffness": Knob(
         "impedance along the surfaces (N/m)", "work_site", "--surface-stiffness",
-        (1000.0, 5000.0), 1000.0,
+        (1000.0, 5000.0), DEFAULT_SURFACE_STIFFNESS_N_PER_M,
     ),
     "deform_sweeps": Knob(
         "deformation sweeps (at most)", "deform", "max_sweeps",
