@@ -45,10 +45,12 @@ from work_site.vision.model import (
 )
 from work_site.vision.pose import fit_pose
 from work_site.vision.table import (
+    SUPPORT_OFFSETS_PX,
     batch_support,
     edge_faces,
     rest_corners,
     sample_gradient,
+    sample_gradient_xy,
     table_hypotheses,
 )
 
@@ -817,16 +819,16 @@ class Recognizer:
             return 0.0
         proj, d, L = proj[keep], d[keep], L[keep]
         u = d / L[:, None]
-        n = np.column_stack([-u[:, 1], u[:, 0]])
+        nx, ny = -u[:, 1:], u[:, :1]  # (e, 1) each
         k = 6  # points per edge
         t = (np.arange(k) + 0.5) / k
-        P = proj[:, None, :2] + t[None, :, None] * d[:, None, :]  # (e, k, 2)
-        offsets = np.array([-1.5, 0.0, 1.5])
-        Q = P[None] + offsets[:, None, None, None] * n[None, :, None, :]  # (3, e, k, 2)
-        sx, sy = sample_gradient(gx, gy, Q.reshape(-1, 2))
-        sx, sy = sx.reshape(Q.shape[:3]), sy.reshape(Q.shape[:3])
+        off = np.array(SUPPORT_OFFSETS_PX)[:, None, None]
+        # Points at 6 fractions along each edge, at 3 offsets across it: (3, e, k)
+        X = (proj[:, :1] + t * d[:, :1])[None] + off * nx[None]
+        Y = (proj[:, 1:2] + t * d[:, 1:])[None] + off * ny[None]
+        sx, sy = sample_gradient_xy(gx, gy, X, Y)
         mag = np.hypot(sx, sy)
-        cos = np.abs(sx * n[:, None, 0] + sy * n[:, None, 1]) / np.maximum(mag, 1e-9)
+        cos = np.abs(sx * nx + sy * ny) / np.maximum(mag, 1e-9)
         best = np.any((mag > p.gradient_min) & (cos > np.cos(p.gradient_angle_rad)), axis=0)
         return float(best.mean())
 
