@@ -65,8 +65,8 @@ KNOBS: dict[str, Knob] = {
         (0.025, SimParams().dt_s, 0.1), SimParams().dt_s,
     ),
     "eps_barrier": Knob(
-        "barrier ε_b (m)", "sim", "eps_barrier_m",
-        (0.05e-3, SimParams().eps_barrier_m, 0.5e-3), SimParams().eps_barrier_m,
+        "barrier ε_b (m; below ε_c = 0.5 mm)", "sim", "eps_barrier_m",
+        (0.05e-3, SimParams().eps_barrier_m, 0.25e-3), SimParams().eps_barrier_m,
     ),
     "golden_tol": Knob(
         "golden-section tolerance (fraction of Δt)", "sim", "golden_rel_tol",
@@ -76,7 +76,8 @@ KNOBS: dict[str, Knob] = {
 
 
 def _program_maker(knob: Knob, value: float) -> Callable[[TaskSession, str], MotionProgram]:
-    """The scripted run's program generator with ``knob`` at ``value``."""
+    """The scripted run's program generator with ``knob`` at ``value`` (ValueError, from the
+    parameters' own checks, if the value is not allowed)."""
     field = {knob.field: type(knob.default)(value)}
     sim = dataclasses.replace(SimParams(), **field) if knob.target == "sim" else None
     deform = DeformParams(**field) if knob.target == "deform" else None
@@ -156,9 +157,16 @@ def main(
     unknown = [k for k in knobs if k not in KNOBS]
     if unknown:
         raise ValueError(f"unknown knob(s) {unknown} (known: {', '.join(KNOBS)})")
+    for name in knobs:  # every value checked before the first run, not after an hour
+        knob = KNOBS[name]
+        if knob.target != "work_site":
+            for value in knob.values:
+                _program_maker(knob, value)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
     runs: dict[tuple[str, float], list[dict]] = {}
+    csv_path = out_dir / "trade.csv"
+    csv_path.unlink(missing_ok=True)
 
     def run(name: str, value: float) -> list[dict]:
         knob = KNOBS[name]
@@ -190,6 +198,11 @@ def main(
             }
             done.append(row)
             rows.append(row)
+            with csv_path.open("a", newline="") as f:  # each run kept as it ends
+                writer = csv.DictWriter(f, fieldnames=list(row))
+                if len(rows) == 1:
+                    writer.writeheader()
+                writer.writerow(row)
             log(f"trade {row['knob']}={value:g} seed {seed}: "
                 f"{'ok' if row['success'] else 'FAILED ' + row['outcome']}")  # fmt: skip
         runs[cache_key] = done
@@ -198,10 +211,6 @@ def main(
     summary: dict[str, dict] = {}
     for name in knobs:
         summary[name] = {str(v): _summary(run(name, v)) for v in KNOBS[name].values}
-    with (out_dir / "trade.csv").open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
     result = {
         "task": task,
         "seeds": seeds,

@@ -9,10 +9,13 @@ from operator_site.e2e_trade import KNOBS
 
 
 @pytest.mark.parametrize("name", list(KNOBS))
-def test_every_knob_lists_its_default_among_its_values(name: str) -> None:
+def test_every_knob_lists_its_default_among_its_allowed_values(name: str) -> None:
     knob = KNOBS[name]
     assert knob.default in knob.values and len(set(knob.values)) == len(knob.values) >= 2
     assert knob.target in ("sim", "deform", "command", "work_site")
+    if knob.target != "work_site":
+        for value in knob.values:  # the parameters' own checks accept every value
+            e2e_trade._program_maker(knob, value)
 
 
 def test_a_knob_value_reaches_the_program_generator(monkeypatch) -> None:
