@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import json
 import sys
 from collections.abc import Callable
@@ -26,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from operator_site.program import CommandParams, DeformParams, choose_grasp_yaw, generate_program
-from operator_site.scripted import run_scripted
+from operator_site.program import CommandParams, DeformParams
+from operator_site.scripted import generated_program, run_scripted
 from operator_site.simulator import SimParams
 from operator_site.task import TaskSession
 from protocol import MotionProgram
@@ -79,25 +80,12 @@ def _program_maker(knob: Knob, value: float) -> Callable[[TaskSession, str], Mot
     """The scripted run's program generator with ``knob`` at ``value`` (ValueError, from the
     parameters' own checks, if the value is not allowed)."""
     field = {knob.field: type(knob.default)(value)}
-    sim = dataclasses.replace(SimParams(), **field) if knob.target == "sim" else None
-    deform = DeformParams(**field) if knob.target == "deform" else None
-    command = CommandParams(**field) if knob.target == "command" else None
-
-    def make(session: TaskSession, program_id: str) -> MotionProgram:
-        return generate_program(
-            program_id,
-            session.scene,
-            session.workpiece,
-            session.path_history(),
-            choose_grasp_yaw(session.start_X_WO, session.X_GP),
-            attached_O=session.fingers_O,
-            sim_params=sim or session.params,
-            deform_params=deform,
-            command_params=command,
-            X_WO=session.X_WO,
-        ).program
-
-    return make
+    params = {
+        "sim_params": dataclasses.replace(SimParams(), **field) if knob.target == "sim" else None,
+        "deform_params": DeformParams(**field) if knob.target == "deform" else None,
+        "command_params": CommandParams(**field) if knob.target == "command" else None,
+    }
+    return functools.partial(generated_program, **params)
 
 
 def _summary(rows: list[dict]) -> dict[str, Any]:

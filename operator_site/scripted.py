@@ -27,7 +27,14 @@ from models.scene import Scene, load_scene
 from models.transforms import make_pose, rpy_to_R, so3_log
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import WorkSiteModel
-from operator_site.program import choose_grasp_yaw, generate_program, pick_and_place
+from operator_site.program import (
+    CommandParams,
+    DeformParams,
+    choose_grasp_yaw,
+    generate_program,
+    pick_and_place,
+)
+from operator_site.simulator import SimParams
 from operator_site.task import TaskSession
 from protocol import MotionProgram, TruthPoses, decode, key, make_config
 from protocol.messages import contact_directions
@@ -219,8 +226,15 @@ def pick_and_place_program(session: TaskSession, program_id: str) -> MotionProgr
     return pick_and_place(program_id, start, goal, choose_grasp_yaw(start, session.X_GP))
 
 
-def generated_program(session: TaskSession, program_id: str) -> MotionProgram:
-    """The program generator's program (§VI): deformed path, contact moves, checked."""
+def generated_program(
+    session: TaskSession,
+    program_id: str,
+    sim_params: SimParams | None = None,
+    deform_params: DeformParams | None = None,
+    command_params: CommandParams | None = None,
+) -> MotionProgram:
+    """The program generator's program (§VI): deformed path, contact moves, checked. The
+    parameters default to the session's simulator and the generator's defaults."""
     return generate_program(
         program_id,
         session.scene,
@@ -228,7 +242,9 @@ def generated_program(session: TaskSession, program_id: str) -> MotionProgram:
         session.path_history(),
         choose_grasp_yaw(session.start_X_WO, session.X_GP),
         attached_O=session.fingers_O,
-        sim_params=session.params,
+        sim_params=sim_params or session.params,
+        deform_params=deform_params,
+        command_params=command_params,
         X_WO=session.X_WO,
     ).program
 
@@ -415,4 +431,3 @@ def run_scripted(
                 proc.kill()
                 proc.wait()
     return out
-

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from operator_site import e2e_trade
+from operator_site import e2e_trade, scripted
 from operator_site.e2e_trade import KNOBS
 
 
@@ -36,8 +36,8 @@ def test_a_knob_value_reaches_the_program_generator(monkeypatch) -> None:
         def path_history(self):
             return []
 
-    monkeypatch.setattr(e2e_trade, "generate_program", fake_generate)
-    monkeypatch.setattr(e2e_trade, "choose_grasp_yaw", lambda *a: None)
+    monkeypatch.setattr(scripted, "generate_program", fake_generate)
+    monkeypatch.setattr(scripted, "choose_grasp_yaw", lambda *a: None)
     make = e2e_trade._program_maker(KNOBS["sim_dt"], 0.1)
     assert make(_Session(), "p") == "the program"
     assert seen["sim_params"].dt_s == 0.1 and seen["command_params"] is None
