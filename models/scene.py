@@ -6,6 +6,7 @@ names; anything missing or malformed raises :class:`ModelError` naming the file 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import xml.etree.ElementTree as ET
@@ -80,6 +81,21 @@ class CameraModel:
             "X_WC": self.X_WC.tolist(),
             "frame_rate_hz": self.frame_rate_hz,
         }
+
+    def scaled(self, factor: float) -> CameraModel:
+        """The same camera with its image resized by ``factor`` (e.g. 0.5: 640×480 → 320×240),
+        pixel centres at integer coordinates before and after (as OpenCV's INTER_AREA)."""
+        if not (math.isfinite(factor) and factor > 0):
+            raise ValueError(f"camera scale factor must be finite and > 0, got {factor!r}")
+        K = self.K.copy()
+        K[0, 0] *= factor
+        K[1, 1] *= factor
+        K[0, 1] *= factor
+        K[0, 2] = (K[0, 2] + 0.5) * factor - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * factor - 0.5
+        return dataclasses.replace(
+            self, width=round(self.width * factor), height=round(self.height * factor), K=K
+        )
 
 
 @dataclass(frozen=True, eq=False)

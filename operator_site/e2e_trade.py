@@ -33,6 +33,7 @@ from operator_site.simulator import SimParams
 from operator_site.task import TaskSession
 from protocol import MotionProgram
 from work_site.control.controller import DEFAULT_SURFACE_STIFFNESS_N_PER_M
+from work_site.vision import IndexParams
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,13 @@ KNOBS: dict[str, Knob] = {
     "surface_stiffness": Knob(
         "impedance along the surfaces (N/m)", "work_site", "--surface-stiffness",
         (1000.0, 5000.0), DEFAULT_SURFACE_STIFFNESS_N_PER_M,
+    ),
+    "vision_scale": Knob(
+        "vision's image scale (0.5: 320×240)", "work_site", "--vision-scale", (0.5, 1.0), 1.0,
+    ),
+    "vision_index_views": Knob(
+        "vision index: viewing directions", "work_site", "--vision-index-views",
+        (300, IndexParams().n_views), IndexParams().n_views,
     ),
     "deform_sweeps": Knob(
         "deformation sweeps (at most)", "deform", "max_sweeps",
@@ -165,7 +173,7 @@ def main(
         work_site_args: tuple[str, ...] = ()
         make = _program_maker(knob, value) if knob.target != "work_site" and not shared else None
         if knob.target == "work_site" and not shared:
-            work_site_args = (knob.field, str(value))
+            work_site_args = (knob.field, str(type(knob.default)(value)))
         done = []
         for seed in range(seeds):
             r = run_scripted(

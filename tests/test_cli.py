@@ -47,6 +47,19 @@ def test_bad_arguments_are_refused_clearly(module: str, args: list[str], message
     assert message in result.stderr
 
 
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--vision-scale", "9"], "vision_scale must be in [0.25, 2], got 9.0"),
+        (["--vision-index-views", "3"], "vision_index_views must be in [50, 20000], got 3"),
+        (["--surface-stiffness", "1"], "surface_stiffness_n_per_m must be in [100, 1e5]"),
+    ],
+)
+def test_work_site_refuses_knobs_out_of_range(args: list[str], message: str) -> None:
+    result = run("work_site", "serve", *args)
+    assert result.returncode == 2 and message in result.stderr
+
+
 def test_operator_site_refuses_a_bad_port() -> None:
     result = run("operator_site", "serve", "--port", "70000")
     assert result.returncode == 2 and "--port must be in 1..65535" in result.stderr

@@ -203,6 +203,22 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         "0 turns vision off (default: 1 with the camera, 0 without)",
     )
     parser.add_argument(
+        "--vision-scale",
+        type=float,
+        default=1.0,
+        metavar="F",
+        help="recognise the frame resized by F, 0.25..2 (0.5: 320×240; faster, less accurate; "
+        "default: %(default)s)",
+    )
+    parser.add_argument(
+        "--vision-index-views",
+        type=int,
+        default=None,
+        metavar="N",
+        help="viewing directions sampled for vision's model index, 50..20000 (default: "
+        "vision's own; a new value builds and caches its index at start-up)",
+    )
+    parser.add_argument(
         "--physics-rate",
         type=float,
         default=1000.0,
@@ -276,6 +292,8 @@ def serve(args: argparse.Namespace) -> int:
             camera=not args.no_camera,
             camera_supersample=args.camera_supersample,
             camera_noise_grey=args.camera_noise,
+            vision_scale=args.vision_scale,
+            vision_index_views=args.vision_index_views,
             vision_rate_hz=(
                 args.vision_rate
                 if args.vision_rate is not None

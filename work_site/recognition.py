@@ -61,13 +61,17 @@ def _calibrated(image: np.ndarray, scene):
     )
 
 
-def _vision_worker(scene_path: str, conn) -> None:
+def _vision_worker(scene_path: str, scale: float, index_views: int | None, conn) -> None:
+    import cv2
+
     from models.scene import load_scene
+    from work_site.vision import IndexParams
     from work_site.vision.recognizer import Recognizer
 
     scene = load_scene(scene_path)
     try:
-        recognizer = Recognizer(scene=scene)
+        index = IndexParams(n_views=index_views) if index_views is not None else None
+        recognizer = Recognizer(scene=scene, index_params=index)
     except Exception as e:  # reported to the server, which keeps serving
         conn.send(VisionResult(-1, 0.0, 0.0, (), f"vision could not start: {e}"))
         return
@@ -85,7 +89,14 @@ def _vision_worker(scene_path: str, conn) -> None:
                 note += f" ({time.perf_counter() - t0:.2f} s, once)"
             t0 = time.perf_counter()  # elapsed_s is the recognition's alone
             try:
-                found = recognizer.recognise(image, camera)
+                if scale != 1.0:
+                    seen = camera.scaled(scale)
+                    size = (seen.width, seen.height)
+                    found = recognizer.recognise(
+                        cv2.resize(image, size, interpolation=cv2.INTER_AREA), seen
+                    )
+                else:
+                    found = recognizer.recognise(image, camera)
                 objects = tuple((r.model, r.X_WO, float(r.score)) for r in found)
                 error = ""
             except Exception as e:  # one bad frame must not end vision
@@ -99,11 +110,18 @@ def _vision_worker(scene_path: str, conn) -> None:
 class VisionProcess:
     """Recognises frames in a child process; at most one frame in flight."""
 
-    def __init__(self, scene_path: Path) -> None:
+    def __init__(
+        self, scene_path: Path, scale: float = 1.0, index_views: int | None = None
+    ) -> None:
+        """``scale``: recognise the frame resized by this factor; ``index_views``: viewing
+        directions of the model index (None: vision's default)."""
         ctx = mp.get_context("spawn")  # never fork a process that runs zenoh threads
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
-            target=_vision_worker, args=(str(scene_path), child), name="vision", daemon=True
+            target=_vision_worker,
+            args=(str(scene_path), scale, index_views, child),
+            name="vision",
+            daemon=True,
         )
         self._proc.start()
         child.close()

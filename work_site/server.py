@@ -147,17 +147,22 @@ class ServerOptions:
     """Where the camera really is (4×4 nested tuples), when not where its calibration says:
     frames are rendered from here, vision still uses the calibrated model."""
     time_scale: float = 1.0
-    surface_stiffness_n_per_m: float = DEFAULT_SURFACE_STIFFNESS_N_PER_M
-    """Contact moves' impedance stiffness along the contact surfaces (None: isotropic, §VI-B);
-    see :class:`~work_site.control.controller.Impedance`."""
     """Simulated seconds per second of wall time: 1 is real time; more runs programs faster
     (for benchmarks), as far as the machine keeps up."""
+    surface_stiffness_n_per_m: float = DEFAULT_SURFACE_STIFFNESS_N_PER_M
+    """Contact moves' impedance stiffness along the contact surfaces (N/m; along the normals
+    it is §VI-B's 1,000); see :class:`~work_site.control.controller.Impedance`."""
     journal: Path | None = None
     """Where every program id and its reports are appended (JSON lines), so that a program
     re-sent after a restart of this server is not run again; None keeps them in memory."""
     vision_rate_hz: float = 0.0
     """Frames recognised per second at most (0: no vision). Vision runs in its own process,
     on the newest frame whenever it is idle."""
+    vision_scale: float = 1.0
+    """Vision works on the frame resized by this factor (0.5: 320×240 from 640×480): less time
+    per frame, less accuracy (docs/benchmarks.md, vision's resolution sweep)."""
+    vision_index_views: int | None = None
+    """Viewing directions sampled for vision's model index (None: its default)."""
 
     def __post_init__(self) -> None:
         if not 100.0 <= self.physics_rate_hz <= 10000.0:
@@ -187,6 +192,11 @@ class ServerOptions:
             raise ValueError(f"vision_rate_hz must be in [0, 100], got {self.vision_rate_hz}")
         if self.vision_rate_hz > 0 and not self.camera:
             raise ValueError("vision needs the camera")
+        if not 0.25 <= self.vision_scale <= 2.0:
+            raise ValueError(f"vision_scale must be in [0.25, 2], got {self.vision_scale}")
+        views = self.vision_index_views
+        if views is not None and not 50 <= views <= 20000:
+            raise ValueError(f"vision_index_views must be in [50, 20000], got {views}")
 
 
 class WorkSiteServer:
@@ -227,7 +237,11 @@ class WorkSiteServer:
             if opts.camera
             else None
         )
-        self._vision = VisionProcess(self.scene.path) if opts.vision_rate_hz > 0 else None
+        self._vision = (
+            VisionProcess(self.scene.path, opts.vision_scale, opts.vision_index_views)
+            if opts.vision_rate_hz > 0
+            else None
+        )
         try:
             with zenoh.open(self._zenoh_config) as session:
                 self._serve(session, world, camera, stop, ready)
