@@ -91,7 +91,7 @@ class RecognizerParams:
     # hidden by a neighbour, their hidden edges counted as missing): 200 scenes +0.7 points
     # of recall, held-out seed-2 scenes +1.1, the same false objects, +2 ms a frame
     min_silhouette_fraction: float = 0.65
-    grown_min_silhouette_fraction: float = 0.75  # 0.8 dropped 7 true grown objects at
+    grown_min_silhouette_fraction: float = 0.75  # 0.8 dropped ≥ 7 true grown objects at
     # 0.75–0.80 (200 scenes); 0.75: +0.3 points of recall, one false object more (held-out
     # seed-2: +0.6 points, the same 4); 0.7: two false objects more again
     table_tol_m: float = 0.006
