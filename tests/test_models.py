@@ -280,3 +280,17 @@ def test_random_layouts_put_every_block_on_the_table_outside_the_frame_apart() -
         np.testing.assert_array_equal(random_layout(scene, seed)["cube"], layout["cube"])
     X = perturbed_camera_pose(scene.camera.X_WC, 3)
     assert np.linalg.norm(X[:3, 3] - scene.camera.X_WC[:3, 3]) == pytest.approx(0.002)
+
+
+def test_a_scaled_camera_keeps_pixel_centres_consistent() -> None:
+    camera = load_scene().camera
+    half = camera.scaled(0.5)
+    assert (half.width, half.height) == (camera.width // 2, camera.height // 2)
+    p_C = np.array([0.03, -0.02, 0.8])  # a point in front of the camera (m)
+    u = camera.K @ p_C / p_C[2]
+    u_half = half.K @ p_C / p_C[2]
+    # Pixel (0, 0) covers [-0.5, 0.5]: a point at u lands at (u + 0.5) f - 0.5 after resizing.
+    np.testing.assert_allclose(u_half[:2], (u[:2] + 0.5) * 0.5 - 0.5, atol=1e-12)
+    np.testing.assert_allclose(half.scaled(2.0).K, camera.K, atol=1e-12)
+    with pytest.raises(ValueError, match="scale factor"):
+        camera.scaled(0.0)

@@ -39,22 +39,6 @@ def _ensure_dataset(path: Path, n: int, seed: int, supersample: int = 4) -> list
     return write_dataset(path, n, seed, supersample=supersample)
 
 
-def _scaled_camera(camera: CameraModel, factor: float) -> CameraModel:
-    """The same camera with the image scaled by ``factor`` (pixel centres kept consistent)."""
-    K = camera.K.copy()
-    K[0, 0] *= factor
-    K[1, 1] *= factor
-    K[0, 1] *= factor
-    K[0, 2] = (K[0, 2] + 0.5) * factor - 0.5
-    K[1, 2] = (K[1, 2] + 0.5) * factor - 0.5
-    return dataclasses.replace(
-        camera,
-        width=round(camera.width * factor),
-        height=round(camera.height * factor),
-        K=K,
-    )
-
-
 def run(
     recognizer: Recognizer,
     scenes: list[tuple[np.ndarray, CameraModel, list]],
@@ -232,7 +216,7 @@ def _resolution_sets(n: int, seed: int, out: Path) -> dict[int, list]:
     from work_site.vision.dataset import SceneRenderer
 
     scene = load_scene()
-    big = _scaled_camera(scene.camera, 2.0)
+    big = scene.camera.scaled(2.0)
     renderer = SceneRenderer(dataclasses.replace(scene, camera=big), supersample=2)
     rng = np.random.default_rng(seed + 1000)
     sets: dict[int, list] = {1280: [], 640: [], 320: []}
@@ -243,7 +227,7 @@ def _resolution_sets(n: int, seed: int, out: Path) -> dict[int, list]:
             grey = degrade(grey, rng, noise_sigma=1.0)
             sets[1280].append((grey, big, truth))
             for w, f in ((640, 0.5), (320, 0.25)):
-                cam = _scaled_camera(big, f)
+                cam = big.scaled(f)
                 small = cv2.resize(grey, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
                 sets[w].append((small, cam, truth))
     finally:
