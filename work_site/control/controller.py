@@ -55,8 +55,10 @@ DEFAULT_SURFACE_STIFFNESS_N_PER_M = 5000.0
 it stays §VI-B's low 1,000 N/m. The paper found an isotropic impedance sufficient; here, at
 1,000 N/m along the surfaces, friction holds the block 2–5 mm behind its path, which round the
 frame's outside corner left its edge on the corner when the next face's bias began (the
-scripted around-corner task: 4 of 20 seeds against 12 of 20 at 5,000 N/m, and on replays of
-the same programs 2 of 16 against 11 of 16, docs/benchmarks.md). `work-site serve
+scripted around-corner task: 4 of 20 seeds against 12 of 20 at 5,000 N/m; replays of the
+programs of seeds 0–3, four start phases each: 2 of 16 against 13 of 14, docs/benchmarks.md;
+with the turn made off the new face and the offset carried right, seeds 0–19: 2 of 20 before,
+16 of 20 after). `work-site serve
 --surface-stiffness 1000` gives the isotropic impedance back. A 6 cm slide along a wall ends
 within 0.5 mm of its goal at every setting from 1,000 to 20,000 N/m."""
 
