@@ -51,11 +51,11 @@ class Knob:
 
 KNOBS: dict[str, Knob] = {
     "contact_speed": Knob(
-        "execution speed in contact (m/s)", "command", "contact_speed_mps",
+        "speed in contact (m/s)", "command", "contact_speed_mps",
         (0.005, CommandParams().contact_speed_mps, 0.02), CommandParams().contact_speed_mps,
     ),
     "surface_stiffness": Knob(
-        "impedance along the surfaces (N/m)", "work_site", "--surface-stiffness",
+        "stiffness along surfaces (N/m)", "work_site", "--surface-stiffness",
         (1000.0, 5000.0), DEFAULT_SURFACE_STIFFNESS_N_PER_M,
     ),
     "vision_scale": Knob(
@@ -66,19 +66,19 @@ KNOBS: dict[str, Knob] = {
         (300, IndexParams().n_views), IndexParams().n_views,
     ),
     "deform_sweeps": Knob(
-        "deformation sweeps (at most)", "deform", "max_sweeps",
+        "deformation sweeps (max)", "deform", "max_sweeps",
         (10, 30, DeformParams().max_sweeps), DeformParams().max_sweeps,
     ),
     "sim_dt": Knob(
-        "program generator's simulator Δt (s)", "sim", "dt_s",
+        "generator's simulator Δt (s)", "sim", "dt_s",
         (0.025, SimParams().dt_s, 0.1), SimParams().dt_s,
     ),
     "eps_barrier": Knob(
-        "barrier ε_b (m; below ε_c = 0.5 mm)", "sim", "eps_barrier_m",
+        "barrier ε_b (m)", "sim", "eps_barrier_m",
         (0.05e-3, SimParams().eps_barrier_m, 0.25e-3), SimParams().eps_barrier_m,
     ),
     "golden_tol": Knob(
-        "golden-section tolerance (fraction of Δt)", "sim", "golden_rel_tol",
+        "golden tolerance (× Δt)", "sim", "golden_rel_tol",
         (1e-3, SimParams().golden_rel_tol, 1e-8), SimParams().golden_rel_tol,
     ),
 }  # fmt: skip
