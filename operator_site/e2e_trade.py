@@ -8,7 +8,9 @@ success and final error against the value, the default marked) into the output d
 The component benchmarks plot each knob's cost against its own accuracy (sim_sweeps.png,
 vision_sweeps.png, deform_trade.png, control.png); this one says what that does to the task.
 
-Knobs of the operator site's program generator apply to the program made from the scripted
+Knobs may be run a few at a time into the same directory: an earlier run's other knobs (same
+task and seeds) are kept and its defaults' runs reused. Knobs of the operator site's program
+generator apply to the program made from the scripted
 demonstration (the demonstration itself is dragged with the default simulator); the work
 site's apply to the work site the run starts.
 """
@@ -96,6 +98,49 @@ def _program_maker(knob: Knob, value: float) -> Callable[[TaskSession, str], Mot
     return functools.partial(generated_program, **params)
 
 
+def _append(path: Path, row: dict) -> None:
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(row))
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+
+
+def _previous(out_dir: Path, task: str, seeds: int, knobs: tuple[str, ...]) -> dict[str, Any]:
+    """What an earlier run into ``out_dir`` of the same task and seeds measured for other
+    knobs (kept, so that knobs can be run a few at a time), and its defaults' rows (reused)."""
+    kept: dict[str, Any] = {"rows": [], "default": [], "summary": {}}
+    try:
+        before = json.loads((out_dir / "trade.json").read_text())
+        with (out_dir / "trade.csv").open(newline="") as f:
+            old_rows = list(csv.DictReader(f))
+    except (OSError, ValueError):
+        return kept
+    if before.get("task") != task or before.get("seeds") != seeds:
+        return kept
+    for row in old_rows:
+        if row["knob"] in knobs:
+            continue
+        row = {
+            **row,
+            "value": float(row["value"]),
+            "seed": int(row["seed"]),
+            "success": row["success"] == "True",
+            **{k: float(row[k]) if row[k] else None
+               for k in ("final_error_mm", "final_error_deg", "computation_s", "execute_s")},
+            "commands": int(row["commands"]) if row["commands"] else None,
+        }  # fmt: skip
+        kept["rows"].append(row)
+        if row["knob"] == "default":
+            kept["default"].append(row)
+    kept["summary"] = {k: v for k, v in before.get("knobs", {}).items() if k not in knobs}
+    if len(kept["default"]) != seeds:  # the defaults must be rerun with the knobs asked for
+        kept["default"] = []
+        kept["rows"] = [r for r in kept["rows"] if r["knob"] != "default"]
+    return kept
+
+
 def _summary(rows: list[dict]) -> dict[str, Any]:
     def median(key: str, only_ok: bool = False) -> float | None:
         values = [r[key] for r in rows if r.get(key) is not None and (r["success"] or not only_ok)]
@@ -107,7 +152,7 @@ def _summary(rows: list[dict]) -> dict[str, Any]:
         "final_error_mm_median": median("final_error_mm", only_ok=True),
         "computation_s_median": median("computation_s"),
         "execute_s_median": median("execute_s"),
-        "failures": {r["seed"]: r["outcome"] for r in rows if not r["success"]},
+        "failures": {str(r["seed"]): r["outcome"] for r in rows if not r["success"]},
     }
 
 
@@ -162,7 +207,12 @@ def main(
     rows: list[dict] = []
     runs: dict[tuple[str, float], list[dict]] = {}
     csv_path = out_dir / "trade.csv"
+    kept = _previous(out_dir, task, seeds, knobs)
+    if kept["default"]:
+        runs[("default", 0.0)] = kept["default"]
     csv_path.unlink(missing_ok=True)
+    for row in kept["rows"]:
+        _append(csv_path, row)
 
     def run(name: str, value: float) -> list[dict]:
         knob = KNOBS[name]
@@ -194,23 +244,20 @@ def main(
             }
             done.append(row)
             rows.append(row)
-            with csv_path.open("a", newline="") as f:  # each run kept as it ends
-                writer = csv.DictWriter(f, fieldnames=list(row))
-                if len(rows) == 1:
-                    writer.writeheader()
-                writer.writerow(row)
+            _append(csv_path, row)  # each run kept as it ends
             log(f"trade {row['knob']}={value:g} seed {seed}: "
                 f"{'ok' if row['success'] else 'FAILED ' + row['outcome']}")  # fmt: skip
         runs[cache_key] = done
         return done
 
-    summary: dict[str, dict] = {}
+    summary: dict[str, dict] = dict(kept["summary"])
     for name in knobs:
         summary[name] = {str(v): _summary(run(name, v)) for v in KNOBS[name].values}
+    summary = {n: summary[n] for n in KNOBS if n in summary}
     result = {
         "task": task,
         "seeds": seeds,
-        "defaults": {n: KNOBS[n].default for n in knobs},
+        "defaults": {n: KNOBS[n].default for n in summary},
         "knobs": summary,
     }
     (out_dir / "trade.json").write_text(json.dumps(result, indent=1))

@@ -59,4 +59,27 @@ def test_summary_counts_successes_and_takes_errors_of_successes_only() -> None:
     s = e2e_trade._summary(rows)
     assert (s["runs"], s["success"], s["final_error_mm_median"]) == (2, 1, 0.2)
     assert s["computation_s_median"] == 2.0 and s["execute_s_median"] == 20.0
-    assert s["failures"] == {1: "failed: force"}
+    assert s["failures"] == {"1": "failed: force"}
+
+
+def test_knobs_run_a_few_at_a_time_add_up_and_reuse_the_defaults(monkeypatch, tmp_path) -> None:
+    calls: list[tuple] = []
+
+    def fake_run(task, seed, log, work_site_args=(), make_program=None):
+        calls.append((seed, work_site_args, make_program is not None))
+        return {"success": seed != 0, "final_error_mm": 0.2, "final_error_deg": 0.01,
+                "stage_s": {"computation": 0.4, "execute": 18.0}, "commands": 9,
+                "execution": "done: program complete"}  # fmt: skip
+
+    monkeypatch.setattr(e2e_trade, "run_scripted", fake_run)
+    first = e2e_trade.main(tmp_path, 2, "corner", ("contact_speed",), log=lambda _: None)
+    assert len(calls) == 2 * 3  # the default and the two other speeds, two seeds each
+    second = e2e_trade.main(tmp_path, 2, "corner", ("surface_stiffness",), log=lambda _: None)
+    assert len(calls) == 2 * 3 + 2  # only the one non-default stiffness: the defaults reused
+    assert calls[-1][1] == ("--surface-stiffness", "1000.0")
+    assert set(second["knobs"]) == {"contact_speed", "surface_stiffness"}
+    assert second["knobs"]["contact_speed"] == first["knobs"]["contact_speed"]
+    assert second["knobs"]["surface_stiffness"]["1000.0"]["success"] == 1
+    lines = (tmp_path / "trade.csv").read_text().splitlines()
+    assert len(lines) == 1 + 2 * 4  # header; default, two speeds, one stiffness: two seeds each
+    assert (tmp_path / "trade.png").exists()
