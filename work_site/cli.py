@@ -239,8 +239,8 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULT_SURFACE_STIFFNESS_N_PER_M,
         metavar="N_PER_M",
         help="contact moves' impedance stiffness along the contact surfaces; along the normals "
-        "it is 1000 N/m (default: %(default)s, isotropic as in the paper; 5000 took the scripted "
-        "around-corner task from 3 to 7 successes in 10, docs/benchmarks.md)",
+        "it is 1000 N/m (default: %(default)s; 1000 is the paper's isotropic impedance, under "
+        "which friction holds the block 2-5 mm behind its path: docs/benchmarks.md, end to end)",
     )
     parser.add_argument(
         "--time-scale",
