@@ -113,7 +113,12 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    with zenoh.open(conf):
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as e:  # e.g. a port in use
+        print(f"router: cannot start on {', '.join(listen)}: {e}", file=sys.stderr)
+        return 2
+    with session:
         print(
             f"router: up on {', '.join(listen)} ({note})"
             + ("; mutual TLS" if tls else "")
