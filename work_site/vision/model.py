@@ -43,8 +43,8 @@ class VisionModel:
         return float(np.linalg.norm(self.vertices_O.max(0) - self.vertices_O.min(0)))
 
 
-def _candidate_rotations() -> np.ndarray:
-    """The 24 rotations of the cube plus the 12 rotations of the hexagonal prism about z."""
+def cube_rotations() -> np.ndarray:
+    """The 24 rotations that map the axes onto the axes, (24, 3, 3)."""
     Rs = []
     for perm in itertools.permutations(range(3)):
         for signs in itertools.product((1.0, -1.0), repeat=3):
@@ -53,6 +53,12 @@ def _candidate_rotations() -> np.ndarray:
                 R[i, j] = signs[i]
             if np.linalg.det(R) > 0:
                 Rs.append(R)
+    return np.array(Rs)
+
+
+def _candidate_rotations() -> np.ndarray:
+    """The 24 rotations of the cube plus the 12 rotations of the hexagonal prism about z."""
+    Rs = list(cube_rotations())
     for k in range(6):
         a = k * np.pi / 3
         Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])

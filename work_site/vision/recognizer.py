@@ -36,6 +36,7 @@ from work_site.vision.model import (
     VisionModel,
     containments,
     convex_overlap_depth,
+    cube_rotations,
     hull_facets,
     planes_in,
     project,
@@ -805,8 +806,10 @@ class Recognizer:
         )
         proj = vis[1] if seen_at is X else None
         v = self._verify(model, X, K, segs, gx, gy, occluders_C, proj, need)
-        if p.keep_better_earlier_fit and earlier is not None and (
-            v.length_fraction < p.min_length_fraction or v.score < p.min_score
+        if (
+            p.keep_better_earlier_fit
+            and earlier is not None
+            and (v.length_fraction < p.min_length_fraction or v.score < p.min_score)
         ):
             # The last refit, to lines matched within the tightest tolerance, can pull a pose
             # off when a neighbour's lines come that close: the one before may verify better.
@@ -940,7 +943,7 @@ def _turned_poses(model: VisionModel) -> np.ndarray:
     symmetries)."""
     c = 0.5 * (model.vertices_O.min(0) + model.vertices_O.max(0))
     out: list[np.ndarray] = []
-    for S in _cube_rotations():
+    for S in cube_rotations():
         if any(np.allclose(S, Q, atol=1e-9) for Q in model.symmetries):
             continue
         if any(np.allclose(S @ Q, X[:3, :3], atol=1e-9) for X in out for Q in model.symmetries):
@@ -950,21 +953,6 @@ def _turned_poses(model: VisionModel) -> np.ndarray:
         X[:3, 3] = c - S @ c
         out.append(X)
     return np.array(out).reshape(-1, 4, 4)
-
-
-def _cube_rotations() -> np.ndarray:
-    """The 24 rotations that map the axes onto the axes."""
-    import itertools
-
-    out = []
-    for perm in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            R = np.zeros((3, 3))
-            for i, j in enumerate(perm):
-                R[i, j] = signs[i]
-            if np.linalg.det(R) > 0:
-                out.append(R)
-    return np.array(out)
 
 
 def _radius(V: np.ndarray) -> float:
