@@ -71,7 +71,12 @@ def test_knobs_run_a_few_at_a_time_add_up_and_reuse_the_defaults(monkeypatch, tm
                 "stage_s": {"computation": 0.4, "execute": 18.0}, "commands": 9,
                 "execution": "done: program complete"}  # fmt: skip
 
+    plotted: list[set] = []
     monkeypatch.setattr(e2e_trade, "run_scripted", fake_run)
+    # matplotlib comes with the [bench] extra only; the plot's input is what is checked here.
+    monkeypatch.setattr(
+        e2e_trade, "_plot", lambda _out, _task, summary: plotted.append(set(summary))
+    )
     first = e2e_trade.main(tmp_path, 2, "corner", ("contact_speed",), log=lambda _: None)
     assert len(calls) == 2 * 3  # the default and the two other speeds, two seeds each
     second = e2e_trade.main(tmp_path, 2, "corner", ("surface_stiffness",), log=lambda _: None)
@@ -82,4 +87,4 @@ def test_knobs_run_a_few_at_a_time_add_up_and_reuse_the_defaults(monkeypatch, tm
     assert second["knobs"]["surface_stiffness"]["1000.0"]["success"] == 1
     lines = (tmp_path / "trade.csv").read_text().splitlines()
     assert len(lines) == 1 + 2 * 4  # header; default, two speeds, one stiffness: two seeds each
-    assert (tmp_path / "trade.png").exists()
+    assert plotted == [{"contact_speed"}, {"contact_speed", "surface_stiffness"}]
