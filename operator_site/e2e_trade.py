@@ -10,9 +10,8 @@ vision_sweeps.png, deform_trade.png, control.png); this one says what that does 
 
 Knobs may be run a few at a time into the same directory: an earlier run's other knobs (same
 task and seeds) are kept and its defaults' runs reused. Knobs of the operator site's program
-generator apply to the program made from the scripted
-demonstration (the demonstration itself is dragged with the default simulator); the work
-site's apply to the work site the run starts.
+generator apply to the program made from the scripted demonstration (the demonstration itself
+is dragged with the default simulator); the work site's apply to the work site the run starts.
 """
 
 from __future__ import annotations
