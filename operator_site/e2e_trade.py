@@ -3,8 +3,9 @@
 For every knob, the scripted task (:func:`operator_site.scripted.run_scripted`) runs over the
 same seeds at each of the knob's values, all other knobs at their defaults; the defaults' runs
 are shared by all knobs. Writes ``trade.csv`` (one row a run), ``trade.json`` (per knob and
-value: successes, final error, computation and execution time) and ``trade.png`` (per knob:
-success and final error against the value, the default marked) into the output directory.
+value: successes, final error, computation and execution time; and every run's row) and
+``trade.png`` (per knob: success and final error against the value, the default marked) into
+the output directory.
 The component benchmarks plot each knob's cost against its own accuracy (sim_sweeps.png,
 vision_sweeps.png, deform_trade.png, control.png); this one says what that does to the task.
 
@@ -112,27 +113,12 @@ def _previous(out_dir: Path, task: str, seeds: int, knobs: tuple[str, ...]) -> d
     kept: dict[str, Any] = {"rows": [], "default": [], "summary": {}}
     try:
         before = json.loads((out_dir / "trade.json").read_text())
-        with (out_dir / "trade.csv").open(newline="") as f:
-            old_rows = list(csv.DictReader(f))
     except (OSError, ValueError):
         return kept
     if before.get("task") != task or before.get("seeds") != seeds:
         return kept
-    for row in old_rows:
-        if row["knob"] in knobs:
-            continue
-        row = {
-            **row,
-            "value": float(row["value"]),
-            "seed": int(row["seed"]),
-            "success": row["success"] == "True",
-            **{k: float(row[k]) if row[k] else None
-               for k in ("final_error_mm", "final_error_deg", "computation_s", "execute_s")},
-            "commands": int(row["commands"]) if row["commands"] else None,
-        }  # fmt: skip
-        kept["rows"].append(row)
-        if row["knob"] == "default":
-            kept["default"].append(row)
+    kept["rows"] = [r for r in before.get("runs", []) if r["knob"] not in knobs]
+    kept["default"] = [r for r in kept["rows"] if r["knob"] == "default"]
     kept["summary"] = {k: v for k, v in before.get("knobs", {}).items() if k not in knobs}
     if len(kept["default"]) != seeds:  # the defaults must be rerun with the knobs asked for
         kept["default"] = []
@@ -258,6 +244,7 @@ def main(
         "seeds": seeds,
         "defaults": {n: KNOBS[n].default for n in summary},
         "knobs": summary,
+        "runs": kept["rows"] + rows,
     }
     (out_dir / "trade.json").write_text(json.dumps(result, indent=1))
     _plot(out_dir, task, summary)
