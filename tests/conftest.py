@@ -12,8 +12,11 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from models.transforms import make_pose, rpy_to_R
+from protocol import MotionCommand, MotionProgram
 from protocol.session import free_port_pair
 
 REPO = Path(__file__).resolve().parents[1]
@@ -101,3 +104,21 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
         [str(REPO / "deploy" / "make-certs.sh"), str(out)], check=True, capture_output=True
     )
     return out
+
+
+GRIPPER_DOWN = rpy_to_R(np.array([np.pi, 0.0, np.pi]))
+"""A gripper orientation pointing down, as the tests' programs use."""
+
+
+def one_move_program(
+    program_id: str, speed_mps: float = 0.05, p_WP: tuple = (0.40, -0.1, 0.15)
+) -> MotionProgram:
+    """A valid, reachable one-move program: a work site that gets it runs it."""
+    command = MotionCommand(
+        kind="move",
+        X_WP=make_pose(GRIPPER_DOWN, p_WP),
+        speed_mps=speed_mps,
+        force_limit_n=10.0,
+        contacts=(),
+    )
+    return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=(command,))

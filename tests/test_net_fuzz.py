@@ -24,16 +24,15 @@ from hypothesis import strategies as st
 
 from models.robot import load_robot
 from models.scene import load_scene
-from models.transforms import make_pose, rpy_to_R
 from protocol import (
     ExecutionReport,
-    MotionCommand,
     MotionProgram,
     ProtocolError,
     Stop,
     decode,
     encode,
 )
+from tests.conftest import one_move_program
 from work_site.control.controller import TaskController
 from work_site.server import ServerOptions, WorkSiteServer
 from work_site.world import World
@@ -49,22 +48,8 @@ FUZZ = settings(
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
 
-DOWN = rpy_to_R(np.array([np.pi, 0.0, np.pi]))
 
-
-def reachable_program(program_id: str = "p") -> MotionProgram:
-    """A valid program the work site would accept and run (a move inside the workspace)."""
-    command = MotionCommand(
-        kind="move",
-        X_WP=make_pose(DOWN, (0.40, -0.1, 0.15)),
-        speed_mps=0.05,
-        force_limit_n=10.0,
-        contacts=(),
-    )
-    return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=(command,))
-
-
-VALID_PROGRAM = encode(reachable_program())
+VALID_PROGRAM = encode(one_move_program("p"))
 VALID_STOP = encode(Stop(reason="fuzz", stamp_s=1.0))
 
 

@@ -20,29 +20,15 @@ import numpy as np
 import pytest
 import zenoh
 
-from models.transforms import make_pose, rpy_to_R
 from operator_site.link import WorkSiteLink
-from protocol import MotionCommand, MotionProgram, RobotState, decode, encode, key, make_config
+from protocol import RobotState, decode, encode, key, make_config
 from protocol.session import TlsFiles, free_port_pair, link_endpoints
-from tests.conftest import wait_until
+from tests.conftest import one_move_program, wait_until
 
 pytestmark = pytest.mark.integration
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((REPO / "deploy" / "zenoh").glob("*.json5"))
-DOWN = rpy_to_R(np.array([np.pi, 0.0, np.pi]))
-
-
-def _one_move(program_id: str) -> MotionProgram:
-    """A valid, reachable one-move program: it runs if it gets through."""
-    command = MotionCommand(
-        kind="move",
-        X_WP=make_pose(DOWN, (0.40, -0.1, 0.15)),
-        speed_mps=0.1,
-        force_limit_n=10.0,
-        contacts=(),
-    )
-    return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=(command,))
 
 
 @dataclass
@@ -144,7 +130,7 @@ def test_two_work_sites_and_an_operator_through_a_router(spawn, links, single_li
         info = link.session.info
         assert len(list(info.routers_zid())) == 1 and not list(info.peers_zid())
     q_b = b.robot_state.q.copy()
-    a.send_program(_one_move("to-a"))
+    a.send_program(one_move_program("to-a", speed_mps=0.1))
 
     def a_done() -> bool:
         a.poll(), b.poll()
@@ -220,8 +206,8 @@ def test_a_secured_router_admits_each_cells_operator_only(spawn, links, certs: P
         key("cell-a", "robot_state"), lambda s: seqs.append(decode(s.payload.to_bytes()).seq)
     )
     for _ in range(15):
-        op_b.send_program(_one_move("op-to-b"))
-        viewer_a.send_program(_one_move("viewer-to-a"))
+        op_b.send_program(one_move_program("op-to-b", speed_mps=0.1))
+        viewer_a.send_program(one_move_program("viewer-to-a", speed_mps=0.1))
         viewer_a.send_stop("viewer")
         viewer_a.session.put(key("cell-a", "robot_state"), encode(fake))
         op_a.poll(), op_b.poll()
@@ -233,7 +219,7 @@ def test_a_secured_router_admits_each_cells_operator_only(spawn, links, certs: P
     np.testing.assert_allclose(op_a.robot_state.q, q_a, atol=1e-4)
 
     # The operator's program to its own cell runs.
-    op_a.send_program(_one_move("op-to-a"))
+    op_a.send_program(one_move_program("op-to-a", speed_mps=0.1))
 
     def a_done() -> bool:
         op_a.poll(), op_b.poll()

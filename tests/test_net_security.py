@@ -15,16 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.transforms import make_pose, rpy_to_R
 from operator_site.link import WorkSiteLink
-from protocol import MotionCommand, MotionProgram, ProtocolError, make_config
+from protocol import ProtocolError, make_config
 from protocol.session import (
     TlsFiles,
     check_listeners,
     is_loopback_endpoint,
     operator_only_access_control,
 )
-from tests.conftest import free_port, wait_until
+from tests.conftest import free_port, one_move_program, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -33,21 +32,6 @@ SITE = "secure"
 STARTUP_TIMEOUT_S = 20.0
 REFUSED_WINDOW_S = 3.0
 """How long an intruder is given to get through (its attempts are repeated meanwhile)."""
-DOWN = rpy_to_R(np.array([np.pi, 0.0, np.pi]))
-
-
-def program(
-    program_id: str, speed_mps: float = 0.05, p_WP: tuple = (0.40, -0.1, 0.15)
-) -> MotionProgram:
-    """A valid, reachable one-move program: it would run if it got through."""
-    command = MotionCommand(
-        kind="move",
-        X_WP=make_pose(DOWN, p_WP),
-        speed_mps=speed_mps,
-        force_limit_n=10.0,
-        contacts=(),
-    )
-    return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=(command,))
 
 
 @pytest.fixture
@@ -119,7 +103,7 @@ def try_to_command(link: WorkSiteLink, program_id: str) -> None:
     """Keep sending a valid program and a stop for :data:`REFUSED_WINDOW_S`."""
     deadline = time.monotonic() + REFUSED_WINDOW_S
     while time.monotonic() < deadline:
-        link.send_program(program(program_id))
+        link.send_program(one_move_program(program_id))
         link.send_stop("intruder")
         link.poll()
         time.sleep(0.2)
@@ -174,7 +158,7 @@ def test_only_the_operator_may_command(secure_work_site: str, certs: Path, links
     np.testing.assert_allclose(operator.robot_state.q, q_home, atol=1e-4)
 
     # The operator's program runs, and the viewer's stop cannot interrupt it.
-    operator.send_program(program("from-operator", speed_mps=0.05))
+    operator.send_program(one_move_program("from-operator", speed_mps=0.05))
     assert wait_until(lambda: "started" in reports_of(operator, "from-operator"), 10.0)
     for _ in range(5):
         viewer.send_stop("viewer tries to stop")
@@ -186,7 +170,7 @@ def test_only_the_operator_may_command(secure_work_site: str, certs: Path, links
     assert "stopped" not in statuses and statuses[0] == "accepted"
     assert np.linalg.norm(operator.robot_state.q - q_home) > 0.05  # it really moved
     # And the operator's own stop is obeyed.
-    operator.send_program(program("slow", speed_mps=0.01, p_WP=(0.30, 0.1, 0.25)))
+    operator.send_program(one_move_program("slow", speed_mps=0.01, p_WP=(0.30, 0.1, 0.25)))
     assert wait_until(lambda: "started" in reports_of(operator, "slow"), 10.0)
     operator.send_stop("operator stops")
     assert wait_until(lambda: "stopped" in reports_of(operator, "slow"), 5.0)
