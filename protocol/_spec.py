@@ -1,12 +1,13 @@
 """Declarative field specifications and the one validator used by constructors and the decoder.
 
 Each record class (message or nested value) carries ``_SPEC``: an ordered mapping from field name
-to one of the field kinds below. ``validate_fields`` checks and normalises a dict of field values
+to one of the field kinds below. ``check_field`` checks and normalises one field's value
 against it; the codec derives the wire format from the same table.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 import reprlib
@@ -26,6 +27,10 @@ ROTATION_ORTHONORMAL_TOL = 1e-6
 
 UNIT_NORMAL_TOL = 1e-6
 """Largest ``| |n| − 1 |`` accepted for a unit normal vector (dimensionless)."""
+
+SMALL_ARRAY_SIZE = 64
+"""Arrays of at most this many elements are checked element by element in Python, which is
+faster than numpy's per-call overhead at that size (a wrench, a pose)."""
 
 _repr = reprlib.Repr()
 _repr.maxstring = 40
@@ -86,6 +91,12 @@ class ArrayField:
     dtype: np.dtype
     check: Callable[[np.ndarray], str | None] | None = None
 
+    def __post_init__(self) -> None:
+        fixed = all(lo == hi for lo, hi in self.shape)
+        object.__setattr__(
+            self, "_fixed_shape", tuple(lo for lo, _ in self.shape) if fixed else None
+        )
+
     def shape_text(self) -> str:
         """The expected shape as text, e.g. ``(6,)`` or ``(1..16, 3)``."""
         parts = [str(lo) if lo == hi else f"{lo}..{hi}" for lo, hi in self.shape]
@@ -93,6 +104,8 @@ class ArrayField:
 
     def shape_ok(self, shape: tuple[int, ...]) -> bool:
         """Whether ``shape`` matches this field's shape ranges."""
+        if self._fixed_shape is not None:  # type: ignore[attr-defined]
+            return shape == self._fixed_shape  # type: ignore[attr-defined]
         return len(shape) == len(self.shape) and all(
             lo <= n <= hi for n, (lo, hi) in zip(shape, self.shape, strict=True)
         )
@@ -184,7 +197,9 @@ def _fail(where: str, text: str) -> ProtocolError:
     return ProtocolError(f"{where}: {text}")
 
 
-def _check_int(spec: IntField, value: Any, where: str) -> int:
+def _check_int(spec: IntField, value: Any, where: str, owned: bool = False) -> int:
+    if type(value) is int and spec.lo <= value < spec.hi:  # the common case, cheaply
+        return value
     if isinstance(value, bool) or not isinstance(value, int | np.integer):
         raise _fail(where, f"expected int, got {type_name(value)}")
     value = int(value)
@@ -194,7 +209,11 @@ def _check_int(spec: IntField, value: Any, where: str) -> int:
     return value
 
 
-def _check_float(spec: FloatField, value: Any, where: str) -> float:
+def _check_float(spec: FloatField, value: Any, where: str, owned: bool = False) -> float:
+    if (
+        type(value) is float and math.isfinite(value) and (spec.lo is None or value >= spec.lo)
+    ):  # the common case, cheaply
+        return value
     if isinstance(value, bool) or not isinstance(value, float | int | np.floating | np.integer):
         raise _fail(where, f"expected float, got {type_name(value)}")
     try:
@@ -208,7 +227,7 @@ def _check_float(spec: FloatField, value: Any, where: str) -> float:
     return value
 
 
-def _check_str(spec: StrField, value: Any, where: str) -> str:
+def _check_str(spec: StrField, value: Any, where: str, owned: bool = False) -> str:
     if not isinstance(value, str):
         raise _fail(where, f"expected str, got {type_name(value)}")
     if len(value) > spec.max_len:
@@ -218,14 +237,21 @@ def _check_str(spec: StrField, value: Any, where: str) -> str:
     compiled: re.Pattern[str] | None = spec._compiled  # type: ignore[attr-defined]
     if compiled is not None and compiled.fullmatch(value) is None:
         raise _fail(where, f"must match {spec.pattern}, got {short_repr(value)}")
-    try:
-        value.encode("utf-8")
-    except UnicodeEncodeError:
-        raise _fail(where, "is not encodable as UTF-8 (lone surrogate)") from None
+    if not value.isascii():  # an ASCII string cannot hold a lone surrogate: skip the encoding
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            raise _fail(where, "is not encodable as UTF-8 (lone surrogate)") from None
     return value
 
 
-def _check_array(spec: ArrayField, value: Any, where: str, owned: bool) -> np.ndarray:
+def _all_finite(arr: np.ndarray) -> bool:
+    if arr.size <= SMALL_ARRAY_SIZE:
+        return all(map(math.isfinite, arr.ravel().tolist()))
+    return bool(np.isfinite(arr).all())
+
+
+def _check_array(spec: ArrayField, value: Any, where: str, owned: bool = False) -> np.ndarray:
     if isinstance(value, np.ndarray):
         arr = value
     elif isinstance(value, list | tuple):
@@ -237,19 +263,20 @@ def _check_array(spec: ArrayField, value: Any, where: str, owned: bool) -> np.nd
         raise _fail(where, f"expected array, got {type_name(value)}")
     if not spec.shape_ok(arr.shape):
         raise _fail(where, f"expected shape {spec.shape_text()}, got {tuple(arr.shape)}")
-    kind = arr.dtype.kind
-    if spec.dtype == UINT8:
-        if arr.dtype != UINT8:
+    native = spec.dtype.newbyteorder("=")
+    if arr.dtype != native:
+        kind = arr.dtype.kind
+        if native == UINT8:
             if kind not in "iu":
                 raise _fail(where, f"expected uint8 array, got dtype {arr.dtype}")
             if arr.size and (arr.min() < 0 or arr.max() > 255):
                 raise _fail(where, "integer values must be in [0, 255] for a uint8 array")
-    elif kind not in "fiu":
-        raise _fail(where, f"expected float64 array, got dtype {arr.dtype}")
-    native = spec.dtype.newbyteorder("=")
-    if not owned or arr.dtype != native or not arr.flags.c_contiguous:
+        elif kind not in "fiu":
+            raise _fail(where, f"expected float64 array, got dtype {arr.dtype}")
         arr = np.array(arr, dtype=native, order="C", copy=True)
-    if native.kind == "f" and not np.isfinite(arr).all():
+    elif not owned or not arr.flags.c_contiguous:
+        arr = np.array(arr, order="C", copy=True)
+    if native.kind == "f" and not _all_finite(arr):
         raise _fail(where, "all elements must be finite (no NaN or inf)")
     if spec.check is not None:
         text = spec.check(arr)
@@ -259,33 +286,46 @@ def _check_array(spec: ArrayField, value: Any, where: str, owned: bool) -> np.nd
     return arr
 
 
-def _check_nested(cls: type, value: Any, where: str) -> Any:
-    if not isinstance(value, cls):
-        raise _fail(where, f"expected {cls.__name__}, got {type_name(value)}")
+def _check_nested(spec: NestedField, value: Any, where: str, owned: bool = False) -> Any:
+    if not isinstance(value, spec.cls):
+        raise _fail(where, f"expected {spec.cls.__name__}, got {type_name(value)}")
     return value
 
 
-def _check_tuple(spec: TupleField, value: Any, where: str) -> tuple[Any, ...]:
+def _check_tuple(spec: TupleField, value: Any, where: str, owned: bool = False) -> tuple[Any, ...]:
     if not isinstance(value, tuple | list):
         raise _fail(where, f"expected tuple of {spec.cls.__name__}, got {type_name(value)}")
     if not spec.min_len <= len(value) <= spec.max_len:
         raise _fail(where, f"must have {spec.min_len}..{spec.max_len} items, got {len(value)}")
     for i, item in enumerate(value):
-        _check_nested(spec.cls, item, f"{where}[{i}]")
+        if not isinstance(item, spec.cls):
+            raise _fail(f"{where}[{i}]", f"expected {spec.cls.__name__}, got {type_name(item)}")
     return tuple(value)
 
 
-_CHECKS: dict[type, Callable[[Any, Any, str, bool], Any]] = {
-    IntField: lambda spec, value, where, owned: _check_int(spec, value, where),
-    FloatField: lambda spec, value, where, owned: _check_float(spec, value, where),
-    StrField: lambda spec, value, where, owned: _check_str(spec, value, where),
+Checker = Callable[[Any, Any, str, bool], Any]
+"""``(spec, value, where, owned) -> normalised value``; raises :class:`ProtocolError` naming
+``where``. ``owned``: an array value is ours (fresh from the decoder), so need not be copied."""
+
+_CHECKS: dict[type, Checker] = {
+    IntField: _check_int,
+    FloatField: _check_float,
+    StrField: _check_str,
     ArrayField: _check_array,
     ImageField: _check_array,
-    NestedField: lambda spec, value, where, owned: _check_nested(spec.cls, value, where),
-    TupleField: lambda spec, value, where, owned: _check_tuple(spec, value, where),
+    NestedField: _check_nested,
+    TupleField: _check_tuple,
 }
-"""The validator of each field kind (looked up by the spec's exact type: this runs for every
-field of every message, on the command path)."""
+"""The validator of each field kind, looked up by the spec's exact type."""
+
+
+def checker(spec: Field) -> Checker:
+    """The validator of field ``spec`` (look it up once per field: validation runs for every
+    field of every message, on the command path, where each layer of calls showed)."""
+    check = _CHECKS.get(type(spec))
+    if check is None:
+        raise TypeError(f"unknown field kind {spec!r}")  # a bug in a spec table, not bad input
+    return check
 
 
 def check_field(spec: Field, value: Any, where: str, owned: bool = False) -> Any:
@@ -293,21 +333,15 @@ def check_field(spec: Field, value: Any, where: str, owned: bool = False) -> Any
 
     ``owned``: the array is ours (fresh from the decoder), so it need not be copied.
     """
-    check = _CHECKS.get(type(spec))
-    if check is None:
-        raise TypeError(f"unknown field kind {spec!r}")  # a bug in a spec table, not bad input
-    return check(spec, value, where, owned)
+    return checker(spec)(spec, value, where, owned)
 
 
-def validate_fields(
-    cls: type, values: Mapping[str, Any], where: str, owned: bool = False
-) -> dict[str, Any]:
-    """Validate every field of ``cls`` in ``values``; errors name ``where.field``."""
-    spec: Mapping[str, Field] = cls._SPEC  # type: ignore[attr-defined]
-    return {
-        name: check_field(field, values[name], f"{where}.{name}", owned)
-        for name, field in spec.items()
-    }
+@functools.cache
+def _field_checks(cls: type) -> tuple[tuple[str, Field, Checker, str], ...]:
+    """``(name, spec, checker, where)`` of each field of record class ``cls``."""
+    return tuple(
+        (name, spec, checker(spec), f"{cls.__name__}.{name}") for name, spec in cls._SPEC.items()
+    )
 
 
 class Record:
@@ -316,10 +350,8 @@ class Record:
     _SPEC: ClassVar[Mapping[str, Field]]
 
     def __post_init__(self) -> None:
-        cls = type(self)
-        values = {name: getattr(self, name) for name in cls._SPEC}
-        for name, value in validate_fields(cls, values, cls.__name__).items():
-            object.__setattr__(self, name, value)
+        for name, spec, check, where in _field_checks(type(self)):
+            object.__setattr__(self, name, check(spec, getattr(self, name), where, False))
 
     @classmethod
     def _from_validated(cls, values: Mapping[str, Any]) -> Any:

@@ -12,6 +12,7 @@ schema); nested records as maps; tuples of records as lists of maps.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Mapping
 from typing import Any, TypeVar, overload
 
@@ -20,12 +21,14 @@ import numpy as np
 
 from ._spec import (
     ArrayField,
+    Checker,
     Field,
     ImageField,
     NestedField,
     Record,
     TupleField,
     check_field,
+    checker,
     short_repr,
     type_name,
 )
@@ -65,8 +68,8 @@ _SCALAR, _ARRAY, _IMAGE, _NESTED, _TUPLE = range(5)
 
 
 @functools.cache
-def _plan(cls: type) -> tuple[tuple[str, Field, int], ...]:
-    """``(name, field, kind)`` of each field of record class ``cls``, the kind worked out once:
+def _plan(cls: type) -> tuple[tuple[str, Field, int, Checker], ...]:
+    """``(name, field, kind, checker)`` of each field of record class ``cls``, worked out once:
     the codec runs on the command path, where a chain of isinstance tests per field showed."""
     kinds = (
         (ImageField, _IMAGE),
@@ -75,14 +78,14 @@ def _plan(cls: type) -> tuple[tuple[str, Field, int], ...]:
         (TupleField, _TUPLE),
     )
     return tuple(
-        (name, field, next((k for t, k in kinds if isinstance(field, t)), _SCALAR))
+        (name, field, next((k for t, k in kinds if isinstance(field, t)), _SCALAR), checker(field))
         for name, field in cls._SPEC.items()
     )
 
 
 def _to_wire(record: Record) -> dict[str, Any]:
     body: dict[str, Any] = {}
-    for name, field, kind in _plan(type(record)):
+    for name, field, kind, _ in _plan(type(record)):
         value = getattr(record, name)
         if kind == _SCALAR:
             body[name] = value
@@ -150,7 +153,7 @@ def _image_from_wire(field: ImageField, value: Any, encoding: str, where: str) -
 
 def _array_from_wire(field: ArrayField, value: Any, where: str) -> np.ndarray:
     shape, data = _wire_shape_and_data(field, value, where)
-    expected_len = int(np.prod(shape, dtype=np.int64)) * field.dtype.itemsize
+    expected_len = math.prod(shape) * field.dtype.itemsize
     if len(data) != expected_len:
         raise ProtocolError(
             f"{where}: array data is {len(data)} bytes, expected {expected_len} for shape "
@@ -170,7 +173,7 @@ def _record_from_wire(cls: type, body: Any, where: str) -> Any:
         extra = [key for key in body if key not in spec]
         raise ProtocolError(f"{where}: unknown field(s) {short_repr(extra)}")
     values: dict[str, Any] = {}
-    for name, field, kind in _plan(cls):
+    for name, field, kind, check in _plan(cls):
         value = body[name]
         field_where = f"{where}.{name}"
         if kind == _SCALAR:
@@ -197,7 +200,7 @@ def _record_from_wire(cls: type, body: Any, where: str) -> Any:
                 _record_from_wire(field.cls, item, f"{field_where}[{i}]")
                 for i, item in enumerate(value)
             ]
-        values[name] = check_field(field, value, field_where, owned=True)
+        values[name] = check(field, value, field_where, True)
     return cls._from_validated(values)
 
 

@@ -21,6 +21,7 @@ from protocol import (
     RobotState,
     Stop,
 )
+from protocol._spec import SMALL_ARRAY_SIZE, _all_finite
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -50,10 +51,24 @@ def test_lists_become_read_only_float64_arrays_and_ints_floats() -> None:
     assert s.q.dtype == np.float64 and s.q.shape == (6,)
     assert s.X_WF.dtype == np.float64
     assert type(s.stamp_s) is float and s.stamp_s == 2.0
+    assert type(state(stamp_s=np.float64(2.5)).stamp_s) is float  # numpy scalars too
     with pytest.raises(ValueError, match="read-only"):
         s.q[0] = 1.0
     with pytest.raises(dataclasses.FrozenInstanceError):
         s.seq = 2  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("size", [1, SMALL_ARRAY_SIZE, SMALL_ARRAY_SIZE + 1, 10_000])
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_finiteness_check_either_side_of_the_small_array_size(size: int, bad: float) -> None:
+    # Small arrays are checked element by element in Python, larger ones by numpy: both must
+    # find one bad element wherever it is, in any shape.
+    a = np.full(size, 1e300)
+    assert _all_finite(a) and _all_finite(a.reshape(1, size))
+    for i in {0, size // 2, size - 1}:
+        b = a.copy()
+        b[i] = bad
+        assert not _all_finite(b) and not _all_finite(b.reshape(size, 1))
 
 
 def test_caller_arrays_are_copied_not_aliased() -> None:
