@@ -226,7 +226,7 @@ def _drag_refine(
             break
         f = REFINE_FORCE_N * e[:3] / norm
         m = REFINE_FORCE_N * e[3:] / norm * st.params.char_length_m
-        for name in kept:
+        for name in sorted(kept):  # sorted: reproducible rounding (Deformer._sweep)
             pair = probe.nearest.get(name)
             if pair is not None:
                 f = f - REFINE_HOLD_N * away_normal(pair)
@@ -276,7 +276,7 @@ def _turned_directions(a: PathNode, b: PathNode) -> np.ndarray:
     cos_same = float(np.cos(SAME_CONTACT_DIRECTION_RAD))
     at_a, at_b = contact_directions(contact_states(a)), contact_directions(contact_states(b))
     turned = []
-    for name in {o for o, _ in at_a} & {o for o, _ in at_b}:
+    for name in sorted({o for o, _ in at_a} & {o for o, _ in at_b}):  # reproducible order
         ns_a = [n for o, n in at_a if o == name]
         ns_b = [n for o, n in at_b if o == name]
         new = [n for n in ns_b if all(float(n @ m) < cos_same for m in ns_a)]
