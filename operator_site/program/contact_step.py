@@ -70,6 +70,9 @@ class ContactStepper:
         """Longer moves are also checked at intermediate poses this far apart (§VII-B)."""
         self.probes = 0
         """Poses probed so far (each is one distance query per nearby pair of parts)."""
+        self._clamped: dict[tuple[str, ...], np.ndarray] = {}
+        """The LCP's last clamped set for each list of contact points' objects: nodes of a path
+        in the same contacts mostly clamp the same points, so pivoting is rarely needed."""
 
     # ------------------------------------------------------------------------------ queries
 
@@ -157,14 +160,19 @@ class ContactStepper:
         """v, ω (W, about the centre of mass) of equation (1) under the applied ``f_W`` (N) and
         ``m_W`` (N·m) plus the contact forces of the LCP of §V-A at ``X_WO``."""
         p = self.params
-        _, P, N, gaps = self.contacts(X_WO, probe, required)
+        names, P, N, gaps = self.contacts(X_WO, probe, required)
         if len(P):
             c = X_WO[:3, :3] @ self.c_O + X_WO[:3, 3]
             T = np.cross(P - c, N)
             A = p.d_t * N @ N.T + p.d_r * T @ T.T
             # As in the simulator: a point with room to spare may approach by it (less ε_b).
             room = np.maximum(gaps - p.eps_barrier_m, 0.0) / p.dt_s
-            result = solve_lcp(A, p.d_t * N @ f_W + p.d_r * T @ m_W + room)
+            key = tuple(names)
+            result = solve_lcp(
+                A, p.d_t * N @ f_W + p.d_r * T @ m_W + room, clamped_guess=self._clamped.get(key)
+            )
+            if result.clamped is not None:
+                self._clamped[key] = result.clamped
             f_W = f_W + N.T @ result.c
             m_W = m_W + T.T @ result.c
         v, w = p.d_t * f_W, p.d_r * m_W
