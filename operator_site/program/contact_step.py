@@ -114,21 +114,25 @@ class ContactStepper:
         R, t = X_WO[:3, :3], X_WO[:3, 3]
         names: list[str] = []
         P, N, G = [], [], []
+        posed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # a part's vertices and normals in W
         for pair in probe.pairs:
             name = self.world.obstacle_object[pair.obstacle]
             own = pair.wp_part < self.world.n_own_parts  # fingers only touch (see the stepper)
             reach = p.eps_capture_m if own and name in required else p.eps_contact_m
             if not 0 < pair.distance_m < reach:
                 continue
-            part = self.world.wp_parts[pair.wp_part]
+            if pair.wp_part not in posed:  # once per part, not per obstacle it touches
+                part = self.world.wp_parts[pair.wp_part]
+                posed[pair.wp_part] = (part.vertices_O @ R.T + t, part.normals_O @ R.T)
+            V_W, normals_W = posed[pair.wp_part]
             points, n, gaps = contact_manifold(
-                part.vertices_O @ R.T + t,
+                V_W,
                 self.world.obstacle_vertices_W[pair.obstacle],
                 pair.p_wp,
                 pair.p_obstacle,
                 p.eps_contact_m,
                 p.max_points_per_pair,
-                part.normals_O @ R.T,
+                normals_W,
                 self.world.obstacle_normals_W[pair.obstacle],
             )
             names += [name] * len(points)
