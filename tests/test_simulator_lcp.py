@@ -337,9 +337,35 @@ def test_regularised_pivoting_answers_for_the_original_problem() -> None:
     for _ in range(50):
         A, b, _, _ = random_problem(rng, 12, "duplicate")
         delta = lcp.REGULARISATION_REL * lcp.LCP_TOL_REL * np.abs(A).max()
-        c, _ = lcp._pivoting(A + delta * np.eye(12), b, 1000, lcp.LCP_TOL_REL)
+        c, _, _ = lcp._pivoting(A + delta * np.eye(12), b, 1000, lcp.LCP_TOL_REL)
         tolerance = lcp.LCP_TOL_REL * (np.abs(A).max() * c.max() + np.abs(b).max())
         assert lcp_residual(A, b, c) <= tolerance
+
+
+@pytest.mark.parametrize("kind", ["generic", "face", "duplicate", "room"])
+def test_clamped_guess_answers_like_pivoting_or_falls_back(kind: str) -> None:
+    """A clamped set from a similar LCP (the same contacts pushed a little differently) is one
+    solve that meets the tolerance, with pivoting's a; a wrong guess changes nothing."""
+    rng = np.random.default_rng(12 + len(kind))
+    guessed = 0
+    for _ in range(100):
+        n = int(rng.integers(2, 9))
+        A, b, _, _ = random_problem(rng, n, kind)
+        first = solve_lcp(A, b)
+        assert first.clamped is not None and first.clamped.shape == (n,)
+        b2 = b + 1e-3 * np.abs(b).max() * rng.normal(size=n)
+        plain = solve_lcp(A, b2)
+        for guess in (first.clamped, rng.random(n) < 0.5):
+            result = solve_lcp(A, b2, clamped_guess=guess)
+            check(result, A, b2)
+            scale = np.abs(A).max() * max(result.c.max(), plain.c.max()) + np.abs(b2).max()
+            assert np.abs(result.a - plain.a).max() <= 1e-8 * scale
+            if result.method == lcp.METHOD_GUESS:
+                np.testing.assert_array_equal(result.clamped, guess)
+                guessed += 1
+            else:
+                np.testing.assert_array_equal(result.c, plain.c)
+    assert guessed > 50  # the guess must be taken, not only fall back
 
 
 def test_tighter_tolerance_is_met_or_reported() -> None:

@@ -73,6 +73,11 @@ class CheckResult:
     samples: int
 
 
+def _pose_key(X: np.ndarray) -> bytes:
+    """The exact bits of a pose, as a dictionary key."""
+    return np.ascontiguousarray(X, dtype=np.float64).tobytes()
+
+
 class Sweeper:
     """Sweeps workpiece segments against one scene's fixed obstacles."""
 
@@ -97,6 +102,10 @@ class Sweeper:
         self.contact_cut_m = contact_cut_m
         # Reach: far enough that an object out of reach leaves room for a long sample step.
         self.stepper = ContactStepper(world, self.c_O, self.params, 0.02)
+        self._swept: dict[tuple[bytes, bytes, frozenset[str], frozenset[str]], SegmentCheck] = {}
+        """Segments swept so far: the program generator tries a move while fitting targets, again
+        round corners, and the final check sweeps it once more (scripted around-corner: 59
+        sweeps of 33 distinct segments). A sweep depends on nothing else (the world is fixed)."""
 
     def segment(
         self,
@@ -108,6 +117,14 @@ class Sweeper:
         """Sweep the move ``X0`` → ``X1``: objects in ``touching`` (in contact at an end) are
         sampled densely; objects in ``kept`` must stay within ``keep_contact_m`` and may be cut
         into by up to ``contact_cut_m``."""
+        key = (_pose_key(X0), _pose_key(X1), frozenset(touching), frozenset(kept))
+        if key not in self._swept:
+            self._swept[key] = self._sweep(X0, X1, key[2], key[3])
+        return self._swept[key]
+
+    def _sweep(
+        self, X0: np.ndarray, X1: np.ndarray, touching: frozenset[str], kept: frozenset[str]
+    ) -> SegmentCheck:
         st = self.stepper
         c0 = X0[:3, :3] @ self.c_O + X0[:3, 3]
         c1 = X1[:3, :3] @ self.c_O + X1[:3, 3]

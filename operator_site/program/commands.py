@@ -14,6 +14,7 @@ and from above, so the last move does not snag).
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +35,12 @@ from protocol.messages import (
 REFINE_STEP_M = 0.002
 """Point travel per contact step when a move in contact is refined round a corner (m)."""
 MAX_REFINE_STEPS = 200
+REFINE_STALL_STEPS = 10
+"""A drag that has not come :data:`REFINE_STALL_FRACTION` of a step closer to the segment's end
+in this many steps is stuck and given up (on every scripted around-corner seed the drag round
+the outside corner jammed within five steps and then rocked on the spot, 2 mm to and fro, for
+the remaining 195 of :data:`MAX_REFINE_STEPS`)."""
+REFINE_STALL_FRACTION = 0.1
 REFINE_FORCE_N = 10.0
 """Pull towards the segment's end while refining (N): each step goes its full length."""
 REFINE_HOLD_N = 0.5
@@ -217,16 +224,21 @@ def _drag_refine(
     X, probe = a.X_WO, st.probe(a.X_WO)
     c_b = b.X_WO[:3, :3] @ st.c_O + b.X_WO[:3, 3]
     poses = []
-    for _ in range(MAX_REFINE_STEPS):
+    closest, closest_at = math.inf, 0  # nearest approach to b so far (m) and its step
+    for k in range(MAX_REFINE_STEPS):
         c = X[:3, :3] @ st.c_O + X[:3, 3]
         turn = log_batch((b.X_WO[:3, :3] @ X[:3, :3].T)[None])[0]
         e = np.concatenate([c_b - c, st.params.char_length_m * turn])
         norm = float(np.linalg.norm(e))
         if norm < step_m:
             break
+        if norm < closest - REFINE_STALL_FRACTION * step_m:
+            closest, closest_at = norm, k
+        elif k - closest_at >= REFINE_STALL_STEPS:
+            return None
         f = REFINE_FORCE_N * e[:3] / norm
         m = REFINE_FORCE_N * e[3:] / norm * st.params.char_length_m
-        for name in kept:
+        for name in sorted(kept):  # sorted: reproducible rounding (Deformer._sweep)
             pair = probe.nearest.get(name)
             if pair is not None:
                 f = f - REFINE_HOLD_N * away_normal(pair)
@@ -276,7 +288,7 @@ def _turned_directions(a: PathNode, b: PathNode) -> np.ndarray:
     cos_same = float(np.cos(SAME_CONTACT_DIRECTION_RAD))
     at_a, at_b = contact_directions(contact_states(a)), contact_directions(contact_states(b))
     turned = []
-    for name in {o for o, _ in at_a} & {o for o, _ in at_b}:
+    for name in sorted({o for o, _ in at_a} & {o for o, _ in at_b}):  # reproducible order
         ns_a = [n for o, n in at_a if o == name]
         ns_b = [n for o, n in at_b if o == name]
         new = [n for n in ns_b if all(float(n @ m) < cos_same for m in ns_a)]

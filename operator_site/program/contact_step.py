@@ -70,6 +70,9 @@ class ContactStepper:
         """Longer moves are also checked at intermediate poses this far apart (§VII-B)."""
         self.probes = 0
         """Poses probed so far (each is one distance query per nearby pair of parts)."""
+        self._clamped: dict[tuple[str, ...], np.ndarray] = {}
+        """The LCP's last clamped set for each list of contact points' objects: nodes of a path
+        in the same contacts mostly clamp the same points, so pivoting is rarely needed."""
 
     # ------------------------------------------------------------------------------ queries
 
@@ -111,21 +114,25 @@ class ContactStepper:
         R, t = X_WO[:3, :3], X_WO[:3, 3]
         names: list[str] = []
         P, N, G = [], [], []
+        posed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # a part's vertices and normals in W
         for pair in probe.pairs:
             name = self.world.obstacle_object[pair.obstacle]
             own = pair.wp_part < self.world.n_own_parts  # fingers only touch (see the stepper)
             reach = p.eps_capture_m if own and name in required else p.eps_contact_m
             if not 0 < pair.distance_m < reach:
                 continue
-            part = self.world.wp_parts[pair.wp_part]
+            if pair.wp_part not in posed:  # once per part, not per obstacle it touches
+                part = self.world.wp_parts[pair.wp_part]
+                posed[pair.wp_part] = (part.vertices_O @ R.T + t, part.normals_O @ R.T)
+            V_W, normals_W = posed[pair.wp_part]
             points, n, gaps = contact_manifold(
-                part.vertices_O @ R.T + t,
+                V_W,
                 self.world.obstacle_vertices_W[pair.obstacle],
                 pair.p_wp,
                 pair.p_obstacle,
                 p.eps_contact_m,
                 p.max_points_per_pair,
-                part.normals_O @ R.T,
+                normals_W,
                 self.world.obstacle_normals_W[pair.obstacle],
             )
             names += [name] * len(points)
@@ -157,14 +164,19 @@ class ContactStepper:
         """v, ω (W, about the centre of mass) of equation (1) under the applied ``f_W`` (N) and
         ``m_W`` (N·m) plus the contact forces of the LCP of §V-A at ``X_WO``."""
         p = self.params
-        _, P, N, gaps = self.contacts(X_WO, probe, required)
+        names, P, N, gaps = self.contacts(X_WO, probe, required)
         if len(P):
             c = X_WO[:3, :3] @ self.c_O + X_WO[:3, 3]
             T = np.cross(P - c, N)
             A = p.d_t * N @ N.T + p.d_r * T @ T.T
             # As in the simulator: a point with room to spare may approach by it (less ε_b).
             room = np.maximum(gaps - p.eps_barrier_m, 0.0) / p.dt_s
-            result = solve_lcp(A, p.d_t * N @ f_W + p.d_r * T @ m_W + room)
+            key = tuple(names)
+            result = solve_lcp(
+                A, p.d_t * N @ f_W + p.d_r * T @ m_W + room, clamped_guess=self._clamped.get(key)
+            )
+            if result.clamped is not None:
+                self._clamped[key] = result.clamped
             f_W = f_W + N.T @ result.c
             m_W = m_W + T.T @ result.c
         v, w = p.d_t * f_W, p.d_r * m_W

@@ -331,7 +331,9 @@ class Deformer:
             if push_m < REST_FRACTION * p.settle_m and probe.nearest:
                 node.probe = probe
                 continue
-            for name in node.required:
+            # Sorted: a set of names iterates in the order of Python's per-process string hash,
+            # and the sum's rounding, amplified over the sweeps, changed programs between runs.
+            for name in sorted(node.required):
                 pair = probe.nearest.get(name)
                 if pair is not None:
                     f = f - node.gain * p.hold_n * away_normal(pair)
@@ -484,7 +486,7 @@ class Deformer:
                 break
             f = DRAG_FORCE_N * e[:3] / norm
             m = DRAG_FORCE_N * e[3:] / norm * self.char_m
-            for name in required:
+            for name in sorted(required):  # sorted: reproducible rounding (see _sweep)
                 pair = probe.nearest.get(name)
                 if pair is not None:
                     f = f - p.hold_n * away_normal(pair)

@@ -22,6 +22,7 @@ MIN_SEPARATION_FOR_NORMAL_M = 1e-12
 NORMAL_SNAP_RAD = 1e-6
 """A nearest-point direction within this angle of a face normal is that face normal: the
 direction between nearest points of parallel faces 0.1 mm apart is only good to ~1e-12."""
+_COS_SNAP = float(np.cos(NORMAL_SNAP_RAD))
 
 
 def _plane_basis(n: np.ndarray) -> np.ndarray:
@@ -46,7 +47,11 @@ def _dedupe(P: list[Pt]) -> list[Pt]:
     """Drop points within :data:`PLANAR_TOL_M` of an earlier one (order kept)."""
     out: list[Pt] = []
     for p in P:
-        if all(abs(p[0] - q[0]) > PLANAR_TOL_M or abs(p[1] - q[1]) > PLANAR_TOL_M for q in out):
+        x, y = p
+        for q in out:  # a plain loop: all() over a generator cost more than the comparisons
+            if not (abs(x - q[0]) > PLANAR_TOL_M or abs(y - q[1]) > PLANAR_TOL_M):
+                break
+        else:
             out.append(p)
     return out
 
@@ -191,22 +196,26 @@ def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> floa
 
 def _surface_height(S_2d: np.ndarray, h: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """Height along the normal, at plane points Q (k, 2), of the flat feature (vertex, edge or
-    face) whose corners project to ``S_2d`` (m, 2) at heights ``h`` (m,)."""
-    p0 = S_2d[0]
-    d1 = np.sum((S_2d - p0) ** 2, axis=1)
-    i1 = int(np.argmax(d1))
+    face) whose corners project to ``S_2d`` (m, 2) at heights ``h`` (m,).
+
+    Python floats over the feature's few corners: numpy's per-call overhead cost more than the
+    arithmetic (it runs twice for every contact manifold)."""
+    S, H = S_2d.tolist(), h.tolist()
+    x0, y0 = S[0]
+    d1 = [(x - x0) * (x - x0) + (y - y0) * (y - y0) for x, y in S]
+    i1 = max(range(len(S)), key=d1.__getitem__)  # the first of equals, as np.argmax
     if d1[i1] < PLANAR_TOL_M**2:
         return np.full(len(Q), float(h.mean()))
-    u = S_2d[i1] - p0
-    area = np.abs(u[0] * (S_2d[:, 1] - p0[1]) - u[1] * (S_2d[:, 0] - p0[0]))
-    i2 = int(np.argmax(area))
-    if area[i2] < PLANAR_TOL_M * np.sqrt(d1[i1]):
-        t = (Q - p0) @ u / d1[i1]  # an edge: linear along it
-        return h[0] + t * (h[i1] - h[0])
+    ux, uy = S[i1][0] - x0, S[i1][1] - y0
+    area = [abs(ux * (y - y0) - uy * (x - x0)) for x, y in S]
+    i2 = max(range(len(S)), key=area.__getitem__)
+    if area[i2] < PLANAR_TOL_M * math.sqrt(d1[i1]):
+        t = (Q - S_2d[0]) @ np.array([ux, uy]) / d1[i1]  # an edge: linear along it
+        return H[0] + t * (H[i1] - H[0])
     # A face: the plane through three corners spanning the largest triangle.
-    M = np.array([[u[0], u[1]], S_2d[i2] - p0])
-    grad = np.linalg.solve(M, np.array([h[i1] - h[0], h[i2] - h[0]]))
-    return h[0] + (Q - p0) @ grad
+    M = np.array([[ux, uy], [S[i2][0] - x0, S[i2][1] - y0]])
+    grad = np.linalg.solve(M, np.array([H[i1] - H[0], H[i2] - H[0]]))
+    return H[0] + (Q - S_2d[0]) @ grad
 
 
 def _snap(n: np.ndarray, face_normals: np.ndarray | None) -> np.ndarray:
@@ -214,7 +223,7 @@ def _snap(n: np.ndarray, face_normals: np.ndarray | None) -> np.ndarray:
         return n
     cos = face_normals @ n
     best = int(np.argmax(cos))
-    return face_normals[best] if cos[best] >= np.cos(NORMAL_SNAP_RAD) else n
+    return face_normals[best] if cos[best] >= _COS_SNAP else n
 
 
 def contact_manifold(
@@ -240,7 +249,7 @@ def contact_manifold(
     if d < MIN_SEPARATION_FOR_NORMAL_M:
         raise ValueError(f"parts are {d:.3g} m apart: too close for a contact normal")
     n = -_snap(-gap / d, normals_B)
-    if normals_B is None or not np.any(normals_B @ -n >= np.cos(NORMAL_SNAP_RAD)):
+    if normals_B is None or not np.any(normals_B @ -n >= _COS_SNAP):
         n = _snap(n, normals_A)
     h_A, h_B = float(p_A @ n), float(p_B @ n)
     S_A = V_A[V_A @ n >= h_B - eps_contact_m]
@@ -248,8 +257,9 @@ def contact_manifold(
     E = _plane_basis(n)
     origin = p_A - h_A * n  # p_A projected onto the plane n·x = 0
     A_2d, B_2d = (S_A - origin) @ E.T, (S_B - origin) @ E.T
-    H_A = convex_hull_2d([(float(x), float(y)) for x, y in A_2d])
-    H_B = convex_hull_2d([(float(x), float(y)) for x, y in B_2d])
+    # tolist(): the same floats as float() of each element, without a numpy scalar apiece.
+    H_A = convex_hull_2d(list(map(tuple, A_2d.tolist())))
+    H_B = convex_hull_2d(list(map(tuple, B_2d.tolist())))
     Q = np.array(convex_intersection_2d(H_A, H_B) if H_A and H_B else []).reshape(-1, 2)
     if len(Q) == 0:
         # Rounding put the projected features a hair apart; the nearest points always touch.

@@ -88,6 +88,7 @@ PGS_CHECK_EVERY = 25
 METHOD_PIVOTING = "pivoting"
 METHOD_REGULARISED = "pivoting-regularised"
 METHOD_PGS = "pgs"
+METHOD_GUESS = "clamped-guess"
 
 
 @dataclass(frozen=True)
@@ -117,6 +118,9 @@ class LcpResult:
     method: str
     ok: bool
     message: str = ""
+    clamped: np.ndarray | None = None
+    """(n,) bool: the clamped set C (a_i = 0) the answer was solved on, for the pivoting methods
+    and a guess (None for PGS): a similar LCP may pass it as ``clamped_guess``."""
 
 
 class _PivotingError(RuntimeError):
@@ -147,8 +151,10 @@ def _solve_clamped(M: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.linalg.lstsq(M, r, rcond=CLAMPED_RCOND)[0]
 
 
-def _pivoting(A: np.ndarray, b: np.ndarray, max_pivots: int, tol: float) -> tuple[np.ndarray, int]:
-    """Baraff's pivoting; returns (c, pivots) or raises :class:`_PivotingError`."""
+def _pivoting(
+    A: np.ndarray, b: np.ndarray, max_pivots: int, tol: float
+) -> tuple[np.ndarray, int, np.ndarray]:
+    """Baraff's pivoting; returns (c, pivots, the clamped set) or raises :class:`_PivotingError`."""
     n = len(b)
     A_abs = np.abs(A)
     A_max = float(np.max(A_abs))
@@ -229,13 +235,19 @@ def _pivoting(A: np.ndarray, b: np.ndarray, max_pivots: int, tol: float) -> tupl
             a = A @ c + b
     # The increments carry rounding from every pivot; one solve on the final C removes it.
     np.maximum(c, 0.0, out=c)
-    idx = np.flatnonzero(clamped)
-    if len(idx):
-        polished = np.zeros(n)
-        polished[idx] = np.maximum(_solve_clamped(A[np.ix_(idx, idx)], -b[idx]), 0.0)
+    if clamped.any():
+        polished = _on_clamped(A, b, clamped)
         if lcp_residual(A, b, polished) <= lcp_residual(A, b, c):
             c = polished
-    return c, pivots
+    return c, pivots, clamped
+
+
+def _on_clamped(A: np.ndarray, b: np.ndarray, clamped: np.ndarray) -> np.ndarray:
+    """c with a_C = 0 on the clamped set C and c = 0 elsewhere (negative forces cut to 0)."""
+    idx = np.flatnonzero(clamped)
+    c = np.zeros(len(b))
+    c[idx] = np.maximum(_solve_clamped(A[np.ix_(idx, idx)], -b[idx]), 0.0)
+    return c
 
 
 def _pgs(A: np.ndarray, b: np.ndarray, c0: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
@@ -261,7 +273,7 @@ def _real_forces(
     ``REGULARISATION_CHECK_FACTOR``)."""
     M = A + REGULARISATION_CHECK_FACTOR * delta * np.eye(len(b))
     try:
-        c_more, _ = _pivoting(M, b, cap, tol)
+        c_more, _, _ = _pivoting(M, b, cap, tol)
     except _PivotingError:
         return False
     return bool(np.max(c_more) >= 0.5 * np.max(c))
@@ -291,12 +303,21 @@ def _validated(A: np.ndarray, b: np.ndarray, tol: float) -> tuple[np.ndarray, np
 
 
 def solve_lcp(
-    A: np.ndarray, b: np.ndarray, *, tol: float = LCP_TOL_REL, max_pivots: int | None = None
+    A: np.ndarray,
+    b: np.ndarray,
+    *,
+    tol: float = LCP_TOL_REL,
+    max_pivots: int | None = None,
+    clamped_guess: np.ndarray | None = None,
 ) -> LcpResult:
     """Solve a = A c + b, a ≥ 0, c ≥ 0, aᵀc = 0 for symmetric PSD ``A`` (n, n) and ``b`` (n,).
 
     ``tol`` is the relative tolerance of :attr:`LcpResult.tolerance`; ``max_pivots`` overrides the
-    pivot cap (n·MAX_PIVOTS_PER_CONTACT + MAX_PIVOTS_EXTRA) of each pivoting attempt. Raises
+    pivot cap (n·MAX_PIVOTS_PER_CONTACT + MAX_PIVOTS_EXTRA) of each pivoting attempt.
+    ``clamped_guess`` (n,) bool: a clamped set to try first (the :attr:`LcpResult.clamped` of a
+    similar LCP, e.g. the same contacts a little further on): its one solve is the answer if
+    that meets the tolerance, as pivoting's would (pivoting ends with the same solve on its final
+    clamped set); otherwise pivoting runs as without it. Raises
     ValueError for a wrong shape, NaN/inf, asymmetry beyond ``SYMMETRY_TOL_REL`` or a negative
     diagonal. Never raises for an unsolvable LCP: the result then has ``ok=False``.
     """
@@ -318,18 +339,24 @@ def solve_lcp(
             c, A @ c + b, residual, tolerance, iterations, method, residual <= tolerance
         )
 
+    if clamped_guess is not None and len(clamped_guess) == n and np.any(clamped_guess):
+        guess = np.asarray(clamped_guess, dtype=bool)
+        r = result(_on_clamped(A, b, guess), 0, METHOD_GUESS)
+        if r.ok:
+            return replace(r, clamped=guess)
+        failures.clear()  # a guess that misses is no failure: pivoting answers as usual
     best: LcpResult | None = None
     iterations = 0
     delta = REGULARISATION_REL * tol * A_max
     for method, M in ((METHOD_PIVOTING, A), (METHOD_REGULARISED, A + delta * np.eye(n))):
         try:
-            c, pivots = _pivoting(M, b, cap, tol)
+            c, pivots, clamped = _pivoting(M, b, cap, tol)
         except _PivotingError as e:
             iterations += e.pivots
             failures.append(f"{method}: {e}")
             continue
         iterations += pivots
-        r = result(c, iterations, method)
+        r = replace(result(c, iterations, method), clamped=clamped)
         if r.ok and method == METHOD_REGULARISED and not _real_forces(A, b, c, delta, cap, tol):
             failures.append(
                 f"{method}: its forces scale as 1/δ, made by the regularisation (the LCP is "
