@@ -15,8 +15,12 @@ from tests.conftest import REPO
 
 pytestmark = pytest.mark.integration
 
-SEEDS = {"corner": (3, 4)}
-"""A handful of fixed seeds per task; the benchmark runs a hundred."""
+SEEDS = {"corner": (3, 4), "around-corner": (6,)}
+"""A handful of fixed seeds per task; the benchmark runs a hundred. around-corner's outcome on
+a seed varies from run to run (the execution is chaotic: a start a few control periods later
+moves the final error by millimetres), so only a seed that passed every time is here: seed 6,
+4 of 4 real runs at --time-scale 3 (0.26-1.04 mm) and 7 of 7 in-process replays started at
+seven phases (0.16-0.79 mm), 2026-11-25."""
 TIME_SCALE = 3.0
 """The work site simulates this much faster than real time where the machine keeps up: the
 physics is stepped alike per control period at any scale, and the suite is shorter."""
