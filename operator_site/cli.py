@@ -75,6 +75,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="e2e: the started work sites' `--surface-stiffness` (default: theirs)",
     )
     bench.add_argument(
+        "--time-scale",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="e2e: the started work sites simulate X seconds per wall second (default: 1); "
+        "the physics is stepped alike at any scale, only the wall time differs (the JSON's "
+        "time_scale_achieved_min says how fast the machine managed)",
+    )
+    bench.add_argument(
         "--tasks",
         nargs="+",
         choices=["corner", "around-corner"],
@@ -181,6 +190,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N_PER_M",
         help="with --scripted: the started work site's `--surface-stiffness` (contact moves' "
         "impedance stiffness along the surfaces; default: the work site's)",
+    )
+    demo.add_argument(
+        "--time-scale",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="with --scripted: the started work site simulates X seconds per wall second "
+        "(default: 1, real time; the JSON's time_scale_achieved says how fast it managed)",
     )
     return parser
 
@@ -305,6 +322,7 @@ def run_scripted_demo(args: argparse.Namespace, connect_given: bool) -> int:
         site_id=args.site_id if connect_given else None,
         scene=load_scene(args.scene),
         oracle=args.oracle_vision,
+        time_scale=args.time_scale,
         work_site_args=_work_site_args(args),
     )
     if args.json:
@@ -335,6 +353,7 @@ def run_bench(args: argparse.Namespace) -> int:
             args.seeds,
             tuple(args.tasks),
             oracle=args.oracle_vision,
+            time_scale=args.time_scale,
             work_site_args=_work_site_args(args),
         )
         print(json.dumps(results))

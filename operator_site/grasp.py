@@ -11,7 +11,9 @@ import numpy as np
 
 from models.geometry import ConvexPart, make_convex_part
 from models.robot import TCP_LINK, RobotModel
-from models.transforms import invert_pose
+from models.scene import Scene
+from models.transforms import invert_pose, make_pose, rpy_to_R
+from operator_site.simulator.world import SimWorld
 
 _BOX_FACES = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
 
@@ -71,3 +73,46 @@ def top_grasp(
     X_OG[:3, :3] = np.diag([-1.0, 1.0, -1.0])
     X_OG[:3, 3] = (centre[0], centre[1], z_tips + tip_below_tcp)
     return invert_pose(X_OG), opening
+
+
+GRASP_CLEARANCE_M = 0.005
+"""Open fingers nearer than this to another object may touch it on the way down to the grasp
+(the model's poses are vision's, off by up to a few millimetres; the work site stops at the
+first touch). A block square in section is then taken by its other pair of faces if the open
+fingers are clearer there."""
+SQUARE_SECTION_TOL_M = 1e-6
+_QUARTER_TURN_Z = make_pose(rpy_to_R(np.array([0.0, 0.0, 0.5 * np.pi])))
+
+
+def open_finger_clearance_m(
+    robot: RobotModel, scene: Scene, name: str, X_WO: dict[str, np.ndarray], X_GP: np.ndarray
+) -> float:
+    """Least distance (m) from the fully open fingers of grasp ``X_GP`` on block ``name``, as it
+    lies at ``X_WO[name]``, to every other object at ``X_WO`` (≤ 0: they overlap)."""
+    fingers = tuple(finger_parts_O(robot, X_GP, robot.finger_opening_max))
+    world = SimWorld(scene, name, X_WO, attached_O=fingers)
+    pairs = world.distances(X_WO[name], np.arange(len(world.obstacle_object)))
+    return min(p.distance_m for p in pairs if p.wp_part >= world.n_own_parts)
+
+
+def clear_top_grasp(
+    robot: RobotModel, scene: Scene, name: str, X_WO: dict[str, np.ndarray]
+) -> tuple[np.ndarray, float]:
+    """:func:`top_grasp` of block ``name`` (deep enough to clear the bars where it is tall
+    enough), or, for a block square in section whose open fingers come within
+    :data:`GRASP_CLEARANCE_M` of another object, the same grasp a quarter turn round on its
+    other pair of faces when the fingers are clearer there."""
+    bbox = scene.object(name).model.bbox_O
+    X_GP, opening = top_grasp(robot, bbox, bar_clearing_depth_m(bbox))
+    lo, hi = np.asarray(bbox, dtype=np.float64)
+    if abs((hi[0] - lo[0]) - (hi[1] - lo[1])) > SQUARE_SECTION_TOL_M:
+        return X_GP, opening
+    clearance = open_finger_clearance_m(robot, scene, name, X_WO, X_GP)
+    if clearance >= GRASP_CLEARANCE_M:
+        return X_GP, opening
+    # The turn is about the gripper's z through the TCP, which top_grasp puts on the block's
+    # vertical centre line: the fingers land on the other two faces, centred as before.
+    turned = _QUARTER_TURN_Z @ X_GP
+    if open_finger_clearance_m(robot, scene, name, X_WO, turned) > clearance:
+        return turned, opening
+    return X_GP, opening

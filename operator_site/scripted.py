@@ -53,6 +53,13 @@ VISION_TIMEOUT_S = 120.0
 VISION_FRAMES = 3
 """Recognised frames waited for at most while they come back empty."""
 EXECUTE_TIMEOUT_S = 240.0
+STATE_RATE_HZ = 100.0
+"""The started work site's robot-state rate: one state a simulated control period, so that
+counting states over the execution measures the time scale it really achieved."""
+SLOW_TIME_SCALE_FRACTION = 0.9
+"""A work site simulating at less than this fraction of its asked time scale is reported: the
+physics is stepped alike (per control period, not per wall second), but the run takes longer
+than asked."""
 WAYPOINT_MAX_STEPS = 200
 WAYPOINT_REACHED_M = 0.5e-3
 SUCCESS_MM, SUCCESS_DEG = 1.5, 1.5
@@ -294,7 +301,8 @@ def _start_work_site(
 ) -> subprocess.Popen:
     cmd = [
         sys.executable, "-m", "work_site", "serve", "--listen", endpoint, "--site-id", site_id,
-        "--seed", str(seed), "--vision-rate", "2", "--time-scale", str(time_scale), *extra_args,
+        "--seed", str(seed), "--vision-rate", "2", "--time-scale", str(time_scale),
+        "--state-rate", str(STATE_RATE_HZ), *extra_args,
     ]  # fmt: skip
     with log_path.open("w") as out:
         return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
@@ -316,7 +324,8 @@ def run_scripted(
     on loopback (``--seed``-ed) unless ``connect`` names a running one. ``oracle``: take the
     blocks' poses from the simulated work site's ground truth instead of vision (to measure
     the rest of the chain alone). ``time_scale``: how much faster than real time the started
-    work site simulates; ``work_site_args``: more options for it."""
+    work site simulates (the result's ``time_scale_achieved`` says how fast it really did,
+    while executing); ``work_site_args``: more options for it."""
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r} (known: {', '.join(TASKS)})")
     scene = scene or load_scene()
@@ -387,6 +396,7 @@ def run_scripted(
         out["commands"] = len(program.commands)
 
         t0 = time.monotonic()
+        state0 = link.robot_state
         link.send_program(program)
 
         def finished() -> bool:
@@ -399,6 +409,16 @@ def run_scripted(
         if not _wait(finished, link, EXECUTE_TIMEOUT_S):
             raise RuntimeError(f"the program did not finish within {EXECUTE_TIMEOUT_S:.0f} s")
         stage_s["execute"] = time.monotonic() - t0
+        if proc is not None and state0 is not None and link.robot_state is not None:
+            simulated_s = (link.robot_state.seq - state0.seq) / STATE_RATE_HZ
+            out["time_scale"] = time_scale
+            out["time_scale_achieved"] = simulated_s / stage_s["execute"]
+            if out["time_scale_achieved"] < SLOW_TIME_SCALE_FRACTION * time_scale:
+                log(
+                    f"warning: the work site simulated at {out['time_scale_achieved']:.2f}× "
+                    f"real time, asked {time_scale:g}× (the machine is too slow or loaded: "
+                    "the physics is the same, the run slower)"
+                )
         reports = [r for r in link.status.reports if r.program_id == program.program_id]
         out["execution"] = f"{reports[-1].status}: {reports[-1].message}"
         verified = [r for r in reports if r.status == "contact_verified"]

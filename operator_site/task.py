@@ -13,7 +13,7 @@ import numpy as np
 
 from models.robot import load_robot
 from models.scene import Scene
-from operator_site.grasp import bar_clearing_depth_m, finger_parts_O, top_grasp
+from operator_site.grasp import clear_top_grasp, finger_parts_O
 from operator_site.simulator import SimParams, Simulator, StepResult
 from operator_site.simulator.stepper import SimState
 
@@ -47,15 +47,15 @@ class TaskSession:
 
     def select(self, name: str) -> None:
         """Make movable object ``name`` the workpiece, held by the gripper's fingers in a grasp
-        from above, high enough to clear the frame's bars where the block is tall enough (the
-        fingers move with it); its last pose stays in the model."""
+        from above, high enough to clear the frame's bars where the block is tall enough, on
+        the pair of faces whose open fingers clear the other blocks (the fingers move with
+        it); its last pose stays in the model."""
         obj = self.scene.object(name)
         if obj.fixed:
             raise ValueError(f"{name!r} is part of the fixed environment and cannot be moved")
         if self.sim is not None:
             self.X_WO[self.sim.world.workpiece] = self.sim.X_WO
-        bbox = obj.model.bbox_O
-        self.X_GP, self.opening_m = top_grasp(self.robot, bbox, bar_clearing_depth_m(bbox))
+        self.X_GP, self.opening_m = clear_top_grasp(self.robot, self.scene, name, self.X_WO)
         self.fingers_O = tuple(finger_parts_O(self.robot, self.X_GP, self.opening_m))
         self.sim = Simulator(
             self.scene, name, self.params, X_WO=self.X_WO, attached_O=self.fingers_O

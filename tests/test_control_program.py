@@ -154,3 +154,27 @@ def test_an_internal_fault_holds_the_arm_and_fails_the_program(site) -> None:
     assert controller.move is None and server._execution.finished
     assert reports[-1][2] == "stopped" and "work-site fault: RuntimeError: boom" in reports[-1][3]
     assert server.stats["faults"] == 2
+
+
+def test_a_work_site_falling_behind_its_time_scale_says_so(caplog) -> None:
+    import logging
+    import time
+
+    from protocol import make_config
+    from work_site.server import LATE_WARNING_PERIOD_S, ServerOptions, WorkSiteServer
+
+    server = WorkSiteServer(load_scene(), make_config(), ServerOptions(time_scale=4.0))
+    tick_s = 0.01
+    now = time.monotonic()
+    with caplog.at_level(logging.WARNING, logger="work-site"):
+        # Late again within the period: no new warning, the mark stays.
+        recent = (now - 0.5 * LATE_WARNING_PERIOD_S, 0)
+        assert server._warn_late(recent, 100, tick_s) == recent
+        assert not caplog.records
+        # 5 s simulated in the last 2 periods (20 s) of wall time: 0.25× where 4× was asked.
+        mark = server._warn_late((now - 2 * LATE_WARNING_PERIOD_S, 0), 500, tick_s)
+    assert mark[1] == 500 and mark[0] >= now
+    (record,) = caplog.records
+    assert record.levelno == logging.WARNING
+    assert "falling behind: simulating at 0.25× real time" in record.getMessage()
+    assert "asked 4.00×" in record.getMessage()

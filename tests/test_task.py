@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from models.scene import load_scene
-from models.transforms import make_pose
+from models.transforms import invert_pose, make_pose
 from operator_site.link import WorkSiteLink
 from operator_site.task import TaskSession
 from operator_site.ui import NO_WORKPIECE, OperatorPage
@@ -38,6 +38,33 @@ def test_session_drags_the_selected_block_and_keeps_the_model() -> None:
     session.select("plank")
     np.testing.assert_array_equal(session.X_WO["cube"], result.X_WO)
     assert session.workpiece == "plank"
+
+
+def test_a_square_block_is_grasped_on_the_faces_whose_open_fingers_are_clear() -> None:
+    from operator_site.grasp import GRASP_CLEARANCE_M, open_finger_clearance_m
+
+    scene = load_scene()
+    session = TaskSession(scene)
+    session.select("cube")
+    plain = session.X_GP.copy()  # nothing near the cube: fingers on its ±y faces, as always
+    assert open_finger_clearance_m(session.robot, scene, "cube", session.X_WO, plain) > (
+        GRASP_CLEARANCE_M
+    )
+    # The tall block 8 mm off the cube's +y face: inside the open fingers' reach (15 mm).
+    X_cube = session.X_WO["cube"]
+    beside = X_cube.copy()
+    beside[:3, 3] += X_cube[:3, 1] * (CUBE_HALF + 0.008 + 0.025)
+    beside[2, 3] = session.X_WO["tall_block"][2, 3]
+    session.X_WO["tall_block"] = beside
+    assert open_finger_clearance_m(session.robot, scene, "cube", session.X_WO, plain) <= 0.0
+    session.select("cube")
+    clearance = open_finger_clearance_m(session.robot, scene, "cube", session.X_WO, session.X_GP)
+    assert clearance >= GRASP_CLEARANCE_M
+    # The same grasp a quarter turn round: the fingers (G's y) now close along the cube's x,
+    # the TCP where it was in the cube.
+    X_OG, X_OG_plain = invert_pose(session.X_GP), invert_pose(plain)
+    assert abs(X_OG[0, 1]) == pytest.approx(1.0) and abs(X_OG_plain[1, 1]) == pytest.approx(1.0)
+    np.testing.assert_allclose(X_OG[:3, 3], X_OG_plain[:3, 3], atol=1e-12)
 
 
 def test_capture_toggle_and_reset() -> None:

@@ -56,6 +56,10 @@ log = logging.getLogger("work-site")
 MAX_CATCH_UP_TICKS = 5
 """Control periods (10 physics steps each) run back to back at most before the loop yields;
 beyond that it falls behind real time (and counts it) rather than starving the publishers."""
+LATE_WARNING_PERIOD_S = 10.0
+"""While the loop falls behind its time scale it says so at most this often (wall s). Falling
+behind changes no physics (every control period still runs its 10 steps), only how fast
+simulated time passes: a user watching the robot, or a benchmark's timing, must know."""
 INBOX_CAPACITY = 64
 REMEMBERED_PROGRAMS = 100
 """Program ids (and their reports) kept to answer re-sends."""
@@ -295,6 +299,7 @@ class WorkSiteServer:
         camera_period_s = 1.0 / self.scene.camera.frame_rate_hz
         heartbeat_period_s = 1.0 / opts.heartbeat_rate_hz
         ticks, t0 = 0, time.monotonic()
+        late_since = (t0, 0)  # wall s and ticks when lateness was last reported
         next_frame_s = next_heartbeat_s = 0.0
         seq_state = seq_frame = seq_heartbeat = 0
         log.info(
@@ -314,6 +319,7 @@ class WorkSiteServer:
                     self.stats["late_ticks"] += due - MAX_CATCH_UP_TICKS
                     t0 += (due - MAX_CATCH_UP_TICKS) * wall_tick_s  # drop the backlog
                     due = MAX_CATCH_UP_TICKS
+                    late_since = self._warn_late(late_since, ticks, tick_s)
                 for _ in range(due):
                     try:
                         if self._execution is not None and not self._execution.finished:
@@ -372,6 +378,26 @@ class WorkSiteServer:
             inbox_stop.undeclare()
             token.undeclare()
             log.info("work site %r stopped: %s", site, self.stats)
+
+    def _warn_late(self, since: tuple[float, int], ticks: int, tick_s: float) -> tuple[float, int]:
+        """Warn (at most every :data:`LATE_WARNING_PERIOD_S`, the first time that long after the
+        start, past start-up's hiccups) that the simulation runs slower than its time scale,
+        with the scale achieved since the last mark ``since`` (wall s, ticks);
+        returns the new mark."""
+        now, late = time.monotonic(), self.stats["late_ticks"]
+        wall_s = now - since[0]
+        if wall_s < LATE_WARNING_PERIOD_S:
+            return since
+        achieved = (ticks - since[1]) * tick_s / wall_s
+        log.warning(
+            "falling behind: simulating at %.2f× real time over the last %.1f s, asked %.2f× "
+            "(the machine is too slow or too loaded; %.1f s of simulated time late so far)",
+            achieved,
+            wall_s,
+            self.options.time_scale,
+            late * tick_s,
+        )
+        return now, ticks
 
     def _recognise(self, seq: int, stamp_s: float, image, elapsed_s: float) -> None:
         """Hand a new frame to vision if it is idle and its rate allows."""
