@@ -459,72 +459,98 @@ class Recognizer:
         confident: set[str] = set()
         stream = self._table_stream(segs, K, camera.X_WC, gx, gy)
         stream += self._index_stream(hyps, K, camera.X_WC)
-        for model, g_segs, how in stream:
-            if p.time_budget_s is not None and time.perf_counter() - t0 > p.time_budget_s:
-                break
-            # A group wholly inside an object already found adds nothing; one that reaches
-            # beyond it may be a bigger object that explains more (an L seen as its upright).
-            if claimed[g_segs].all():
-                continue
-            if model.name in confident:
-                continue
-            if isinstance(how, np.ndarray):
-                X0 = how  # a table hypothesis: already a whole pose
-            else:
-                X0 = self._initial_fit(model, how[0], how[1], g_segs, segs, K, camera.X_WC)
-            if X0 is None:
-                continue
-            # Many groups of one object lead to the same pose: test each pose once.
-            if tested.seen(model, X0):
-                continue
-            tested.add(model, X0)
-            result = self._test(model, X0, segs, K, gx, gy, env_C, camera.X_WC)
-            if result is None:
-                continue
-            found = [(model, result[:3], False)]
-            # The object may be part of a bigger one (an L's bar is a tall block): try those
-            # too, and let the selection prefer whichever explains more of the image. A pose
-            # fitted to few edges may be the object turned about its centre (a wedge turned
-            # by 90° shows nearly the same outline): try those turns too.
-            others = self._wholes[model.name]
-            if result[3] < p.min_matched_edges:
-                others = [*others, (model, self._turned[model.name])]
-            for whole, X_AB_all in others:
-                X_CB_all = result[0] @ X_AB_all  # (k, 4, 4)
-                X_WB = camera.X_WC @ X_CB_all
-                z_W = X_WB[:, 2, :3] @ whole.vertices_O.T + X_WB[:, 2, 3:]  # (k, v)
-                X_CB_all = X_CB_all[np.abs(z_W.min(1) - self.table_z) <= p.early_table_tol_m]
-                # Cheap support of all of them at once (no occlusion): most poses of a bigger
-                # model around a found part hang over empty table and fail here.
-                support = batch_support(
-                    whole, self._edge_faces[whole.name], X_CB_all, K, gx, gy,
-                    p.gradient_min, p.gradient_angle_rad,
-                )  # fmt: skip
-                fresh = tested.add_new(whole, X_CB_all)
-                # The right pose, if any, is among the best supported (all that passed their
-                # full test on scenes 0–79 ranked 1st to 6th of up to 22; on 200 scenes the
-                # best 3 gave the same recognitions as all of them).
-                order = np.argsort(-support, kind="stable")
-                order = order[fresh[order] & (support[order] >= p.grow_support_min)]
-                for X_CB in X_CB_all[order[: p.grown_max_tests]]:
-                    r2 = self._test(whole, X_CB, segs, K, gx, gy, env_C, camera.X_WC, grown=True)
-                    if r2 is not None:
-                        found.append((whole, r2[:3], True))
-            for m, (X_CO, rms, v), grown in found:
-                X_WO = camera.X_WC @ X_CO
-                parts_W = [
-                    (transform(X_WO, q), P[:, :3] @ X_WO[:3, :3].T)
-                    for q, P in zip(m.parts_vertices_O, m.planes_O, strict=True)
-                ]
-                if not self._plausible(parts_W, []):
+        X_WC = camera.X_WC
+
+        def search(items: list[tuple]) -> list[tuple]:
+            """Test the hypotheses ``items`` in turn, adding to ``candidates``; returns those
+            passed over because a confident candidate had claimed their model or lines."""
+            passed: list[tuple] = []
+            for k, (model, g_segs, how) in enumerate(items):
+                if p.time_budget_s is not None and time.perf_counter() - t0 > p.time_budget_s:
+                    break
+                # A group wholly inside an object already found adds nothing; one that
+                # reaches beyond it may be a bigger object that explains more (an L seen as
+                # its upright).
+                if claimed[g_segs].all() or model.name in confident:
+                    passed.append(items[k])
                     continue
-                candidates.append(_Candidate(m, X_CO, X_WO, rms, v, parts_W, grown))
-                if v.silhouette_fraction >= p.min_silhouette_fraction:
-                    claimed[v.matched] = True  # only confident candidates block others
-                    if p.max_per_model == 1 and v.score >= p.confident_score:
-                        confident.add(m.name)
-            if len(confident) == len(self.models):
-                break  # every model found once, and once is all there can be
+                if isinstance(how, np.ndarray):
+                    X0 = how  # a table hypothesis: already a whole pose
+                else:
+                    X0 = self._initial_fit(model, how[0], how[1], g_segs, segs, K, X_WC)
+                if X0 is None:
+                    continue
+                # Many groups of one object lead to the same pose: test each pose once.
+                if tested.seen(model, X0):
+                    continue
+                tested.add(model, X0)
+                result = self._test(model, X0, segs, K, gx, gy, env_C, X_WC)
+                if result is None:
+                    continue
+                found = [(model, result[:3], False)]
+                # The object may be part of a bigger one (an L's bar is a tall block): try those
+                # too, and let the selection prefer whichever explains more of the image. A pose
+                # fitted to few edges may be the object turned about its centre (a wedge turned
+                # by 90° shows nearly the same outline): try those turns too.
+                others = self._wholes[model.name]
+                if result[3] < p.min_matched_edges:
+                    others = [*others, (model, self._turned[model.name])]
+                for whole, X_AB_all in others:
+                    X_CB_all = result[0] @ X_AB_all  # (k, 4, 4)
+                    X_WB = X_WC @ X_CB_all
+                    z_W = X_WB[:, 2, :3] @ whole.vertices_O.T + X_WB[:, 2, 3:]  # (k, v)
+                    X_CB_all = X_CB_all[np.abs(z_W.min(1) - self.table_z) <= p.early_table_tol_m]
+                    # Cheap support of all of them at once (no occlusion): most poses of a bigger
+                    # model around a found part hang over empty table and fail here.
+                    support = batch_support(
+                        whole, self._edge_faces[whole.name], X_CB_all, K, gx, gy,
+                        p.gradient_min, p.gradient_angle_rad,
+                    )  # fmt: skip
+                    fresh = tested.add_new(whole, X_CB_all)
+                    # The right pose, if any, is among the best supported (all that passed their
+                    # full test on scenes 0–79 ranked 1st to 6th of up to 22; on 200 scenes the
+                    # best 3 gave the same recognitions as all of them).
+                    order = np.argsort(-support, kind="stable")
+                    order = order[fresh[order] & (support[order] >= p.grow_support_min)]
+                    for X_CB in X_CB_all[order[: p.grown_max_tests]]:
+                        r2 = self._test(whole, X_CB, segs, K, gx, gy, env_C, X_WC, grown=True)
+                        if r2 is not None:
+                            found.append((whole, r2[:3], True))
+                for m, (X_CO, rms, v), grown in found:
+                    X_WO = X_WC @ X_CO
+                    parts_W = [
+                        (transform(X_WO, q), P[:, :3] @ X_WO[:3, :3].T)
+                        for q, P in zip(m.parts_vertices_O, m.planes_O, strict=True)
+                    ]
+                    if not self._plausible(parts_W, []):
+                        continue
+                    candidates.append(_Candidate(m, X_CO, X_WO, rms, v, parts_W, grown))
+                    if v.silhouette_fraction >= p.min_silhouette_fraction:
+                        claimed[v.matched] = True  # only confident candidates block others
+                        if p.max_per_model == 1 and v.score >= p.confident_score:
+                            confident.add(m.name)
+                if len(confident) == len(self.models):
+                    # every model found once, and once is all there can be
+                    passed.extend(items[k + 1 :])
+                    break
+            return passed
+
+        passed = search(stream)
+        accepted = self._select(candidates, segs, K, gx, gy, env_C)
+        # A confident candidate that the selection drops (a phantom, such as a wedge fitted
+        # into a neighbour's corner) has kept its model's and its lines' other hypotheses from
+        # being tested: test those now, with only the accepted objects claiming, for models
+        # not accepted yet (retrying those too let phantoms displace true objects).
+        claimed[:] = False
+        for r in accepted:
+            claimed[list(r.matched_segments)] = True
+        confident.clear()
+        if p.max_per_model == 1:
+            confident.update(r.model for r in accepted)
+        n_before = len(candidates)
+        search([h for h in passed if not claimed[h[1]].all() and h[0].name not in confident])
+        if len(candidates) == n_before:
+            return accepted
         return self._select(candidates, segs, K, gx, gy, env_C)
 
     def _select(self, candidates, segs, K, gx, gy, env_C) -> list[Recognition]:
