@@ -48,7 +48,6 @@ from work_site.vision.pose import fit_pose
 from work_site.vision.table import (
     SUPPORT_OFFSETS_PX,
     batch_support,
-    edge_faces,
     rest_corners,
     sample_gradient,
     sample_gradient_xy,
@@ -420,7 +419,6 @@ class Recognizer:
             for m in self.models
         }
         self._corners = rest_corners(self.models, [m.com_O for m in self.object_models])
-        self._edge_faces = {m.name: edge_faces(m) for m in self.models}
         self._env_models = [(vision_model(o.model), o.X_WO) for o in scene.objects if o.fixed]
         table = [o for o in scene.objects if o.fixed and o.name == "table"]
         if table:
@@ -519,7 +517,7 @@ class Recognizer:
                     # Cheap support of all of them at once (no occlusion): most poses of a bigger
                     # model around a found part hang over empty table and fail here.
                     support = batch_support(
-                        whole, self._edge_faces[whole.name], X_CB_all, K, gx, gy,
+                        whole, whole.edge_faces, X_CB_all, K, gx, gy,
                         p.gradient_min, p.gradient_angle_rad,
                     )  # fmt: skip
                     fresh = tested.add_new(whole, X_CB_all)
@@ -653,7 +651,7 @@ class Recognizer:
         for mi, m in enumerate(self.models):
             sel = np.flatnonzero(mod == mi)
             score[sel] = batch_support(
-                m, self._edge_faces[m.name], X_CO[sel], K, gx, gy,
+                m, m.edge_faces, X_CO[sel], K, gx, gy,
                 p.gradient_min, p.gradient_angle_rad, coarse_min=p.table_coarse_min,
             )  # fmt: skip
         order = np.argsort(-score, kind="stable")
