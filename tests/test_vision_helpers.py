@@ -72,6 +72,10 @@ def test_clip_segments_matches_liang_barsky_one_by_one() -> None:
     assert np.all(clipped[inside][:, [0, 2]] >= -1e-9) and np.all(
         clipped[inside][:, [0, 2]] <= 639 + 1e-9
     )
+    within = rng.uniform(0, 479, (50, 4))  # all inside: returned as they are
+    expected = np.array([_clip_reference(s, 640, 480) for s in within])
+    np.testing.assert_allclose(_clip_segments(within, 640, 480), expected, atol=1e-9)
+    assert _clip_segments(np.zeros((0, 4)), 640, 480).shape == (0, 4)
 
 
 def test_distance_to_polygon_matches_opencv() -> None:

@@ -1060,6 +1060,9 @@ def _distance_to_polygon(P: np.ndarray, poly: np.ndarray) -> np.ndarray:
 def _clip_segments(segs: np.ndarray, w: int, h: int) -> np.ndarray:
     """Segments (n, 4) clipped to the image rectangle (Liang–Barsky, all at once); fully
     outside → zero length at the first end point."""
+    x, y = segs[:, 0::2], segs[:, 1::2]
+    if len(segs) == 0 or (x.min() >= 0 and y.min() >= 0 and x.max() <= w - 1 and y.max() <= h - 1):
+        return segs  # the usual case: nothing reaches beyond the image
     x0, y0, x1, y1 = segs.T
     dx, dy = x1 - x0, y1 - y0
     # The four boundaries at once: inside where q − t·p ≥ 0 for each row (p, q).
