@@ -13,6 +13,7 @@ from work_site.vision.recognizer import (
     _clip_segments,
     _covered_length,
     _distance_to_polygon,
+    _outside_convex,
 )
 
 
@@ -71,6 +72,10 @@ def test_clip_segments_matches_liang_barsky_one_by_one() -> None:
     assert np.all(clipped[inside][:, [0, 2]] >= -1e-9) and np.all(
         clipped[inside][:, [0, 2]] <= 639 + 1e-9
     )
+    within = rng.uniform(0, 479, (50, 4))  # all inside: returned as they are
+    expected = np.array([_clip_reference(s, 640, 480) for s in within])
+    np.testing.assert_allclose(_clip_segments(within, 640, 480), expected, atol=1e-9)
+    assert _clip_segments(np.zeros((0, 4)), 640, 480).shape == (0, 4)
 
 
 def test_distance_to_polygon_matches_opencv() -> None:
@@ -82,6 +87,26 @@ def test_distance_to_polygon_matches_opencv() -> None:
     np.testing.assert_allclose(
         _distance_to_polygon(P.astype(np.float64), poly), expected, atol=1e-3
     )
+
+
+def test_outside_convex_is_beyond_some_edge_line_by_the_margin() -> None:
+    rng = np.random.default_rng(4)
+    hull = cv2.convexHull(rng.uniform(100, 300, (12, 2)).astype(np.float32))
+    poly = hull.reshape(-1, 2).astype(np.float64)
+    P = rng.uniform(50, 350, (500, 2))
+    expected = []
+    for p in P:  # the farthest any edge's line has the point on its outer side
+        beyond = -np.inf
+        for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
+            d = b - a
+            side = (d[0] * (p - a)[1] - d[1] * (p - a)[0]) / np.linalg.norm(d)
+            inner = (d[0] * (poly.mean(0) - a)[1] - d[1] * (poly.mean(0) - a)[0]) > 0
+            beyond = max(beyond, -side if inner else side)
+        expected.append(beyond > 1.5)
+    for polygon in (poly, poly[::-1]):
+        np.testing.assert_array_equal(_outside_convex(P, polygon, 1.5), expected)
+    inside = [cv2.pointPolygonTest(hull, (float(x), float(y)), False) >= 0 for x, y in P]
+    assert not _outside_convex(P, poly, 1.5)[inside].any()
 
 
 def test_pose_set_sees_poses_equal_up_to_symmetry_only() -> None:

@@ -84,3 +84,37 @@ def test_occluders_set_aside_only_parts_that_hide_nothing() -> None:
         culled += len(planes) - len(occ.relevant(transform(X_CO, model.edges_O).reshape(-1, 3), K))
         hidden += not np.array_equal(ref[2], visible_edges(model, X_CO, K)[2])
     assert culled > 0 and hidden > 0  # the test exercises culling and occlusion
+
+
+def test_a_convex_model_hides_its_edges_as_ray_casting_does() -> None:
+    """Self-occlusion of a one-part model from its faces' orientation gives the edges, end
+    points and fractions that ray casting against the part gives (the part listed twice makes
+    the model take the ray-casting path), with and without other parts in front."""
+    import dataclasses
+
+    from models.scene import load_scene
+    from models.transforms import make_pose, so3_exp
+    from work_site.vision.model import planes_in, visible_edges, vision_model
+
+    scene = load_scene()
+    K = np.array([[580.0, 0.0, 320.0], [0.0, 580.0, 240.0], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(11)
+    for obj in scene.movable:
+        model = vision_model(obj.model)
+        if len(model.planes_O) != 1:
+            continue
+        cast = dataclasses.replace(model, planes_O=model.planes_O * 2)
+        for trial in range(30):
+            X_CO = make_pose(
+                so3_exp(rng.normal(size=3)), rng.uniform([-0.1, -0.1, 0.4], [0.1, 0.1, 0.8])
+            )
+            others = []
+            if trial % 2:
+                V = _box([0, 0, 0], [0.03, 0.03, 0.03])
+                X = make_pose(so3_exp(rng.normal(size=3)), X_CO[:3, 3] * rng.uniform(0.6, 0.9))
+                others.append(planes_in(X, np.array([[*n, d] for n, d in hull_facets(V)])))
+            fast = visible_edges(model, X_CO, K, others)
+            ref = visible_edges(cast, X_CO, K, others)
+            np.testing.assert_array_equal(fast[0], ref[0])
+            np.testing.assert_allclose(fast[1], ref[1], atol=1e-9)
+            np.testing.assert_allclose(fast[2], ref[2], atol=1e-12)

@@ -11,7 +11,6 @@ from work_site.vision.model import project, transform, vision_model
 from work_site.vision.table import (
     back_project_to_plane,
     batch_support,
-    edge_faces,
     rest_corners,
     table_hypotheses,
 )
@@ -104,7 +103,7 @@ def test_batch_support_prefers_the_true_pose(setup) -> None:
     gx, gy = cv2.Scharr(f, cv2.CV_32F, 1, 0), cv2.Scharr(f, cv2.CV_32F, 0, 1)
     shifted = X_CO.copy()
     shifted[0, 3] += 0.02
-    s = batch_support(m, edge_faces(m), np.array([X_CO, shifted]), camera.K, gx, gy, 60.0, 0.35)
+    s = batch_support(m, m.edge_faces, np.array([X_CO, shifted]), camera.K, gx, gy, 60.0, 0.35)
     assert s[0] > 0.8 and s[1] < 0.3
 
 
@@ -131,8 +130,8 @@ def test_coarse_to_fine_support_is_exact_where_it_samples_in_full(setup) -> None
         X[:3, :3] = X[:3, :3] @ _rot_z(rng.normal(0.0, 0.1))
         poses.append(X)
     poses = np.array(poses)
-    full = batch_support(m, edge_faces(m), poses, camera.K, gx, gy, 60.0, 0.35)
-    staged = batch_support(m, edge_faces(m), poses, camera.K, gx, gy, 60.0, 0.35, coarse_min=0.3)
+    full = batch_support(m, m.edge_faces, poses, camera.K, gx, gy, 60.0, 0.35)
+    staged = batch_support(m, m.edge_faces, poses, camera.K, gx, gy, 60.0, 0.35, coarse_min=0.3)
     in_full = staged >= 0.3
     assert 10 < in_full.sum() < len(poses) - 10
     np.testing.assert_array_equal(staged[in_full], full[in_full])

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -36,6 +37,14 @@ class VisionModel:
     vertices_O: np.ndarray
     symmetries: np.ndarray
     parts_vertices_O: tuple[np.ndarray, ...]
+
+    @cached_property
+    def edge_faces(self) -> np.ndarray:
+        """(e, f) bool: edge ``e`` lies on face ``f`` of the parts (faces stacked over the
+        parts in :attr:`planes_O` order)."""
+        planes = np.vstack(self.planes_O)
+        dist = np.abs(self.edges_O @ planes[:, :3].T - planes[:, 3])  # (e, 2, f)
+        return np.all(dist < 1e-7, axis=1)
 
     @property
     def size_m(self) -> float:
@@ -209,20 +218,30 @@ def visible_edges(
 
     Returns ``(edge_ids (e,), segments_px (e, 4), visible_fraction (e,))`` for edges at least
     ``min_fraction`` visible; each segment spans the edge's visible samples (hidden-edge removal by
-    ray casting against the model's own parts and ``occluders_C``).
+    the faces' orientation for a convex model, else by ray casting against its own parts, and by
+    ray casting against ``occluders_C``).
     """
     edges_C = transform(X_CO, model.edges_O)  # (m, 2, 3)
     if isinstance(occluders_C, Occluders):
         occluders_C = occluders_C.relevant(edges_C.reshape(-1, 3), K)
+    occ = [planes_in(X_CO, P) for P in model.planes_O]
+    if len(occ) == 1:
+        # A convex object hides exactly those of its edges whose faces all face away from the
+        # camera (at C's origin, outside a face's plane when its offset is negative): only the
+        # others need rays cast, and only against the other objects.
+        cand = np.flatnonzero(model.edge_faces[:, occ[0][:, 3] < 0].any(axis=1))
+        occ = []
+    else:
+        cand = np.arange(len(edges_C))
+    occ += list(occluders_C or [])
     ts = (np.arange(EDGE_SAMPLES) + 0.5) / EDGE_SAMPLES
-    samples = (
-        edges_C[:, 0, None, :] + ts[None, :, None] * (edges_C[:, 1] - edges_C[:, 0])[:, None, :]
-    )
+    E = edges_C[cand]
+    samples = E[:, 0, None, :] + ts[None, :, None] * (E[:, 1] - E[:, 0])[:, None, :]
     flat = samples.reshape(-1, 3)
-    occ = [planes_in(X_CO, P) for P in model.planes_O] + list(occluders_C or [])
-    vis = ~occluded(flat, occ)
-    vis &= flat[:, 2] > 1e-3
-    vis = vis.reshape(len(edges_C), EDGE_SAMPLES)
+    vis = flat[:, 2] > 1e-3
+    if occ:
+        vis &= ~occluded(flat, occ)
+    vis = vis.reshape(len(E), EDGE_SAMPLES)
     frac = vis.mean(axis=1)
     keep = np.flatnonzero(frac >= min_fraction)
     if len(keep) == 0:
@@ -232,10 +251,10 @@ def visible_edges(
     last = EDGE_SAMPLES - 1 - np.argmax(vis[keep, ::-1], axis=1)
     t0 = np.where(first == 0, 0.0, ts[first] - half)[:, None]
     t1 = np.where(last == EDGE_SAMPLES - 1, 1.0, ts[last] + half)[:, None]
-    a = edges_C[keep, 0]
-    d = edges_C[keep, 1] - a
+    a = E[keep, 0]
+    d = E[keep, 1] - a
     segs = np.column_stack([project(a + t0 * d, K), project(a + t1 * d, K)])
-    return keep, segs, frac[keep]
+    return cand[keep], segs, frac[keep]
 
 
 def convex_overlap_depth(

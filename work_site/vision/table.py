@@ -210,15 +210,6 @@ def table_hypotheses(
     return np.concatenate(models), np.concatenate(poses), np.vstack(pairs)
 
 
-def edge_faces(model: VisionModel) -> np.ndarray:
-    """(e, f) bool: edge ``e`` lies on face ``f`` of the model's parts (faces stacked over the
-    parts in :attr:`VisionModel.planes_O` order)."""
-    planes = np.vstack(model.planes_O)
-    E = model.edges_O  # (e, 2, 3)
-    dist = np.abs(E @ planes[:, :3].T - planes[:, 3])  # (e, 2, f)
-    return np.all(dist < 1e-7, axis=1)
-
-
 def batch_support(
     model: VisionModel,
     on_face: np.ndarray,
