@@ -1,7 +1,7 @@
 """``operator-site bench net``: round trips and camera frames over zenoh, beside plain TCP.
 
 What is measured (all round trips sequential ping-pong: send, wait for the answer, repeat; the
-kinds interleaved sample by sample so they share the same conditions):
+kinds interleaved sample by sample, taking turns to go first, so they share the same conditions):
 
 - ``raw_zenoh_rtt``: bare zenoh, a put on ``bench/raw/ping`` answered by the same bytes on
   ``bench/raw/pong`` by another process (no codec).
@@ -298,7 +298,7 @@ def run_client(args: argparse.Namespace) -> dict[str, Any]:
                 kinds[name](-1 - i)
         for i in range(args.count):
             # Which kind goes first takes turns: the first round trip of a cycle was measured
-            # 20-35 µs slower than the same work after it (loopback, 2 cores), a bias that a
+            # 12-35 µs slower than the same work after it (loopback, 2 cores), a bias that a
             # fixed order would put on one kind.
             for j in range(len(names)):
                 name = names[(i + j) % len(names)]
