@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from operator_site.program.check import Sweeper
-from operator_site.program.contact_step import away_normal
+from operator_site.program.contact_step import away_normal, held_towards
 from operator_site.program.path import NodeContact, PathNode, WorkpiecePath
 from operator_site.program.poses import interpolate, log_batch
 from protocol import ContactState, MotionCommand, MotionProgram
@@ -238,10 +238,7 @@ def _drag_refine(
             return None
         f = REFINE_FORCE_N * e[:3] / norm
         m = REFINE_FORCE_N * e[3:] / norm * st.params.char_length_m
-        for name in sorted(kept):  # sorted: reproducible rounding (Deformer._sweep)
-            pair = probe.nearest.get(name)
-            if pair is not None:
-                f = f - REFINE_HOLD_N * away_normal(pair)
+        f = held_towards(f, probe, kept, REFINE_HOLD_N)
         X, probe, moved = st.displace(X, probe, f, m, kept, step_m)
         if moved == 0.0:
             return None

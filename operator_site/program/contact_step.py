@@ -18,6 +18,7 @@ Frames: W world, O the workpiece; the workpiece turns about its centre of mass `
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,6 +54,19 @@ def away_normal(pair: PairDistance) -> np.ndarray:
     obstacle would push)."""
     gap = pair.p_wp - pair.p_obstacle
     return gap / max(float(np.linalg.norm(gap)), 1e-300)
+
+
+def held_towards(f_W: np.ndarray, probe: Probe, names: Iterable[str], hold_n: float) -> np.ndarray:
+    """``f_W`` (N, W) less ``hold_n`` along :func:`away_normal` of each named object's nearest
+    pair in ``probe``: the pull that keeps a workpiece on the contacts it must keep. Summed in
+    sorted name order: a set of names iterates in the order of Python's per-process string
+    hash, and the sum's rounding, amplified over the deformation's sweeps, changed programs
+    between runs (around-corner seed 4: 26 or 27 commands)."""
+    for name in sorted(names):
+        pair = probe.nearest.get(name)
+        if pair is not None:
+            f_W = f_W - hold_n * away_normal(pair)
+    return f_W
 
 
 class ContactStepper:

@@ -40,7 +40,13 @@ import numpy as np
 
 from models.geometry import ConvexPart
 from models.scene import Scene
-from operator_site.program.contact_step import EMPTY_PROBE, ContactStepper, Probe, away_normal
+from operator_site.program.contact_step import (
+    EMPTY_PROBE,
+    ContactStepper,
+    Probe,
+    away_normal,
+    held_towards,
+)
 from operator_site.program.path import NodeContact, PathNode, WorkpiecePath
 from operator_site.program.poses import centres, exp_batch, interpolate, log_batch
 from operator_site.simulator import SimParams
@@ -331,12 +337,7 @@ class Deformer:
             if push_m < REST_FRACTION * p.settle_m and probe.nearest:
                 node.probe = probe
                 continue
-            # Sorted: a set of names iterates in the order of Python's per-process string hash,
-            # and the sum's rounding, amplified over the sweeps, changed programs between runs.
-            for name in sorted(node.required):
-                pair = probe.nearest.get(name)
-                if pair is not None:
-                    f = f - node.gain * p.hold_n * away_normal(pair)
+            f = held_towards(f, probe, node.required, node.gain * p.hold_n)
             node.X, node.probe, _ = self.stepper.displace(
                 node.X, probe, f, M[i], node.required, max_step
             )
@@ -486,10 +487,7 @@ class Deformer:
                 break
             f = DRAG_FORCE_N * e[:3] / norm
             m = DRAG_FORCE_N * e[3:] / norm * self.char_m
-            for name in sorted(required):  # sorted: reproducible rounding (see _sweep)
-                pair = probe.nearest.get(name)
-                if pair is not None:
-                    f = f - p.hold_n * away_normal(pair)
+            f = held_towards(f, probe, required, p.hold_n)
             X, probe, step = self.stepper.displace(
                 X, probe, f, m, required, 0.5 * gap_m / DRAG_STEPS
             )
