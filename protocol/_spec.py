@@ -96,6 +96,7 @@ class ArrayField:
         object.__setattr__(
             self, "_fixed_shape", tuple(lo for lo, _ in self.shape) if fixed else None
         )
+        object.__setattr__(self, "_native", self.dtype.newbyteorder("="))
 
     def shape_text(self) -> str:
         """The expected shape as text, e.g. ``(6,)`` or ``(1..16, 3)``."""
@@ -263,7 +264,7 @@ def _check_array(spec: ArrayField, value: Any, where: str, owned: bool = False) 
         raise _fail(where, f"expected array, got {type_name(value)}")
     if not spec.shape_ok(arr.shape):
         raise _fail(where, f"expected shape {spec.shape_text()}, got {tuple(arr.shape)}")
-    native = spec.dtype.newbyteorder("=")
+    native: np.dtype = spec._native  # type: ignore[attr-defined]
     if arr.dtype != native:
         kind = arr.dtype.kind
         if native == UINT8:
@@ -350,8 +351,9 @@ class Record:
     _SPEC: ClassVar[Mapping[str, Field]]
 
     def __post_init__(self) -> None:
+        values = self.__dict__  # frozen: write the normalised values where __init__ put them
         for name, spec, check, where in _field_checks(type(self)):
-            object.__setattr__(self, name, check(spec, getattr(self, name), where, False))
+            values[name] = check(spec, values[name], where, False)
 
     @classmethod
     def _from_validated(cls, values: Mapping[str, Any]) -> Any:

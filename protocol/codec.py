@@ -19,6 +19,8 @@ from typing import Any, TypeVar, overload
 import msgpack
 import numpy as np
 
+from ._fast import decoder as fast_decoder
+from ._fast import fast_decode, fast_encode
 from ._spec import (
     ArrayField,
     Checker,
@@ -102,19 +104,27 @@ def _to_wire(record: Record) -> dict[str, Any]:
     return body
 
 
+def _reference_encode(msg: Message) -> bytes:
+    """``encode`` in Python, field by field (images, and the reference for the fast path)."""
+    cls = type(msg)
+    if not isinstance(msg, Message) or MESSAGE_TYPES.get(cls.TYPE) is not cls:
+        raise ProtocolError(f"encode: expected a protocol message, got {type_name(msg)}")
+    return msgpack.packb(
+        {"t": cls.TYPE, "v": SCHEMA_VERSION, "b": _to_wire(msg)}, use_bin_type=True
+    )
+
+
 def encode(msg: Message) -> bytes:
     """Encode a message into its msgpack envelope.
 
     Raises :class:`ProtocolError` if ``msg`` is not a protocol message or the payload would
     exceed :data:`MAX_PAYLOAD_BYTES`.
     """
-    cls = type(msg)
-    if not isinstance(msg, Message) or MESSAGE_TYPES.get(cls.TYPE) is not cls:
-        raise ProtocolError(f"encode: expected a protocol message, got {type_name(msg)}")
-    payload = msgpack.packb(
-        {"t": cls.TYPE, "v": SCHEMA_VERSION, "b": _to_wire(msg)}, use_bin_type=True
-    )
+    payload = fast_encode(msg)
+    if payload is None:
+        payload = _reference_encode(msg)
     if len(payload) > MAX_PAYLOAD_BYTES:
+        cls = type(msg)
         raise ProtocolError(
             f"{cls.__name__}: encoded payload is {len(payload)} bytes, "
             f"more than MAX_PAYLOAD_BYTES = {MAX_PAYLOAD_BYTES}"
@@ -214,6 +224,17 @@ def _expected_types(expected: type | tuple[type, ...] | None) -> tuple[type, ...
     return types
 
 
+_FAST_DECODERS: dict[Any, Any] = {}
+"""The fast path's decoder (or ``None``) for each ``expected`` argument seen."""
+
+
+def _fast_decoder(expected: type | tuple[type, ...] | None) -> Any:
+    types = _expected_types(expected)  # raises TypeError for a bad ``expected``
+    fast = fast_decoder(tuple(MESSAGE_TYPES.values()) if types is None else types)
+    _FAST_DECODERS[expected] = fast
+    return fast
+
+
 M = TypeVar("M", bound=Message)
 
 
@@ -230,7 +251,20 @@ def decode(payload: bytes, expected: type | tuple[type, ...] | None = None) -> A
     Raises :class:`ProtocolError` for any invalid payload (and only that); a ``TypeError``
     only if ``expected`` itself is not a message class or tuple of them (a programming error).
     """
-    types = _expected_types(expected)
+    try:
+        fast = _FAST_DECODERS[expected]
+    except (KeyError, TypeError):  # not seen yet, or not hashable
+        fast = _fast_decoder(expected)
+    # The common case first, touching little: the command path runs it cold after each wake-up.
+    if fast is not None and type(payload) is bytes and len(payload) <= MAX_PAYLOAD_BYTES:
+        msg = fast_decode(fast, payload)
+        if msg is not None:
+            return msg
+    return _reference_decode(payload, _expected_types(expected))
+
+
+def _reference_decode(payload: bytes, types: tuple[type, ...] | None) -> Message:
+    """``decode`` in Python, field by field: what was wrong and where, for any payload."""
     if not isinstance(payload, bytes | bytearray | memoryview):
         raise ProtocolError(f"payload: expected bytes, got {type_name(payload)}")
     size = memoryview(payload).nbytes
