@@ -24,6 +24,8 @@ from work_site.control.kinematics import (
 ROBOT = load_robot(PUMA_URDF)
 GEOMETRY = arm_geometry(ROBOT)
 POSE_TOL = 1e-9  # m and rotation-matrix entries
+Q_TOL_RAD = 1e-7  # a recovered joint angle
+ARM_ANGLE_ERR_RAD = 1e-10  # joints 1-3's rounding, 10× the worst seen (at a nearly stretched arm)
 
 
 def angle_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -55,7 +57,12 @@ def test_every_solution_reproduces_the_pose_and_q_is_among_them(q: np.ndarray) -
     for s in solutions:
         np.testing.assert_allclose(ROBOT.flange_pose_W(s), X, atol=tol)
     if not singular:
-        assert min(angle_diff(s, q).max() for s in solutions) < 1e-7
+        # Near the wrist singularity joints 4 and 6 turn about almost one axis: an error ε in
+        # the arm's angles moves both by ε / sin q5 in opposite senses, which the pose does not
+        # see (q3 = 6e-5 rad, nearly stretched, gave ε ≈ 1e-11 rad and 1.05e-7 rad at q5 = 5e-5).
+        tol = np.full(6, Q_TOL_RAD)
+        tol[[3, 5]] += ARM_ANGLE_ERR_RAD / abs(np.sin(q[4]))
+        assert min((angle_diff(s, q) / tol).max() for s in solutions) < 1.0
 
 
 @settings(max_examples=500, deadline=None)
