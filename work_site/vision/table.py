@@ -314,12 +314,19 @@ def sample_gradient_xy(
     """:func:`sample_gradient` at points given as two arrays of coordinates of any (equal)
     shape; the samples have that shape."""
     m = x.size
-    rows = -(-m // width)
-    mx = np.full(rows * width, -10.0, dtype=np.float32)
-    my = np.full(rows * width, -10.0, dtype=np.float32)
-    mx[:m] = x.ravel()
-    my[:m] = y.ravel()
-    mx, my = mx.reshape(rows, width), my.reshape(rows, width)
+    if m == 0:
+        return np.zeros(x.shape, np.float32), np.zeros(x.shape, np.float32)
+    if m <= width:
+        # One row as long as the points: remap's cost grows with the map, padding included.
+        mx = np.asarray(x, dtype=np.float32).reshape(1, m)
+        my = np.asarray(y, dtype=np.float32).reshape(1, m)
+    else:
+        rows = -(-m // width)
+        mx = np.full(rows * width, -10.0, dtype=np.float32)
+        my = np.full(rows * width, -10.0, dtype=np.float32)
+        mx[:m] = x.ravel()
+        my[:m] = y.ravel()
+        mx, my = mx.reshape(rows, width), my.reshape(rows, width)
     sx = cv2.remap(gx, mx, my, cv2.INTER_LINEAR).ravel()[:m]
     sy = cv2.remap(gy, mx, my, cv2.INTER_LINEAR).ravel()[:m]
     return sx.reshape(x.shape), sy.reshape(x.shape)
