@@ -57,8 +57,13 @@ def check_grey_image(image: np.ndarray) -> np.ndarray:
     return a
 
 
-def detect_lines(image: np.ndarray, params: LineParams | None = None) -> np.ndarray:
-    """Straight edge segments of a grey uint8 image, (n, 4) float64 px, longest first."""
+def detect_lines(
+    image: np.ndarray,
+    params: LineParams | None = None,
+    gradients: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Straight edge segments of a grey uint8 image, (n, 4) float64 px, longest first.
+    ``gradients``: the image's Scharr derivatives ``(gx, gy)`` (float32) if already known."""
     params = params or LineParams()
     img = check_grey_image(image)
     if min(img.shape) < 4:
@@ -72,7 +77,7 @@ def detect_lines(image: np.ndarray, params: LineParams | None = None) -> np.ndar
         return segs
     segs = merge_collinear(segs, params)
     if params.refine:
-        gx, gy = _gradients(img)
+        gx, gy = gradients if gradients is not None else _gradients(img)
         segs = refine_segments(segs, gx, gy, params)
     segs = segs[_lengths(segs) >= params.min_length_px]
     return segs[np.argsort(-_lengths(segs))]

@@ -453,7 +453,10 @@ class Recognizer:
         if np.any(dist != 0):
             # Straight edges are straight only in an undistorted image.
             img = cv2.undistort(img, K, dist)
-        segs = detect_lines(img, self.line_params)
+        f = img.astype(np.float32)
+        gx = cv2.Scharr(f, cv2.CV_32F, 1, 0)
+        gy = cv2.Scharr(f, cv2.CV_32F, 0, 1)
+        segs = detect_lines(img, self.line_params, (gx, gy))
         X_CW = invert_pose(camera.X_WC)
         env_C = Occluders.of_parts(
             [transform(X_CW, V) for _, _, parts, _ in self.environment for V, _ in parts],
@@ -463,8 +466,6 @@ class Recognizer:
         segs = self._drop_environment(segs, X_CW, K, env_C)
         if len(segs) < 4:
             return []
-        gx = cv2.Scharr(img.astype(np.float32), cv2.CV_32F, 1, 0)
-        gy = cv2.Scharr(img.astype(np.float32), cv2.CV_32F, 0, 1)
         p = self.params
         hyps = self._hypotheses(segs, p.max_hypotheses) if p.max_hypotheses > 0 else []
         candidates: list[_Candidate] = []
