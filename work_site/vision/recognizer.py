@@ -812,7 +812,7 @@ class Recognizer:
             return None
         if grown:
             need = (p.grown_pre_length_min, p.grown_pre_score_min, p.grown_pre_gradient_min)
-            v0 = self._verify(model, X, K, segs, gx, gy, occluders_C, vis[1], need)
+            v0 = self._verify(model, X, K, segs, gx, gy, occluders_C, vis[1], need, outline=False)
             if v0.length_fraction < need[0] or v0.score < need[1] or v0.gradient_fraction < need[2]:
                 return None
         mi = mj = np.zeros(0, int)
@@ -906,13 +906,15 @@ class Recognizer:
         proj=None,
         need=None,
         part_px=None,
+        outline: bool = True,
     ) -> Verification:
         """Fractions of the visible projected edge length matched by image lines and with the
         image gradient across them, plus the image segments matched. ``proj``: the visible
         edges if already known. ``need``: minima ``(length, score, gradient)`` fractions; a
         pose below one of them is returned as soon as that is known, without the rest
         (fractions not computed are 0). ``part_px``: the outline of the smaller object this
-        pose was grown around, for :attr:`Verification.extra_fraction`."""
+        pose was grown around, for :attr:`Verification.extra_fraction`. ``outline``: False
+        when the silhouette and extra fractions are not wanted (returned as 0 and 1)."""
         p = self.params
         if proj is None:
             _, proj, _ = visible_edges(model, X_CO, K, occluders_C)
@@ -949,7 +951,9 @@ class Recognizer:
             hi = np.clip(np.maximum(ta, tb), 0.0, L[mi])
             covered = _covered_length(mi, lo, hi, L)
         frac_len = float(covered / L.sum())
-        if need is not None and (frac_len < need[0] or 0.5 * (frac_len + frac_grad) < need[1]):
+        if not outline or (
+            need is not None and (frac_len < need[0] or 0.5 * (frac_len + frac_grad) < need[1])
+        ):
             return Verification(frac_len, frac_grad, 0.0, mj.tolist(), float(covered))
         # The outline against the background must show in the image almost everywhere: a
         # hypothesis that explains one block and hangs over empty table fails here.
