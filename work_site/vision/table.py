@@ -273,20 +273,22 @@ def batch_support(
     g2 = np.float32(gradient_min**2)
     offsets = np.array(SUPPORT_OFFSETS_PX)[:, None, None]
 
-    def hits_at(rows: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """Points along used edges ``rows`` at fractions ``t`` where the gradient agrees."""
-        tq = t[None, None, :]
-        nxr, nyr = nx[rows][None, :, None], ny[rows][None, :, None]
-        X = u0[rows][None, :, None] + tq * du[rows][None, :, None] + offsets * nxr  # (3, r, t)
-        Y = v0[rows][None, :, None] + tq * dv[rows][None, :, None] + offsets * nyr
+    def hits_at(rows: np.ndarray | None, t: np.ndarray) -> np.ndarray:
+        """Points along used edges ``rows`` (None: all) at fractions ``t`` where the gradient
+        agrees. The points are laid out (offset, t, edge): rows of many points for remap."""
+        sel = slice(None) if rows is None else rows
+        tq = t[None, :, None]
+        nxr, nyr = nx[sel], ny[sel]
+        X = u0[sel] + tq * du[sel] + offsets * nxr  # (3, t, r)
+        Y = v0[sel] + tq * dv[sel] + offsets * nyr
         sx, sy = sample_gradient_xy(gx, gy, X, Y)
         # mag > min and |cos| > cos_min, without roots or divisions
         mag2 = sx * sx + sy * sy
         dot = sx * nxr.astype(np.float32) + sy * nyr.astype(np.float32)
         good = np.any((mag2 > g2) & (dot * dot > cos2 * mag2), axis=0)
-        return good.sum(axis=1)
+        return good.sum(axis=0)
 
-    all_rows = np.arange(len(ci))
+    all_rows = None
     if coarse_min is None or k != 6:
         hits = np.bincount(ci, weights=hits_at(all_rows, ts), minlength=n)
         return np.where(count > 0, hits / np.maximum(count, 1), 0.0)
@@ -316,10 +318,13 @@ def sample_gradient_xy(
     m = x.size
     if m == 0:
         return np.zeros(x.shape, np.float32), np.zeros(x.shape, np.float32)
-    if m <= width:
-        # One row as long as the points: remap's cost grows with the map, padding included.
-        mx = np.asarray(x, dtype=np.float32).reshape(1, m)
-        my = np.asarray(y, dtype=np.float32).reshape(1, m)
+    cols = x.shape[-1] if x.ndim else 1
+    if m <= width or (x.ndim > 1 and width <= cols < 32767 and m // cols < 32767):
+        # The points' own rows, if long, else one row as long as the points: no padding
+        # (remap's cost grows with the map, padding included).
+        cols = cols if m > width else m
+        mx = np.asarray(x, dtype=np.float32).reshape(-1, cols)
+        my = np.asarray(y, dtype=np.float32).reshape(-1, cols)
     else:
         rows = -(-m // width)
         mx = np.full(rows * width, -10.0, dtype=np.float32)
