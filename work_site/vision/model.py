@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cache, cached_property
 
 import numpy as np
 
@@ -273,14 +273,28 @@ def convex_overlap_depth(
     na = _unit_rows(normals_A if normals_A is not None else [n for n, _ in hull_facets(A)])
     nb = _unit_rows(normals_B if normals_B is not None else [n for n, _ in hull_facets(B)])
     # All axes at once; repeated axes do not change the smallest overlap.
-    ia, ja = np.triu_indices(len(na), 1)
-    ib, jb = np.triu_indices(len(nb), 1)
-    ea = _unit_rows(np.cross(na[ia], na[ja]))
-    eb = _unit_rows(np.cross(nb[ib], nb[jb]))
-    axes = np.vstack([na, nb, _unit_rows(np.cross(ea[:, None, :], eb[None, :, :]).reshape(-1, 3))])
+    ia, ja = _pairs(len(na))
+    ib, jb = _pairs(len(nb))
+    ea = _unit_rows(_cross(na[ia], na[ja]))
+    eb = _unit_rows(_cross(nb[ib], nb[jb]))
+    axes = np.vstack([na, nb, _unit_rows(_cross(ea[:, None, :], eb[None, :, :]).reshape(-1, 3))])
     pa, pb = A @ axes.T, B @ axes.T
     depth = float(np.min(np.minimum(pa.max(0), pb.max(0)) - np.maximum(pa.min(0), pb.min(0))))
     return max(depth, 0.0)
+
+
+@cache
+def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(n, 1)``, made once per ``n``."""
+    return np.triu_indices(n, 1)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of 3-vectors in the last axis (broadcast), by components: the same
+    arithmetic without its axis juggling, which costs more than the products here."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def _unit_rows(v) -> np.ndarray:
