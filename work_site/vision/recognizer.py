@@ -405,6 +405,12 @@ class Recognizer:
              [np.column_stack([p.normals_O, p.offsets_m]) for p in o.model.parts])
             for o in scene.objects if o.fixed
         ]  # fmt: skip
+        # The fixed parts that objects may not interpenetrate, with their bounding spheres
+        self._env_parts = [
+            q for name, _, parts, _ in self.environment if name != "table" for q in parts
+        ]
+        self._env_centres = [b.mean(0) for b, _ in self._env_parts]
+        self._env_radii = [_radius(b) for b, _ in self._env_parts]
         self._wholes = {
             a.name: [
                 (b, np.array([invert_pose(X) for X in containments(a, b)]))
@@ -581,19 +587,22 @@ class Recognizer:
         used: set[int] = set()
         per_model: dict[str, int] = {}
         order = sorted(candidates, key=lambda c: -c.verification.covered_px)
-        for c in order:
+        # Each candidate's parts as occluders and its matched lines, once for all the others
+        planes = [[planes_in(o.X_CO, P) for P in o.model.planes_O] for o in order]
+        lines = [set(o.verification.matched) for o in order]
+        for i, c in enumerate(order):
             rec = c.verification
             if p.max_per_model is not None and per_model.get(c.model.name, 0) >= p.max_per_model:
                 continue
             shared = len(used.intersection(rec.matched))
             if shared > p.max_shared_fraction * max(len(rec.matched), 1):
                 continue
-            mine = set(rec.matched)
+            mine = lines[i]
             others = [
-                planes_in(o.X_CO, P)
-                for o in order
-                if o is not c and len(mine.intersection(o.verification.matched)) == 0
-                for P in o.model.planes_O
+                P
+                for j in range(len(order))
+                if j != i and mine.isdisjoint(lines[j])
+                for P in planes[j]
             ]
             v = self._verify(c.model, c.X_CO, K, segs, gx, gy, env_C + others, part_px=c.part_px)
             # A bigger model grown around a smaller object found in the image must show its
@@ -984,15 +993,16 @@ class Recognizer:
         if np.any(c < lo) or np.any(c > hi):
             return False
         others = [q for parts in accepted for q in parts]
+        # Bounding spheres first: only parts whose spheres meet can interpenetrate.
+        centres = [b.mean(0) for b, _ in others]
+        radii = [_radius(b) for b, _ in others]
         if environment:
-            others += [
-                q for name, _, parts, _ in self.environment if name != "table" for q in parts
-            ]
+            others += self._env_parts
+            centres += self._env_centres
+            radii += self._env_radii
         if not others:
             return True
-        # Bounding spheres first: only parts whose spheres meet can interpenetrate.
-        centres = np.array([b.mean(0) for b, _ in others])
-        radii = np.array([_radius(b) for b, _ in others])
+        centres, radii = np.array(centres), np.array(radii)
         for a, na in parts_W:
             ca = a.mean(0)
             near = np.sqrt(np.sum((centres - ca) ** 2, axis=1)) <= _radius(a) + radii
