@@ -248,7 +248,7 @@ def batch_support(
     seen = facing.astype(np.float64) @ on_face.T.astype(np.float64) > 0  # (n, e)
     z = E[:, 2]  # (n, 2e)
     in_front = z > 1e-3
-    seen &= np.all(in_front.reshape(n, n_e, 2), axis=2)
+    seen &= in_front[:, 0::2] & in_front[:, 1::2]  # both ends (rows alternate a, b)
     iz = 1.0 / np.where(in_front, z, 1.0)
     x, y = E[:, 0] * iz, E[:, 1] * iz
     u = (K[0, 0] * x + K[0, 1] * y + K[0, 2]).reshape(n, n_e, 2)
@@ -256,7 +256,8 @@ def batch_support(
     du, dv = u[:, :, 1] - u[:, :, 0], v[:, :, 1] - v[:, :, 0]
     L = np.sqrt(du * du + dv * dv)
     h, w = gx.shape
-    inside = np.all((u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1), axis=2)
+    on_image = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    inside = on_image[:, :, 0] & on_image[:, :, 1]
     use = seen & (L >= 4.0) & inside
     k = points_per_edge
     n_used = use.sum(axis=1)
