@@ -269,7 +269,7 @@ def match_segments(
     ok = (cos > np.cos(angle_rad)) & (dp < tol_px) & (dq < tol_px) & (overlap >= 0.5 * Li[None, :])
     cost = np.where(ok, dp + dq, np.inf)
     best = np.argmin(cost, axis=0)
-    has = np.isfinite(cost[best, np.arange(len(image_segs))])
+    has = ok.any(axis=0)  # the best cost is finite
     return best[has], np.flatnonzero(has)
 
 
@@ -787,13 +787,14 @@ class Recognizer:
             # The update rotates by ω about O's origin in C and shifts by v in C (pose.py):
             # a vertex moves by ω × Q + v, a normal turns by (R_WC ω) × n_W. Small vectors
             # are plain floats: this runs at every evaluation of every fit.
-            R_WO = R_WC @ X_CO[:3, :3]
-            dx, dy, dz = (R_WO @ N_O[int(np.argmin(N_O @ R_WO[2]))]).tolist()  # n_W facing down
-            Q = V_O @ X_CO[:3, :3].T
+            R_CO = X_CO[:3, :3]
+            R_WO = R_WC @ R_CO
+            dx, dy, dz = (R_WO @ N_O[(N_O @ R_WO[2]).argmin()]).tolist()  # n_W facing down
+            Q = V_O @ R_CO.T
             z = (Q + X_CO[:3, 3]) @ g + z_C
-            k = int(np.argmin(z))
+            k = z.argmin()
             qx, qy, qz = Q[k].tolist()
-            r = np.array([a * (float(z[k]) - z_table), b * dx, b * dy])
+            r = np.array([a * (z[k].item() - z_table), b * dx, b * dy])
             # down × e_x = (0, d_z, −d_y); down × e_y = (−d_z, 0, d_x); R_WCᵀ takes them to C
             J = np.array(
                 [
