@@ -57,8 +57,13 @@ def check_grey_image(image: np.ndarray) -> np.ndarray:
     return a
 
 
-def detect_lines(image: np.ndarray, params: LineParams | None = None) -> np.ndarray:
-    """Straight edge segments of a grey uint8 image, (n, 4) float64 px, longest first."""
+def detect_lines(
+    image: np.ndarray,
+    params: LineParams | None = None,
+    gradients: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Straight edge segments of a grey uint8 image, (n, 4) float64 px, longest first.
+    ``gradients``: the image's Scharr derivatives ``(gx, gy)`` (float32) if already known."""
     params = params or LineParams()
     img = check_grey_image(image)
     if min(img.shape) < 4:
@@ -72,7 +77,7 @@ def detect_lines(image: np.ndarray, params: LineParams | None = None) -> np.ndar
         return segs
     segs = merge_collinear(segs, params)
     if params.refine:
-        gx, gy = _gradients(img)
+        gx, gy = gradients if gradients is not None else _gradients(img)
         segs = refine_segments(segs, gx, gy, params)
     segs = segs[_lengths(segs) >= params.min_length_px]
     return segs[np.argsort(-_lengths(segs))]
@@ -117,9 +122,9 @@ def refine_segments(
     ts = params.end_margin_px + (np.arange(counts.sum()) - first[sid]) * params.sample_step_px
     base = a0[sid] + ts[:, None] * u[sid]  # (m, 2)
     ns = n[sid]
-    pts = base[:, None, :] + offsets[None, :, None] * ns[:, None, :]  # (m, k, 2)
-    mx = np.ascontiguousarray(pts[..., 0], dtype=np.float32)
-    my = np.ascontiguousarray(pts[..., 1], dtype=np.float32)
+    # The profiles' points (m, k), each coordinate straight into its map
+    mx = (base[:, :1] + offsets * ns[:, :1]).astype(np.float32)
+    my = (base[:, 1:] + offsets * ns[:, 1:]).astype(np.float32)
     sx = cv2.remap(gx, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     sy = cv2.remap(gy, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     prof = np.abs(sx * ns[:, :1] + sy * ns[:, 1:]).astype(np.float64)  # (m, k)
@@ -194,37 +199,42 @@ def _mergeable(segs: np.ndarray, params: LineParams) -> np.ndarray:
     return ok
 
 
-def _mergeable_to(segs: np.ndarray, i: int, js: np.ndarray, params: LineParams) -> np.ndarray:
-    """Row ``i`` of :func:`_mergeable` at columns ``js`` (not containing ``i``), alone."""
-    a = segs[i, :2]
-    d = segs[i, 2:] - a
-    L = float(np.hypot(d[0], d[1]))
+def _mergeable_into(segs: np.ndarray, j: int, params: LineParams) -> np.ndarray:
+    """Column ``j`` of :func:`_mergeable` alone: may segment ``j`` be joined to each segment
+    (tested in that segment's frame, with the arithmetic of :func:`merge_collinear`'s own
+    test)? (n,) bool, False at ``j``."""
+    a = segs[:, :2]
+    d = segs[:, 2:] - a
+    L = np.hypot(d[:, 0], d[:, 1])
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = d / L
-    n = np.array([-u[1], u[0]])
-    S = segs[js]
-    dj = S[:, 2:] - S[:, :2]
-    lo = np.maximum(np.linalg.norm(dj, axis=1), 1e-9)
-    cosang = np.abs(dj @ u) / lo
-    P0, P1 = S[:, :2] - a, S[:, 2:] - a
-    off = np.maximum(np.abs(P0 @ n), np.abs(P1 @ n))
-    t0, t1 = P0 @ u, P1 @ u
+        ux, uy = d[:, 0] / L, d[:, 1] / L
+    nx, ny = -uy, ux
+    dj = segs[j, 2:] - segs[j, :2]
+    lo = max(float(np.hypot(dj[0], dj[1])), 1e-9)
+    cosang = np.abs(dj[0] * ux + dj[1] * uy) / lo
+    p0x, p0y = segs[j, 0] - a[:, 0], segs[j, 1] - a[:, 1]
+    p1x, p1y = segs[j, 2] - a[:, 0], segs[j, 3] - a[:, 1]
+    off = np.maximum(np.abs(p0x * nx + p0y * ny), np.abs(p1x * nx + p1y * ny))
+    t0, t1 = p0x * ux + p0y * uy, p1x * ux + p1y * uy
     gap = np.maximum(np.minimum(t0, t1) - L, -np.maximum(t0, t1))
     with np.errstate(invalid="ignore"):
-        return (
+        ok = (
             (cosang > np.cos(params.merge_angle_rad))
             & (off < params.merge_offset_px)
             & (gap < params.merge_gap_px)
         )
+    ok[j] = False
+    return ok
 
 
 def merge_collinear(segs: np.ndarray, params: LineParams) -> np.ndarray:
     """Join segments that lie on one line with a small gap between them (greedy, longest
     first); the joined segment spans both.
 
-    Each pass first tests all pairs at once (:func:`_mergeable`); a segment is processed one
-    by one only if it has a partner there, or among the segments that grew earlier in the
-    pass (tested afresh). Most segments have no partner, so passes are cheap."""
+    Each pass first tests all pairs at once (:func:`_mergeable`), and again, for all
+    segments at once, each segment that grows (:func:`_mergeable_into`); a segment is
+    processed one by one only if it has a live partner there. Most segments have none, so
+    passes are cheap."""
     if len(segs) < 2:
         return segs
     order = np.argsort(-_lengths(segs))
@@ -234,14 +244,10 @@ def merge_collinear(segs: np.ndarray, params: LineParams) -> np.ndarray:
     while changed:
         changed = False
         partner = _mergeable(segs, params)
-        grown = np.zeros(len(segs), dtype=bool)
+        maybe = partner.any(axis=1).tolist()  # a partner, live or not: the cheap first test
         for i in range(len(segs)):
-            if not alive[i]:
+            if not maybe[i] or not alive[i] or not (partner[i] & alive).any():
                 continue
-            if not (partner[i] & alive & ~grown).any():
-                g = np.flatnonzero(grown & alive)
-                if len(g) == 0 or not _mergeable_to(segs, i, g, params).any():
-                    continue
             a, b = segs[i, :2], segs[i, 2:]
             L = np.linalg.norm(b - a)
             if L < 1e-9:
@@ -273,7 +279,10 @@ def merge_collinear(segs: np.ndarray, params: LineParams) -> np.ndarray:
                 segs[i] = np.concatenate([a + lo_t * u, a + hi_t * u])
                 alive[j] = False
                 changed = True
-                grown[i] = True
                 a, b = segs[i, :2], segs[i, 2:]
                 L = np.linalg.norm(b - a)
+            if ok.any():
+                # Segment i grew: segments after it may now join it where they did not before.
+                partner[:, i] = _mergeable_into(segs, i, params)
+                maybe = [m or q for m, q in zip(maybe, partner[:, i].tolist(), strict=True)]
     return segs[alive]

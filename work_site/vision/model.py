@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cache, cached_property
 
 import numpy as np
 
@@ -16,6 +16,7 @@ from models.scene import ObjectModel
 
 EDGE_SAMPLES = 12
 """Points per model edge at which visibility is tested (ray casting against the parts)."""
+_EDGE_TS = (np.arange(EDGE_SAMPLES) + 0.5) / EDGE_SAMPLES  # their fractions along the edge
 VISIBILITY_EPS_M = 2e-5
 """A surface point counts as hidden only if a part is entered this far (m) before reaching it."""
 CULL_MARGIN = 1e-6
@@ -224,25 +225,33 @@ def visible_edges(
     edges_C = transform(X_CO, model.edges_O)  # (m, 2, 3)
     if isinstance(occluders_C, Occluders):
         occluders_C = occluders_C.relevant(edges_C.reshape(-1, 3), K)
-    occ = [planes_in(X_CO, P) for P in model.planes_O]
-    if len(occ) == 1:
+    if len(model.planes_O) == 1:
         # A convex object hides exactly those of its edges whose faces all face away from the
         # camera (at C's origin, outside a face's plane when its offset is negative): only the
         # others need rays cast, and only against the other objects.
-        cand = np.flatnonzero(model.edge_faces[:, occ[0][:, 3] < 0].any(axis=1))
+        P = model.planes_O[0]  # the offsets of planes_in(X_CO, P), alone
+        d_C = P[:, 3] + (P[:, :3] @ X_CO[:3, :3].T) @ X_CO[:3, 3]
+        cand = np.flatnonzero(model.edge_faces[:, d_C < 0].any(axis=1))
         occ = []
     else:
+        occ = [planes_in(X_CO, P) for P in model.planes_O]
         cand = np.arange(len(edges_C))
     occ += list(occluders_C or [])
-    ts = (np.arange(EDGE_SAMPLES) + 0.5) / EDGE_SAMPLES
+    ts = _EDGE_TS
     E = edges_C[cand]
+    if not occ and min_fraction <= 1.0 and E[..., 2].min(initial=np.inf) > 1e-3:
+        # Nothing to cast rays against and all in front: every sample is visible.
+        a = E[:, 0]
+        d = E[:, 1] - a
+        segs = project(np.stack([a + 0.0 * d, a + 1.0 * d], axis=1), K).reshape(-1, 4)
+        return cand, segs, np.ones(len(cand))
     samples = E[:, 0, None, :] + ts[None, :, None] * (E[:, 1] - E[:, 0])[:, None, :]
     flat = samples.reshape(-1, 3)
     vis = flat[:, 2] > 1e-3
     if occ:
         vis &= ~occluded(flat, occ)
     vis = vis.reshape(len(E), EDGE_SAMPLES)
-    frac = vis.mean(axis=1)
+    frac = vis.sum(axis=1) / EDGE_SAMPLES
     keep = np.flatnonzero(frac >= min_fraction)
     if len(keep) == 0:
         return keep, np.zeros((0, 4)), np.zeros(0)
@@ -253,7 +262,7 @@ def visible_edges(
     t1 = np.where(last == EDGE_SAMPLES - 1, 1.0, ts[last] + half)[:, None]
     a = E[keep, 0]
     d = E[keep, 1] - a
-    segs = np.column_stack([project(a + t0 * d, K), project(a + t1 * d, K)])
+    segs = project(np.stack([a + t0 * d, a + t1 * d], axis=1), K).reshape(-1, 4)
     return cand[keep], segs, frac[keep]
 
 
@@ -273,14 +282,28 @@ def convex_overlap_depth(
     na = _unit_rows(normals_A if normals_A is not None else [n for n, _ in hull_facets(A)])
     nb = _unit_rows(normals_B if normals_B is not None else [n for n, _ in hull_facets(B)])
     # All axes at once; repeated axes do not change the smallest overlap.
-    ia, ja = np.triu_indices(len(na), 1)
-    ib, jb = np.triu_indices(len(nb), 1)
-    ea = _unit_rows(np.cross(na[ia], na[ja]))
-    eb = _unit_rows(np.cross(nb[ib], nb[jb]))
-    axes = np.vstack([na, nb, _unit_rows(np.cross(ea[:, None, :], eb[None, :, :]).reshape(-1, 3))])
+    ia, ja = _pairs(len(na))
+    ib, jb = _pairs(len(nb))
+    ea = _unit_rows(_cross(na[ia], na[ja]))
+    eb = _unit_rows(_cross(nb[ib], nb[jb]))
+    axes = np.vstack([na, nb, _unit_rows(_cross(ea[:, None, :], eb[None, :, :]).reshape(-1, 3))])
     pa, pb = A @ axes.T, B @ axes.T
     depth = float(np.min(np.minimum(pa.max(0), pb.max(0)) - np.maximum(pa.min(0), pb.min(0))))
     return max(depth, 0.0)
+
+
+@cache
+def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(n, 1)``, made once per ``n``."""
+    return np.triu_indices(n, 1)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of 3-vectors in the last axis (broadcast), by components: the same
+    arithmetic without its axis juggling, which costs more than the products here."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def _unit_rows(v) -> np.ndarray:

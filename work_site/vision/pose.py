@@ -78,12 +78,12 @@ def residuals_and_jacobian(
     P = Q + t
     z = P[..., 2]
     n_res = 2 * len(edges_O)
-    if np.any(z <= 1e-6):
+    if z.min() <= 1e-6:
         return np.full(n_res, 1e6), np.zeros((n_res, 6))
     fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
     iz = 1.0 / z
     x, y = P[..., 0] * iz, P[..., 1] * iz
-    ux = fx * x + skew * y
+    ux = fx * x + skew * y if skew else fx * x  # the skew's terms are 0 (the usual case)
     u_px = ux + K[0, 2]  # (n, 2)
     v_px = fy * y + K[1, 2]
     dx, dy = u_px[:, 1] - u_px[:, 0], v_px[:, 1] - v_px[:, 0]
@@ -92,7 +92,9 @@ def residuals_and_jacobian(
     nx, ny = -ey, ex  # its normal
     # g = (∂uv/∂P)ᵀ n at both ends, (n, 2) per component
     gx = (fx * iz) * nx[:, None]
-    gy = (skew * iz) * nx[:, None] + (fy * iz) * ny[:, None]
+    gy = (fy * iz) * ny[:, None]
+    if skew:
+        gy = (skew * iz) * nx[:, None] + gy
     gz = -(ux * iz) * nx[:, None] - (fy * y * iz) * ny[:, None]
     Qx, Qy, Qz = Q[..., 0], Q[..., 1], Q[..., 2]
     Je = np.empty((len(edges_O), 2, 6))  # n·d(uv) per update parameter, at end a and b
@@ -137,27 +139,31 @@ def fit_pose(
         if prior is None:
             return r, J
         r_p, J_p = prior(X_CO)
-        return np.concatenate([r, r_p]), np.vstack([J, J_p])
+        return np.concatenate([r, r_p]), np.concatenate([J, J_p])
 
     r, J = evaluate(X)
     cost = float(r @ r)
     lam = 1e-4
     converged = False
     it = 0
-    eye_eps = 1e-12 * np.eye(6)
+    diag = np.diag_indices(6)
     for it in range(1, iterations + 1):  # noqa: B007 (the count is reported)
         JtJ = J.T @ J
         g = J.T @ r
         step_ok = False
         delta = np.zeros(6)
+        small = True  # as long as no step is solved for
         for _ in range(6):
-            A = JtJ + lam * (np.diag(np.diag(JtJ)) + eye_eps)
+            A = JtJ.copy()  # JtJ + λ·(diag(JtJ) + 1e-12·I)
+            d = JtJ[diag]
+            A[diag] = d + lam * (d + 1e-12)
             try:
                 delta = -np.linalg.solve(A, g)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            if np.max(np.abs(delta)) < tol:
+            small = np.abs(delta).max() < tol
+            if small:
                 break  # at the minimum: a step this small cannot be worth evaluating
             X_new = apply_update(X, delta)
             r_new, J_new = evaluate(X_new)
@@ -168,7 +174,7 @@ def fit_pose(
                 step_ok = True
                 break
             lam *= 10
-        if not step_ok or np.max(np.abs(delta)) < tol:
+        if not step_ok or small:
             converged = True
             break
     raw = r[:n_lines] if w2 is None else r[:n_lines] / w2

@@ -248,7 +248,7 @@ def batch_support(
     seen = facing.astype(np.float64) @ on_face.T.astype(np.float64) > 0  # (n, e)
     z = E[:, 2]  # (n, 2e)
     in_front = z > 1e-3
-    seen &= np.all(in_front.reshape(n, n_e, 2), axis=2)
+    seen &= in_front[:, 0::2] & in_front[:, 1::2]  # both ends (rows alternate a, b)
     iz = 1.0 / np.where(in_front, z, 1.0)
     x, y = E[:, 0] * iz, E[:, 1] * iz
     u = (K[0, 0] * x + K[0, 1] * y + K[0, 2]).reshape(n, n_e, 2)
@@ -256,7 +256,8 @@ def batch_support(
     du, dv = u[:, :, 1] - u[:, :, 0], v[:, :, 1] - v[:, :, 0]
     L = np.sqrt(du * du + dv * dv)
     h, w = gx.shape
-    inside = np.all((u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1), axis=2)
+    on_image = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    inside = on_image[:, :, 0] & on_image[:, :, 1]
     use = seen & (L >= 4.0) & inside
     k = points_per_edge
     n_used = use.sum(axis=1)
@@ -273,20 +274,22 @@ def batch_support(
     g2 = np.float32(gradient_min**2)
     offsets = np.array(SUPPORT_OFFSETS_PX)[:, None, None]
 
-    def hits_at(rows: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """Points along used edges ``rows`` at fractions ``t`` where the gradient agrees."""
-        tq = t[None, None, :]
-        nxr, nyr = nx[rows][None, :, None], ny[rows][None, :, None]
-        X = u0[rows][None, :, None] + tq * du[rows][None, :, None] + offsets * nxr  # (3, r, t)
-        Y = v0[rows][None, :, None] + tq * dv[rows][None, :, None] + offsets * nyr
+    def hits_at(rows: np.ndarray | None, t: np.ndarray) -> np.ndarray:
+        """Points along used edges ``rows`` (None: all) at fractions ``t`` where the gradient
+        agrees. The points are laid out (offset, t, edge): rows of many points for remap."""
+        sel = slice(None) if rows is None else rows
+        tq = t[None, :, None]
+        nxr, nyr = nx[sel], ny[sel]
+        X = u0[sel] + tq * du[sel] + offsets * nxr  # (3, t, r)
+        Y = v0[sel] + tq * dv[sel] + offsets * nyr
         sx, sy = sample_gradient_xy(gx, gy, X, Y)
         # mag > min and |cos| > cos_min, without roots or divisions
         mag2 = sx * sx + sy * sy
         dot = sx * nxr.astype(np.float32) + sy * nyr.astype(np.float32)
         good = np.any((mag2 > g2) & (dot * dot > cos2 * mag2), axis=0)
-        return good.sum(axis=1)
+        return good.sum(axis=0)
 
-    all_rows = np.arange(len(ci))
+    all_rows = None
     if coarse_min is None or k != 6:
         hits = np.bincount(ci, weights=hits_at(all_rows, ts), minlength=n)
         return np.where(count > 0, hits / np.maximum(count, 1), 0.0)
@@ -314,12 +317,22 @@ def sample_gradient_xy(
     """:func:`sample_gradient` at points given as two arrays of coordinates of any (equal)
     shape; the samples have that shape."""
     m = x.size
-    rows = -(-m // width)
-    mx = np.full(rows * width, -10.0, dtype=np.float32)
-    my = np.full(rows * width, -10.0, dtype=np.float32)
-    mx[:m] = x.ravel()
-    my[:m] = y.ravel()
-    mx, my = mx.reshape(rows, width), my.reshape(rows, width)
+    if m == 0:
+        return np.zeros(x.shape, np.float32), np.zeros(x.shape, np.float32)
+    cols = x.shape[-1] if x.ndim else 1
+    if m <= width or (x.ndim > 1 and width <= cols < 32767 and m // cols < 32767):
+        # The points' own rows, if long, else one row as long as the points: no padding
+        # (remap's cost grows with the map, padding included).
+        cols = cols if m > width else m
+        mx = np.asarray(x, dtype=np.float32).reshape(-1, cols)
+        my = np.asarray(y, dtype=np.float32).reshape(-1, cols)
+    else:
+        rows = -(-m // width)
+        mx = np.full(rows * width, -10.0, dtype=np.float32)
+        my = np.full(rows * width, -10.0, dtype=np.float32)
+        mx[:m] = x.ravel()
+        my[:m] = y.ravel()
+        mx, my = mx.reshape(rows, width), my.reshape(rows, width)
     sx = cv2.remap(gx, mx, my, cv2.INTER_LINEAR).ravel()[:m]
     sy = cv2.remap(gy, mx, my, cv2.INTER_LINEAR).ravel()[:m]
     return sx.reshape(x.shape), sy.reshape(x.shape)
