@@ -94,7 +94,23 @@ def _field_type(field: Field) -> Any:
 def _body_type(cls: type) -> type:
     """The msgspec struct of record class ``cls``'s wire body (raises ``_UnsupportedError``)."""
     fields = [(name, _field_type(field)) for name, field in cls._SPEC.items()]
-    return msgspec.defstruct(f"{cls.__name__}Wire", fields, forbid_unknown_fields=True)
+    body = msgspec.defstruct(f"{cls.__name__}Wire", fields, forbid_unknown_fields=True)
+    kinds = ((ArrayField, _ARRAY), (NestedField, _NESTED), (TupleField, _TUPLE))
+    special = tuple(
+        (i, kind, field)
+        for i, field in enumerate(cls._SPEC.values())
+        for t, kind in kinds
+        if type(field) is t
+    )
+    _CONVERSION[body] = (cls, tuple(cls._SPEC), special)
+    return body
+
+
+_ARRAY, _NESTED, _TUPLE = range(3)
+
+_CONVERSION: dict[type, tuple[type, tuple[str, ...], tuple[tuple[int, int, Any], ...]]] = {}
+"""For each body struct: its record class, the field names in order, and ``(index, kind,
+field)`` of each field that is not a scalar (scalars arrive as the record holds them)."""
 
 
 @functools.cache
@@ -112,12 +128,7 @@ def _envelope_type(cls: type) -> type | None:
         tag=cls.TYPE,
         forbid_unknown_fields=True,
     )
-    _MESSAGE_CLASS[envelope] = cls
     return envelope
-
-
-_MESSAGE_CLASS: dict[type, type] = {}
-"""The message class of each envelope struct (msgspec keeps the tag off the decoded struct)."""
 
 
 def decoder(types: tuple[type, ...]) -> msgspec.msgpack.Decoder | None:
@@ -126,23 +137,6 @@ def decoder(types: tuple[type, ...]) -> msgspec.msgpack.Decoder | None:
     if not handled:
         return None
     return msgspec.msgpack.Decoder(functools.reduce(operator.or_, handled))
-
-
-_ARRAY, _NESTED, _TUPLE = range(3)
-
-
-@functools.cache
-def _conversion(cls: type) -> tuple[tuple[str, ...], tuple[tuple[int, int, Any], ...]]:
-    """The field names of ``cls`` in order, and ``(index, kind, field)`` of each field that is
-    not a scalar (scalars arrive as the message holds them), for :func:`_record`."""
-    kinds = ((ArrayField, _ARRAY), (NestedField, _NESTED), (TupleField, _TUPLE))
-    special = tuple(
-        (i, kind, field)
-        for i, field in enumerate(cls._SPEC.values())
-        for t, kind in kinds
-        if type(field) is t
-    )
-    return tuple(cls._SPEC), special
 
 
 def _array(field: ArrayField, wire: tuple[tuple[int, ...], bytes]) -> np.ndarray:
@@ -159,9 +153,9 @@ def _array(field: ArrayField, wire: tuple[tuple[int, ...], bytes]) -> np.ndarray
     return arr
 
 
-def _record(cls: type, wire: Any) -> Any:
-    """Record ``cls`` from its decoded wire struct, without re-validating what msgspec did."""
-    names, special = _conversion(cls)
+def _record(wire: Any) -> Any:
+    """The record of a decoded wire struct, without re-validating what msgspec did."""
+    cls, names, special = _CONVERSION[type(wire)]
     values = msgspec.structs.astuple(wire)
     if special:
         values = list(values)
@@ -169,9 +163,9 @@ def _record(cls: type, wire: Any) -> Any:
             if kind == _ARRAY:
                 values[i] = _array(field, values[i])
             elif kind == _NESTED:
-                values[i] = _record(field.cls, values[i])
+                values[i] = _record(values[i])
             else:
-                values[i] = tuple(_record(field.cls, item) for item in values[i])
+                values[i] = tuple(map(_record, values[i]))
     obj = object.__new__(cls)
     obj.__dict__.update(zip(names, values, strict=True))  # frozen: set as the decoder does
     return obj
@@ -181,16 +175,15 @@ def fast_decode(decoder: msgspec.msgpack.Decoder, payload: bytes) -> Message | N
     """The message in ``payload`` if it is valid for ``decoder`` (from :func:`decoder`), else
     ``None``: the reference decoder then decides, and says what was wrong and where."""
     try:
-        envelope = decoder.decode(payload)
-        return _record(_MESSAGE_CLASS[type(envelope)], envelope.b)
+        return _record(decoder.decode(payload).b)
     except Exception:
         return None
 
 
 def _array_to_wire(arr: Any) -> Any:
     if isinstance(arr, np.ndarray):
-        data = np.ascontiguousarray(arr, dtype=arr.dtype.newbyteorder("<")).tobytes()
-        return [list(arr.shape), data]
+        # A message's arrays are validated: native, and this path takes only little-endian hosts.
+        return [list(arr.shape), arr.tobytes()]
     raise TypeError(f"cannot encode {type(arr).__name__}")
 
 
