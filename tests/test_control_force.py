@@ -231,3 +231,23 @@ def test_leaving_a_contact_the_hand_does_not_push_back_into_it() -> None:
         world.close()
     assert reports[-1][2] == "done", reports[-1]
     assert off_m > 0.002, off_m
+
+
+def test_the_impedance_presses_along_its_normals_with_at_most_max_press(site) -> None:
+    """15 mm out along the table's normal (a block hanging lower in the grip than the model
+    says), 12 N measured: an uncapped 1,000 N/m spring would push the hand further in (15 N >
+    12 N); capped at 10 N it yields. Along the surface the spring is unchanged."""
+    _, c = site
+    P = compliant_projector(np.array([[0.0, 0.0, 1.0]]))
+    c.impedance = Impedance(compliant_W=P, tangential_stiffness_n_per_m=5000.0)
+    assert c.impedance.max_press_n == pytest.approx(1000.0 * TARGET_BIAS_MAX_M)
+    c.offset_W = np.array([0.0, 0.0, 0.015])
+    c._window = [np.array([0.0, 0.0, 12.0])] * 4
+    c._admittance(1e-3)
+    rate_mps = (c.offset_W[2] - 0.015) / 1e-3
+    assert rate_mps == pytest.approx((12.0 - 10.0) / c.impedance.damping_n_s_per_m)
+    # Along the surface: 0.5 mm at 5,000 N/m pulls back with 2.5 N, as before.
+    c.offset_W = np.array([0.0005, 0.0, 0.0])
+    c._window = [np.zeros(3)] * 4
+    c._admittance(1e-3)
+    assert (c.offset_W[0] - 0.0005) / 1e-3 == pytest.approx(-2.5 / 200.0)
