@@ -103,6 +103,9 @@ class Impedance:
     which ``stiffness_n_per_m`` holds; across it (along the surfaces) the stiffness is
     ``tangential_stiffness_n_per_m``."""
     tangential_stiffness_n_per_m: float | None = None
+    """None: isotropic (§VI-B). Stiffer along the surfaces, friction no longer drags the block
+    behind its path (a 6 cm slide ends 2.0 mm short at 1,000 N/m, 0.36 mm at 5,000), while a
+    contact the model missed still meets a spring, not a rigid arm."""
     max_press_n: float = 10.0
     """The spring along the contact normals presses with at most this force (N): stiffness × 2d,
     twice what it presses with when the model is right. Where the real contact lies further
@@ -111,9 +114,6 @@ class Impedance:
     tilted 18° about the line between the fingertips hung 10 mm lower in the grip, the table
     spring pressed 15 N instead of 5, the table's friction tilted it further, and the move
     stopped on its 20 N limit (scripted around-corner seed 5, every replay of its program)."""
-    """None: isotropic (§VI-B). Stiffer along the surfaces, friction no longer drags the block
-    behind its path (a 6 cm slide ends 2.0 mm short at 1,000 N/m, 0.36 mm at 5,000), while a
-    contact the model missed still meets a spring, not a rigid arm."""
 
 
 NORMAL_RANK_TOL = 1e-3
