@@ -44,7 +44,7 @@ the reference accepts finite floats only."""
 
 
 class _UnsupportedError(Exception):
-    """A record this path does not handle (an image field)."""
+    """A record this path does not handle (an image field, or arrays on a big-endian host)."""
 
 
 def _accepts(check: Any, field: Field, value: Any) -> bool:
@@ -90,6 +90,13 @@ def _field_type(field: Field) -> Any:
     raise TypeError(f"unknown field kind {field!r}")  # a bug in a spec table, not bad input
 
 
+_ARRAY, _NESTED, _TUPLE = range(3)
+
+_CONVERSION: dict[type, tuple[type, tuple[str, ...], tuple[tuple[int, int, Any], ...]]] = {}
+"""For each body struct: its record class, the field names in order, and ``(index, kind,
+field)`` of each field that is not a scalar (scalars arrive as the record holds them)."""
+
+
 @functools.cache
 def _body_type(cls: type) -> type:
     """The msgspec struct of record class ``cls``'s wire body (raises ``_UnsupportedError``)."""
@@ -106,13 +113,6 @@ def _body_type(cls: type) -> type:
     return body
 
 
-_ARRAY, _NESTED, _TUPLE = range(3)
-
-_CONVERSION: dict[type, tuple[type, tuple[str, ...], tuple[tuple[int, int, Any], ...]]] = {}
-"""For each body struct: its record class, the field names in order, and ``(index, kind,
-field)`` of each field that is not a scalar (scalars arrive as the record holds them)."""
-
-
 @functools.cache
 def _envelope_type(cls: type) -> type | None:
     """The struct of message class ``cls``'s envelope, its type tag in ``t``; ``None`` if this
@@ -121,14 +121,13 @@ def _envelope_type(cls: type) -> type | None:
         body = _body_type(cls)
     except _UnsupportedError:
         return None
-    envelope = msgspec.defstruct(
+    return msgspec.defstruct(
         f"{cls.__name__}Envelope",
         [("v", Literal[SCHEMA_VERSION]), ("b", body)],
         tag_field="t",
         tag=cls.TYPE,
         forbid_unknown_fields=True,
     )
-    return envelope
 
 
 def decoder(types: tuple[type, ...]) -> msgspec.msgpack.Decoder | None:
