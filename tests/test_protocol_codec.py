@@ -667,17 +667,22 @@ def test_random_bytes_only_raise_protocol_error(payload: bytes) -> None:
         assert decode(encode(msg)) is not None
 
 
+def corrupted(payload: bytes, data: st.DataObject) -> bytes:
+    """``payload`` with 1 to 4 bytes overwritten at drawn places by drawn values."""
+    out = bytearray(payload)
+    for _ in range(data.draw(st.integers(1, 4))):
+        out[data.draw(st.integers(0, len(out) - 1))] = data.draw(st.integers(0, 255))
+    return bytes(out)
+
+
 @MANY
 @given(small_messages, st.data())
 def test_corrupted_payloads_decode_to_valid_messages_or_protocol_error(
     msg: Any, data: st.DataObject
 ) -> None:
-    payload = bytearray(encode(msg))
-    for _ in range(data.draw(st.integers(1, 4))):
-        i = data.draw(st.integers(0, len(payload) - 1))
-        payload[i] = data.draw(st.integers(0, 255))
+    payload = corrupted(encode(msg), data)
     try:
-        decoded = decode(bytes(payload))
+        decoded = decode(payload)
     except ProtocolError as exc:
         assert "internal error" not in str(exc)
     else:

@@ -289,7 +289,11 @@ class TaskController:
         window = self._window[-FORCE_WINDOW_STEPS:]
         f_W = np.mean(window, axis=0) if window else np.zeros(3)
         P = np.eye(3) if imp.compliant_W is None else imp.compliant_W
-        k_surface = imp.tangential_stiffness_n_per_m or imp.stiffness_n_per_m
+        k_surface = (
+            imp.stiffness_n_per_m
+            if imp.tangential_stiffness_n_per_m is None
+            else imp.tangential_stiffness_n_per_m
+        )
         along = P @ self.offset_W
         press_W = imp.stiffness_n_per_m * along
         press_n = float(np.linalg.norm(press_W))

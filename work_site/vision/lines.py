@@ -77,7 +77,7 @@ def detect_lines(
         return segs
     segs = merge_collinear(segs, params)
     if params.refine:
-        gx, gy = gradients if gradients is not None else _gradients(img)
+        gx, gy = gradients if gradients is not None else image_gradients(img)
         segs = refine_segments(segs, gx, gy, params)
     segs = segs[_lengths(segs) >= params.min_length_px]
     return segs[np.argsort(-_lengths(segs))]
@@ -87,7 +87,8 @@ def _lengths(segs: np.ndarray) -> np.ndarray:
     return np.hypot(segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1])
 
 
-def _gradients(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def image_gradients(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The Scharr derivatives ``(gx, gy)`` (float32) of a grey image."""
     f = img.astype(np.float32)
     # Scharr is the most rotation-invariant 3×3 derivative; the edge peak is then symmetric.
     return cv2.Scharr(f, cv2.CV_32F, 1, 0), cv2.Scharr(f, cv2.CV_32F, 0, 1)

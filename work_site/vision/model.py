@@ -242,7 +242,7 @@ def visible_edges(
     if not occ and min_fraction <= 1.0 and E[..., 2].min(initial=np.inf) > 1e-3:
         # Nothing to cast rays against and all in front: every sample is visible.
         a = E[:, 0]
-        d = E[:, 1] - a
+        d = E[:, 1] - a  # the ends as the general case writes them (t 0 and 1): the same bits
         segs = project(np.stack([a + 0.0 * d, a + 1.0 * d], axis=1), K).reshape(-1, 4)
         return cand, segs, np.ones(len(cand))
     samples = E[:, 0, None, :] + ts[None, :, None] * (E[:, 1] - E[:, 0])[:, None, :]

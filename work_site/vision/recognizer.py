@@ -30,7 +30,7 @@ from work_site.vision.index import (
     group_segments,
     load_or_build_index,
 )
-from work_site.vision.lines import LineParams, check_grey_image, detect_lines
+from work_site.vision.lines import LineParams, check_grey_image, detect_lines, image_gradients
 from work_site.vision.model import (
     Occluders,
     VisionModel,
@@ -463,9 +463,7 @@ class Recognizer:
         if np.any(dist != 0):
             # Straight edges are straight only in an undistorted image.
             img = cv2.undistort(img, K, dist)
-        f = img.astype(np.float32)
-        gx = cv2.Scharr(f, cv2.CV_32F, 1, 0)
-        gy = cv2.Scharr(f, cv2.CV_32F, 0, 1)
+        gx, gy = image_gradients(img)  # for the lines' refinement and every verification
         segs = detect_lines(img, self.line_params, (gx, gy))
         X_CW = invert_pose(camera.X_WC)
         env_C = Occluders.of_parts(
