@@ -90,11 +90,8 @@ def _field_type(field: Field) -> Any:
     raise TypeError(f"unknown field kind {field!r}")  # a bug in a spec table, not bad input
 
 
-_ARRAY, _NESTED, _TUPLE = range(3)
-
-_CONVERSION: dict[type, tuple[type, tuple[str, ...], tuple[tuple[int, int, Any], ...]]] = {}
-"""For each body struct: its record class, the field names in order, and ``(index, kind,
-field)`` of each field that is not a scalar (scalars arrive as the record holds them)."""
+_CONVERTERS: dict[type, Any] = {}
+"""For each body struct: the function that makes its record (``_converter``)."""
 
 
 @functools.cache
@@ -102,15 +99,48 @@ def _body_type(cls: type) -> type:
     """The msgspec struct of record class ``cls``'s wire body (raises ``_UnsupportedError``)."""
     fields = [(name, _field_type(field)) for name, field in cls._SPEC.items()]
     body = msgspec.defstruct(f"{cls.__name__}Wire", fields, forbid_unknown_fields=True)
-    kinds = ((ArrayField, _ARRAY), (NestedField, _NESTED), (TupleField, _TUPLE))
-    special = tuple(
-        (i, kind, field)
-        for i, field in enumerate(cls._SPEC.values())
-        for t, kind in kinds
-        if type(field) is t
-    )
-    _CONVERSION[body] = (cls, tuple(cls._SPEC), special)
+    _CONVERTERS[body] = _converter(cls)
     return body
+
+
+def _converter(cls: type) -> Any:
+    """A function from a decoded wire struct of record class ``cls`` to the record, generated
+    from the spec: scalars as msgspec checked them, arrays checked by :func:`_array`, nested
+    records converted in turn, and no re-validation.
+
+    Why generated: a report's conversion, field by field in a loop, was as costly as msgspec's
+    whole decode, and the command path runs it cold after each wake-up.
+    """
+    ns: dict[str, Any] = {
+        "_cls": cls,
+        "_new": object.__new__,
+        "_setattr": object.__setattr__,
+        "_array": _array,
+        "_record": _record,
+        "_tuple": tuple,
+        "_map": map,
+    }
+    values = []
+    for i, (name, field) in enumerate(cls._SPEC.items()):
+        kind = type(field)
+        ns[f"_field{i}"] = field
+        if kind is ArrayField:
+            value = f"_array(_field{i}, w.{name})"
+        elif kind is NestedField:
+            value = f"_record(w.{name})"
+        elif kind is TupleField:
+            value = f"_tuple(_map(_record, w.{name}))"
+        else:
+            value = f"w.{name}"
+        values.append(f"{name!r}: {value}")
+    source = (
+        "def convert(w):\n"
+        "    obj = _new(_cls)\n"
+        f"    _setattr(obj, '__dict__', {{{', '.join(values)}}})\n"  # frozen: set, not assigned
+        "    return obj\n"
+    )
+    exec(source, ns)  # generated from the spec table alone, as dataclasses do
+    return ns["convert"]
 
 
 @functools.cache
@@ -144,7 +174,9 @@ def _array(field: ArrayField, wire: tuple[tuple[int, ...], bytes]) -> np.ndarray
     shape, data = wire
     if len(data) != math.prod(shape) * field.dtype.itemsize:
         raise ValueError("array data and shape disagree")
-    arr = np.frombuffer(data, field.dtype).reshape(shape)  # read-only: a view of bytes
+    arr = np.frombuffer(data, field.dtype)  # read-only: a view of bytes
+    if len(shape) != 1:
+        arr = arr.reshape(shape)
     if field.dtype.kind == "f" and not _all_finite(arr):
         raise ValueError("not finite")
     if field.check is not None and field.check(arr) is not None:
@@ -154,20 +186,7 @@ def _array(field: ArrayField, wire: tuple[tuple[int, ...], bytes]) -> np.ndarray
 
 def _record(wire: Any) -> Any:
     """The record of a decoded wire struct, without re-validating what msgspec did."""
-    cls, names, special = _CONVERSION[type(wire)]
-    values = msgspec.structs.astuple(wire)
-    if special:
-        values = list(values)
-        for i, kind, field in special:
-            if kind == _ARRAY:
-                values[i] = _array(field, values[i])
-            elif kind == _NESTED:
-                values[i] = _record(values[i])
-            else:
-                values[i] = tuple(map(_record, values[i]))
-    obj = object.__new__(cls)
-    obj.__dict__.update(zip(names, values, strict=True))  # frozen: set as the decoder does
-    return obj
+    return _CONVERTERS[type(wire)](wire)
 
 
 def fast_decode(decoder: msgspec.msgpack.Decoder, payload: bytes) -> Message | None:

@@ -27,8 +27,8 @@ from ._spec import (
     TupleField,
     check_camera_matrix,
     check_pose,
-    check_spec_matches_fields,
     check_unit_rows,
+    install_validating_init,
 )
 from .images import DEFAULT_JPEG_QUALITY, IMAGE_ENCODINGS
 
@@ -384,5 +384,5 @@ MESSAGE_TYPES: Mapping[str, type[Message]] = {
 """Top-level message classes by type tag."""
 
 for _cls in (*MESSAGE_TYPES.values(), Recognition, ContactState, MotionCommand, ObjectPose):
-    check_spec_matches_fields(_cls)
+    install_validating_init(_cls)
 del _cls

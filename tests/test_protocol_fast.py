@@ -5,16 +5,19 @@ path that refused everything would pass every other test here, only slowly."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from typing import Any
 
 import msgpack
+import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from protocol import MESSAGE_TYPES, CameraFrame, ExecutionReport, ProtocolError, Stop, encode
 from protocol._fast import decoder, fast_decode, fast_encode
+from protocol._spec import REFERENCE_INITS
 from protocol.codec import _reference_decode, _reference_encode
 from tests.test_protocol_codec import (
     MANY,
@@ -23,6 +26,7 @@ from tests.test_protocol_codec import (
     leaves,
     msgpack_values,
     pack,
+    random_message,
     small_messages,
     unpack,
 )
@@ -169,3 +173,102 @@ def test_fast_path_refuses_a_message_of_another_expected_type() -> None:
     payload = encode(Stop(reason="x", stamp_s=1.0))
     assert fast_decode(decoder((ExecutionReport,)), payload) is None
     assert isinstance(fast_decode(decoder((ExecutionReport, Stop)), payload), Stop)
+
+
+# ----------------------------------------------------------------- the generated constructors
+
+# Python values a caller may pass to a constructor: besides the wire's edge values, numpy
+# scalars and arrays of other dtypes, shapes, orders and contents, and subclasses of str.
+CONSTRUCTOR_VALUES: list[Any] = [
+    *EDGE_VALUES,
+    np.float64(1.5),
+    np.float32(1.5),
+    np.int64(3),
+    np.int8(-1),
+    np.bool_(True),
+    1,
+    2.5,
+    type("Text", (str,), {})("stopped"),
+    np.zeros(6),
+    np.zeros(6, np.float32),
+    np.zeros(6, ">f8"),
+    np.zeros(6, np.int64),
+    np.zeros(7),
+    np.zeros((6, 1)),
+    np.arange(12.0)[::2],
+    np.full(6, np.nan),
+    np.array([0.0, 0.0, 0.0, 0.0, 0.0, -np.inf]),
+    np.eye(4),
+    np.eye(4).T.copy(order="F"),
+    np.eye(4) * 2.0,
+    np.zeros((3, 3)),
+    np.ones((2, 3)) / np.sqrt(3.0),
+    np.zeros((0, 3)),
+    [0.0] * 6,
+    (1, 2, 3, 4, 5, 6),
+    [[1.0, 0.0], [0.0]],
+]
+
+
+def records_in(record: Any) -> list[Any]:
+    """``record`` and every record nested in it."""
+    out = [record]
+    for f in dataclasses.fields(record):
+        value = getattr(record, f.name)
+        items = value if isinstance(value, tuple) else (value,)
+        out.extend(r for item in items if dataclasses.is_dataclass(item) for r in records_in(item))
+    return out
+
+
+def construct(init: Any, cls: type, values: dict[str, Any]) -> Any:
+    """The record ``init`` makes of ``values``, or the ProtocolError it raised."""
+    obj = object.__new__(cls)
+    try:
+        init(obj, **values)
+    except ProtocolError as exc:
+        return exc
+    return obj
+
+
+@MANY
+@given(small_messages, st.data())
+def test_generated_constructors_agree_with_the_reference_on_any_value(
+    msg: Any, data: st.DataObject
+) -> None:
+    """Same record or same error text, for a message or any record in it, one field replaced."""
+    record = data.draw(st.sampled_from(records_in(msg)))
+    cls = type(record)
+    values = {f.name: getattr(record, f.name) for f in dataclasses.fields(record)}
+    name = data.draw(st.sampled_from(sorted(values)))
+    values[name] = data.draw(st.sampled_from(CONSTRUCTOR_VALUES) | msgpack_values)
+    ref = construct(REFERENCE_INITS[cls], cls, values)
+    new = construct(cls.__init__, cls, values)
+    if isinstance(ref, ProtocolError):
+        assert isinstance(new, ProtocolError) and str(new) == str(ref)
+        return
+    assert not isinstance(new, ProtocolError), f"refused what the reference accepts: {new}"
+    assert_same(ref, new, cls.__name__)
+    if isinstance(values[name], np.ndarray):  # a copy, never the caller's array
+        assert not np.shares_memory(getattr(new, name), values[name])
+
+
+def test_every_record_class_has_a_generated_constructor() -> None:
+    for msg in (random_message(cls, 0) for cls in ALL_TYPES):
+        for record in records_in(msg):
+            assert type(record).__init__ is not REFERENCE_INITS[type(record)]
+
+
+@pytest.mark.parametrize("cls", ALL_TYPES, ids=lambda c: c.__name__)
+def test_generated_constructors_copy_the_callers_arrays(cls: type) -> None:
+    """Every array field of every record: the record holds a read-only copy; the caller's array
+    is left as it was, writable (the common case of the generated code, taken every time)."""
+    for record in records_in(random_message(cls, 1)):
+        for f in dataclasses.fields(record):
+            held = getattr(record, f.name)
+            if not isinstance(held, np.ndarray):
+                continue
+            values = {g.name: getattr(record, g.name) for g in dataclasses.fields(record)}
+            values[f.name] = mine = held.copy()
+            new = type(record)(**values)
+            assert not np.shares_memory(getattr(new, f.name), mine), f.name
+            assert mine.flags.writeable and not getattr(new, f.name).flags.writeable, f.name
