@@ -105,13 +105,19 @@ def find_junctions(
 
 
 def group_segments(
-    segs: np.ndarray, params: GroupParams | None = None, ratio_weight: float = 0.6
+    segs: np.ndarray,
+    params: GroupParams | None = None,
+    ratio_weight: float = 0.6,
+    junctions: list[tuple[int, int, int, int, np.ndarray]] | None = None,
 ) -> Groups:
     """All chains of four segments joined at three junctions (both directions of each);
-    ``ratio_weight`` scales the length-ratio entry of the index vectors."""
+    ``ratio_weight`` scales the length-ratio entry of the index vectors. ``junctions``:
+    :func:`find_junctions` of ``segs`` with ``params``, if already known."""
     params = params or GroupParams()
+    if junctions is None:
+        junctions = find_junctions(segs, params)
     adj: dict[tuple[int, int], list[tuple[int, int, np.ndarray]]] = {}
-    for a, ea, b, eb, X in find_junctions(segs, params):
+    for a, ea, b, eb, X in junctions:
         adj.setdefault((a, ea), []).append((b, eb, X))
         adj.setdefault((b, eb), []).append((a, ea, X))
     chains, junctions = [], []

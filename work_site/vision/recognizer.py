@@ -351,15 +351,32 @@ class PoseSet:
         d = X_CO[:, None, :3, 3] - X_CO[None, :, :3, 3]
         close = np.einsum("abi,abi->ab", d, d) <= self.same_pose_m**2  # (k, k)
         ai, bi = np.nonzero(np.tril(close, -1))  # b recorded before a
-        same = np.zeros((k, k), dtype=bool)
         if len(ai):
             tr = np.einsum("mij,msij->ms", R[bi], RS[ai])
-            same[ai, bi] = np.any(tr > self.cos_min, axis=1)
-        for a in range(k):
-            new[a] = not old[a] and not (same[a, :a] & new[:a]).any()
-        for a in np.flatnonzero(new):
-            self.add(model, X_CO[a])
+            eq = np.any(tr > self.cos_min, axis=1)
+            ai, bi = ai[eq], bi[eq]
+        if len(ai) == 0:
+            new = ~old  # no two of them equal (the usual case): no order to follow
+        else:
+            same = np.zeros((k, k), dtype=bool)
+            same[ai, bi] = True
+            for a in range(k):
+                new[a] = not old[a] and not (same[a, :a] & new[:a]).any()
+        self._add_all(model, X_CO[new])
         return new
+
+    def _add_all(self, model: VisionModel, X_CO: np.ndarray) -> None:
+        """Record poses (k, 4, 4) of ``model``, as :meth:`add` on each in turn."""
+        k = len(X_CO)
+        n = self._n.get(model.name, 0)
+        X = self._X.get(model.name)
+        if X is None or n + k > len(X):
+            grown = np.empty((max(16, 2 * (n + k)), 4, 4))
+            if X is not None:
+                grown[:n] = X[:n]
+            self._X[model.name] = X = grown
+        X[n : n + k] = X_CO
+        self._n[model.name] = n + k
 
     def seen(self, model: VisionModel, X_CO: np.ndarray) -> bool:
         """Whether a pose of ``model`` equal to ``X_CO`` up to its symmetries was recorded."""
@@ -488,12 +505,13 @@ class Recognizer:
         if len(segs) < 4:
             return []
         p = self.params
-        hyps = self._hypotheses(segs, p.max_hypotheses) if p.max_hypotheses > 0 else []
+        junctions = find_junctions(segs, self.group_params)  # for both kinds of hypotheses
+        hyps = self._hypotheses(segs, p.max_hypotheses, junctions) if p.max_hypotheses > 0 else []
         candidates: list[_Candidate] = []
         claimed = np.zeros(len(segs), dtype=bool)
         tested = PoseSet(p.same_pose_m, p.same_pose_rad)
         confident: set[str] = set()
-        stream = self._table_stream(segs, K, camera.X_WC, gx, gy)
+        stream = self._table_stream(segs, K, camera.X_WC, gx, gy, junctions)
         stream += self._index_stream(hyps, K, camera.X_WC)
         X_WC = camera.X_WC
 
@@ -662,13 +680,14 @@ class Recognizer:
             explained[mj] = True
         return segs[~explained]
 
-    def _table_stream(self, segs, K, X_WC, gx, gy) -> list[tuple]:
+    def _table_stream(self, segs, K, X_WC, gx, gy, junctions=None) -> list[tuple]:
         """Table hypotheses ``(model, junction's two segments, X_CO)``, best supported first,
         only those with enough cheap support (see :mod:`work_site.vision.table`)."""
         p = self.params
         if not p.table_hypotheses:
             return []
-        junctions = find_junctions(segs, self.group_params)
+        if junctions is None:
+            junctions = find_junctions(segs, self.group_params)
         mod, X_WO, pairs = table_hypotheses(
             self._corners, junctions, segs, K, X_WC, self.table_z, p.table_angle_tol_rad
         )
@@ -687,11 +706,11 @@ class Recognizer:
         return [(self.models[int(mod[i])], pairs[i], X_CO[i]) for i in order]
 
     def _hypotheses(
-        self, segs: np.ndarray, limit: int | None = None
+        self, segs: np.ndarray, limit: int | None = None, junctions: list | None = None
     ) -> list[tuple[np.ndarray, np.ndarray, int]]:
         """(image group segments, junctions, index entry), most probable first; at most
-        ``limit`` of them."""
-        groups = group_segments(segs, self.group_params, self.index.params.ratio_weight)
+        ``limit`` of them. ``junctions``: :func:`find_junctions` of ``segs`` if known."""
+        groups = group_segments(segs, self.group_params, self.index.params.ratio_weight, junctions)
         # Each chain is listed in both directions, and so is every model chain in the index:
         # the reversed chain finds the reversed entries at the same distances and gives the
         # same pose. Look up one direction only.
