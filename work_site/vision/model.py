@@ -292,6 +292,20 @@ def convex_overlap_depth(
     return max(depth, 0.0)
 
 
+def overlap_exceeds(
+    A: np.ndarray, B: np.ndarray, normals_A: np.ndarray, normals_B: np.ndarray, limit_m: float
+) -> bool:
+    """Whether ``convex_overlap_depth(A, B, normals_A, normals_B) > limit_m`` (``limit_m`` ≥ 0).
+    The facet normals are tried first: when they alone separate the hulls to within
+    ``limit_m``, the edge axes (most of the work) cannot raise the depth, which is a minimum
+    over axes; only otherwise is the whole test run."""
+    axes = np.vstack([_unit_rows(normals_A), _unit_rows(normals_B)])
+    pa, pb = A @ axes.T, B @ axes.T
+    if np.min(np.minimum(pa.max(0), pb.max(0)) - np.maximum(pa.min(0), pb.min(0))) <= limit_m:
+        return False
+    return convex_overlap_depth(A, B, normals_A, normals_B) > limit_m
+
+
 @cache
 def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     """``np.triu_indices(n, 1)``, made once per ``n``."""

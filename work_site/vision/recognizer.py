@@ -35,9 +35,9 @@ from work_site.vision.model import (
     Occluders,
     VisionModel,
     containments,
-    convex_overlap_depth,
     cube_rotations,
     hull_facets,
+    overlap_exceeds,
     planes_in,
     project,
     transform,
@@ -1044,7 +1044,7 @@ class Recognizer:
             near = np.sqrt(np.sum((centres - ca) ** 2, axis=1)) <= _radius(a) + radii
             for k in np.flatnonzero(near):
                 b, nb = others[k]
-                if convex_overlap_depth(a, b, na, nb) > p.max_penetration_m:
+                if overlap_exceeds(a, b, na, nb, p.max_penetration_m):
                     return False
         return True
 
