@@ -852,6 +852,13 @@ class Recognizer:
         # Visible edges are recomputed only when the pose has moved (the quick support and
         # the first round see the same pose, and so do rounds whose refit was skipped).
         seen_at, vis = X, visible_edges(model, X, K, occluders_C)
+        first = None
+        if not grown:
+            # The first round's matching before the quick support: of the hypotheses that
+            # fail, most fail it, and it costs less (the same outcome either way).
+            first = match_segments(vis[1], segs, p.match_tol_px[0], p.match_angle_rad)
+            if len(np.unique(first[0])) < 4:
+                return None
         q_min = p.grown_quick_support_min if grown else p.quick_support_min
         if self._quick_support(model, X, K, gx, gy, occluders_C, vis[1]) < q_min:
             return None
@@ -862,13 +869,17 @@ class Recognizer:
                 return None
         mi = mj = np.zeros(0, int)
         fit = earlier = None
+        earlier_proj = None  # the visible edges at the earlier fit's pose, once known
         pairs = None
         for r in range(p.refine_rounds):
             tol = p.match_tol_px[min(r, len(p.match_tol_px) - 1)]
             if seen_at is not X:
                 seen_at, vis = X, visible_edges(model, X, K, occluders_C)
             ids, proj, _ = vis
-            mi, mj = match_segments(proj, segs, tol, p.match_angle_rad)
+            if r == 0 and first is not None:
+                mi, mj = first
+            else:
+                mi, mj = match_segments(proj, segs, tol, p.match_angle_rad)
             if len(np.unique(mi)) < 4:
                 return None
             now = (ids[mi].tobytes(), mj.tobytes())
@@ -877,6 +888,7 @@ class Recognizer:
             pairs = now
             if fit is not None:
                 earlier = fit
+                earlier_proj = proj if seen_at is fit.X_CO else None
             fit = fit_pose(
                 X, model.edges_O[ids[mi]], segs[mj], K, iterations=p.fit_iterations,
                 tol=p.fit_tol, prior=prior,
@@ -903,7 +915,7 @@ class Recognizer:
         ):
             # The last refit, to lines matched within the tightest tolerance, can pull a pose
             # off when a neighbour's lines come that close: the one before may verify better.
-            v1 = self._verify(model, earlier.X_CO, K, segs, gx, gy, occluders_C, None, need)
+            v1 = self._verify(model, earlier.X_CO, K, segs, gx, gy, occluders_C, earlier_proj, need)
             if v1.score > v.score and earlier.rms_px <= p.final_rms_max_px:
                 X, fit, v = earlier.X_CO, earlier, v1
         if v.length_fraction < need[0] or v.score < need[1]:
@@ -937,7 +949,7 @@ class Recognizer:
         mag = np.hypot(sx, sy)
         cos = np.abs(sx * nx + sy * ny) / np.maximum(mag, 1e-9)
         best = np.any((mag > p.gradient_min) & (cos > np.cos(p.gradient_angle_rad)), axis=0)
-        return float(best.mean())
+        return np.count_nonzero(best) / best.size  # as best.mean()
 
     def _verify(
         self,
@@ -983,7 +995,7 @@ class Recognizer:
         mag = np.hypot(sx, sy)
         cosang = np.abs(sx * N[:, 0] + sy * N[:, 1]) / np.maximum(mag, 1e-9)
         good = (mag > p.gradient_min) & (cosang > np.cos(p.gradient_angle_rad))
-        frac_grad = float(np.mean(good)) if len(good) else 0.0
+        frac_grad = np.count_nonzero(good) / len(good) if len(good) else 0.0  # as np.mean
         if need is not None and frac_grad < need[2]:
             return Verification(0.0, frac_grad, 0.0, [], 0.0)
         mi, mj = match_segments(proj, segs, p.verify_tol_px, p.verify_angle_rad)
@@ -1005,7 +1017,8 @@ class Recognizer:
         uv = project(transform(X_CO, model.vertices_O), K).astype(np.float32)
         hull = cv2.convexHull(uv).reshape(-1, 2).astype(np.float64)
         on_hull = _distance_to_polygon(P.astype(np.float64), hull) < 1.0
-        frac_sil = float(np.mean(good[on_hull])) if on_hull.any() else 0.0
+        n_hull = np.count_nonzero(on_hull)
+        frac_sil = np.count_nonzero(good[on_hull]) / n_hull if n_hull else 0.0
         frac_extra = 1.0
         if part_px is not None:
             # What the bigger model adds to the part it was grown around must show too, where
