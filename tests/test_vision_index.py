@@ -109,3 +109,24 @@ def test_index_is_cached_and_keyed_by_file_contents(small_models, tmp_path) -> N
     cached[0].write_bytes(b"not an npz")
     rebuilt = load_or_build_index(models, files, params, cache_dir=tmp_path)
     np.testing.assert_array_equal(first.vectors, rebuilt.vectors)
+
+
+def test_index_query_is_exact_within_max_distance(small_models, tmp_path) -> None:
+    models, files = small_models
+    index = load_or_build_index(models, files, IndexParams(n_views=60), cache_dir=tmp_path)
+    rng = np.random.default_rng(0)
+    V = index.vectors.astype(np.float64)
+    # Near an indexed vector (its neighbours within reach) and far from all of them
+    queries = np.vstack([V[rng.integers(len(V), size=20)] + rng.normal(0, 0.02, (20, V.shape[1])),
+                         V[:3] + 10.0])  # fmt: skip
+    ids, d2 = index.query(queries)
+    brute = np.sum((queries[:, None, :] - V[None]) ** 2, axis=2)
+    k = index.params.neighbours
+    nearest = np.sort(brute, axis=1)[:, :k]
+    reach = index.params.max_distance**2
+    np.testing.assert_allclose(d2[nearest < reach], nearest[nearest < reach], rtol=1e-9)
+    assert np.all(np.isinf(d2[nearest >= reach]))
+    assert np.all(ids[np.isinf(d2)] == 0)
+    found = np.isfinite(d2)
+    np.testing.assert_allclose(brute[np.nonzero(found)[0], ids[found]], d2[found], rtol=1e-9)
+    assert np.isinf(d2[-3:]).all()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from work_site.vision.model import convex_overlap_depth, hull_facets
+from work_site.vision.model import convex_overlap_depth, hull_facets, overlap_exceeds
 
 
 def _box(lo, hi) -> np.ndarray:
@@ -26,6 +26,28 @@ def test_overlap_depth_with_given_normals_matches_the_hull_computation() -> None
     b = a + np.array([0.045, 0.0, 0.0])
     assert abs(convex_overlap_depth(a, b, na, na) - 0.005) < 1e-12
     assert convex_overlap_depth(a, a + np.array([0.06, 0, 0]), na, na) == 0.0
+
+
+def test_overlap_exceeds_decides_as_the_full_depth() -> None:
+    """The facet-normal shortcut gives the full test's answer, tilted boxes included (whose
+    separating axis may be an edge cross product), over and under the limit."""
+    rng = np.random.default_rng(11)
+    a = _box([0, 0, 0], [0.05, 0.05, 0.05])
+    na = np.array([n for n, _ in hull_facets(a)])
+    depths = []
+    for _ in range(300):
+        w = rng.normal(size=3)
+        w *= rng.uniform(0, np.pi) / np.linalg.norm(w)
+        K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        t = np.linalg.norm(w)
+        R = np.eye(3) + np.sin(t) / t * K + (1 - np.cos(t)) / t**2 * K @ K
+        b = _box([0, 0, 0], [0.1, 0.05, 0.025]) @ R.T + rng.uniform(-0.1, 0.1, 3)
+        nb = np.array([n for n, _ in hull_facets(b)])
+        depth = convex_overlap_depth(a, b, na, nb)
+        depths.append(depth)
+        for limit in (0.0, 0.002, 0.01):
+            assert overlap_exceeds(a, b, na, nb, limit) == (depth > limit)
+    assert min(depths) == 0.0 and max(depths) > 0.01  # both answers were asked for
 
 
 def test_occlusion_by_several_parts_is_the_union_of_each_part() -> None:

@@ -140,15 +140,15 @@ def occluded(points_C: np.ndarray, occluders_C: list[np.ndarray]) -> np.ndarray:
     hidden = np.zeros(len(points_C), dtype=bool)
     if len(occluders_C) == 0 or len(points_C) == 0:
         return hidden
-    planes = np.vstack(occluders_C)  # (P, 4)
-    starts = np.cumsum([0] + [len(q) for q in occluders_C[:-1]])
-    dist = np.linalg.norm(points_C, axis=1)
+    planes = np.concatenate(occluders_C)  # (P, 4)
+    starts = list(itertools.accumulate((len(q) for q in occluders_C[:-1]), initial=0))
+    dist = np.sqrt(np.sum(points_C * points_C, axis=1))  # as np.linalg.norm, fewer calls
     eps_t = (VISIBILITY_EPS_M / np.maximum(dist, 1e-9))[:, None]
     # Ray x(t) = t·p for t in [0, 1]; inside a part where t·(n·p) ≤ d for each of its faces.
     den = points_C @ planes[:, :3].T  # (n, P)
-    num = np.broadcast_to(planes[:, 3], den.shape)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = num / den
+    num = planes[:, 3]  # broadcast along the rows
+    # t where den = 0 is never used (the two wheres below): divide by 1 there, not by 0
+    t = num / np.where(den == 0, 1.0, den)
     t_enter = np.maximum.reduceat(np.where(den < 0, t, 0.0), starts, axis=1)  # (n, parts)
     t_exit = np.minimum.reduceat(np.where(den > 0, t, np.inf), starts, axis=1)
     parallel_out = np.logical_or.reduceat((den == 0) & (num < 0), starts, axis=1)
@@ -290,6 +290,20 @@ def convex_overlap_depth(
     pa, pb = A @ axes.T, B @ axes.T
     depth = float(np.min(np.minimum(pa.max(0), pb.max(0)) - np.maximum(pa.min(0), pb.min(0))))
     return max(depth, 0.0)
+
+
+def overlap_exceeds(
+    A: np.ndarray, B: np.ndarray, normals_A: np.ndarray, normals_B: np.ndarray, limit_m: float
+) -> bool:
+    """Whether ``convex_overlap_depth(A, B, normals_A, normals_B) > limit_m`` (``limit_m`` ≥ 0).
+    The facet normals are tried first: when they alone separate the hulls to within
+    ``limit_m``, the edge axes (most of the work) cannot raise the depth, which is a minimum
+    over axes; only otherwise is the whole test run."""
+    axes = np.vstack([_unit_rows(normals_A), _unit_rows(normals_B)])
+    pa, pb = A @ axes.T, B @ axes.T
+    if np.min(np.minimum(pa.max(0), pb.max(0)) - np.maximum(pa.min(0), pb.min(0))) <= limit_m:
+        return False
+    return convex_overlap_depth(A, B, normals_A, normals_B) > limit_m
 
 
 @cache

@@ -280,13 +280,23 @@ def batch_support(
         sel = slice(None) if rows is None else rows
         tq = t[None, :, None]
         nxr, nyr = nx[sel], ny[sel]
-        X = u0[sel] + tq * du[sel] + offsets * nxr  # (3, t, r)
-        Y = v0[sel] + tq * dv[sel] + offsets * nyr
+        # Sums in float64 stored straight as the float32 that remap wants (as a cast would
+        # round them), and in-place float32 arithmetic after: these arrays are large.
+        X = np.empty((len(offsets), len(t), len(nxr)), np.float32)
+        Y = np.empty_like(X)
+        np.add(u0[sel] + tq * du[sel], offsets * nxr, out=X)  # (3, t, r)
+        np.add(v0[sel] + tq * dv[sel], offsets * nyr, out=Y)
         sx, sy = sample_gradient_xy(gx, gy, X, Y)
         # mag > min and |cos| > cos_min, without roots or divisions
-        mag2 = sx * sx + sy * sy
-        dot = sx * nxr.astype(np.float32) + sy * nyr.astype(np.float32)
-        good = np.any((mag2 > g2) & (dot * dot > cos2 * mag2), axis=0)
+        mag2 = sx * sx
+        mag2 += sy * sy
+        dot = sx * nxr.astype(np.float32)
+        dot += sy * nyr.astype(np.float32)
+        dot *= dot
+        ok = mag2 > g2
+        mag2 *= cos2
+        ok &= dot > mag2
+        good = ok[0] | ok[1] | ok[2] if len(ok) == 3 else ok.any(axis=0)
         return good.sum(axis=0)
 
     all_rows = None
