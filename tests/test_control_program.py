@@ -5,11 +5,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pybullet as p
 import pytest
 
 from models.robot import load_robot
 from models.scene import load_scene
-from models.transforms import make_pose, rpy_to_R
+from models.transforms import make_pose, rpy_to_R, so3_log
 from protocol import ContactState, MotionCommand, MotionProgram, ProtocolError
 from work_site.control.controller import TaskController
 from work_site.control.executor import Execution, check_program
@@ -178,3 +179,42 @@ def test_a_work_site_falling_behind_its_time_scale_says_so(caplog) -> None:
     assert record.levelno == logging.WARNING
     assert "falling behind: simulating at 0.25× real time" in record.getMessage()
     assert "asked 4.00×" in record.getMessage()
+
+
+def test_the_pads_hold_the_cube_on_an_area_against_torques(site) -> None:
+    """Rubber pads, not a hinge: each pad presses on the four corners of its overlap with the
+    cube, and the held cube neither turns about the grip axis nor tips across it under
+    0.8 N·m (rigid pads held it on one corner each, diagonally opposite: it turned 4° at
+    0.4 N·m about the grip axis and slipped away at 0.6 N·m)."""
+    world, controller = site
+    X_cube = world.object_pose("cube")
+    lifted = X_cube.copy()
+    lifted[2, 3] += 0.03
+    program = MotionProgram(
+        program_id="hold",
+        X_GP=TOP_GRASP,
+        commands=(command("guarded_grasp", X_cube), command("move", lifted)),
+    )
+    reports = []
+    run(Execution(program, controller, lambda *r: reports.append(r)))
+    assert reports[-1][2] == "done", reports
+    cube = world.bodies["cube"]
+    for finger in world.finger_joints:
+        forces = [
+            c[9]
+            for c in p.getContactPoints(world.robot, cube, finger, -1, physicsClientId=world.cid)
+        ]
+        assert len(forces) == 4, forces
+        assert min(forces) > 0.15 * sum(forces), forces  # shared, not on one corner
+    X_WG = controller.measured_tcp_W()
+    X_GP0 = np.linalg.inv(X_WG) @ world.object_pose("cube")
+    for axis in range(3):  # across the pads (G's x, z) and the grip axis (G's y)
+        torque_W = 0.8 * X_WG[:3, axis]
+        for _ in range(300):
+            p.applyExternalTorque(
+                cube, -1, torque_W.tolist(), p.WORLD_FRAME, physicsClientId=world.cid
+            )
+            world.step(1)
+        X_GP = np.linalg.inv(controller.measured_tcp_W()) @ world.object_pose("cube")
+        turned = math.degrees(np.linalg.norm(so3_log(X_GP0[:3, :3].T @ X_GP[:3, :3])))
+        assert turned < 0.2, (axis, turned)

@@ -210,7 +210,7 @@ def test_home_configuration(puma: RobotModel) -> None:
     assert np.all(q > puma.q_lower) and np.all(q < puma.q_upper)
     poses = puma.link_poses_W(q)
     X_WG = poses["gripper_tcp"]
-    np.testing.assert_allclose(X_WG[:3, 3], [0.30, 0.0, 0.25], atol=1e-6)
+    np.testing.assert_allclose(X_WG[:3, 3], [0.18, 0.0, 0.40], atol=1e-6)
     np.testing.assert_allclose(X_WG[:3, 2], [0.0, 0.0, -1.0], atol=1e-6)
     assert abs(q[4]) > 0.5  # wrist pitch far from the q5 = 0 singularity
     # Elbow up: the elbow lies above the shoulder-to-wrist-centre line in the arm's plane.

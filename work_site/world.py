@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pybullet as p
 
-from models.geometry import ConvexPart, mass_properties, write_obj
+from models.geometry import mass_properties, write_obj
 from models.scene import Scene, SceneObject
 from models.transforms import (
     R_to_quat_wxyz,
@@ -37,9 +37,18 @@ FINGER_LOCK_MAX_FORCE_N = 200.0
 FINGER_PAD_FRICTION = 2.0
 """Rubber finger pads: pybullet multiplies it with the wood's default 0.5. Measured carrying the
 cube 6 cm up and 5.8 cm across: with 0.5 it slid 20 mm in the grip, with 2.0 it ends 1.1 mm off."""
-SERVO_POSITION_GAIN = 1.0
+FINGER_PAD_FRICTION_ANCHOR = True
+"""pybullet's friction anchors on the pads (positional friction correction): without them its
+velocity-level friction let the held cube creep about the grip axis under loads far below the
+slip torque, 0.1° a free move (0.7° before the first contact, scripted around-corner seed 4;
+0.14° with them, through the contact moves too)."""
+SERVO_POSITION_GAIN = 0.3
 """pybullet's joint servo gain (its default is 0.1). Measured on a 10 cm TCP line at 0.1 m/s:
-tracking error 0.48 mm at 0.1, 0.31 mm at 0.3, 0.10 mm at 1.0."""
+tracking error 0.48 mm at 0.1, 0.31 mm at 0.3, 0.10 mm at 1.0. At 1.0 the servo closes its
+whole error in one 1 ms step, and against the contacts (≈ 1e5 N/m) that rang: the wrist read
+±30–60 N from one step to the next while the held cube pressed 5 N on the table and the frame
+(0.0 N in free space), tens of newtons the force limit had to average away. At 0.5 it still
+rang (±5–10 N), at 0.3 it reads 5.0 ± 0.1 N (scripted around-corner seed 5, command 10)."""
 ENV_CONTACT_STIFFNESS_N_PER_M = 1e4
 """Contact stiffness of the fixed environment (table, frame): wood backed by a robot that is
 not infinitely stiff. pybullet's default rigid contact answered a 20 mm/s touch with a 1,012 N
@@ -47,9 +56,15 @@ spike in one 1 ms step, which no force guard can catch; at 1e4 N/m a 10 N guard 
 0.2 N of its threshold (`work-site bench control`), and a 75 g block sinks 0.07 mm."""
 ENV_CONTACT_DAMPING_N_S_PER_M = 100.0
 """Damping of those contacts: enough that a touch does not bounce."""
-PYBULLET_CONVEX_MARGIN_M = 1e-3
-"""pybullet's collision margin around convex meshes (measured: blocks rest 1 mm high without
-compensation)."""
+PAD_CONTACT_STIFFNESS_N_PER_M = 5e4
+"""Contact stiffness of the finger pads (rubber; per contact point, four a pad). Rigid, the
+40 N grip sat on one corner of each pad's overlap with the cube, diagonally opposite ones (the
+cube a few hundredths of a degree off parallel is enough): a hinge about the line between them,
+and the held cube turned 5–35° in contact moves round the frame's corner. Compliant, each pad
+presses with ≈ 10 N on each of the four corners (0.2 mm compression), the cube tips 0.01° at
+1 N·m about the axes across the grip, and it holds 1.0 N·m about the grip axis (0.6 before)."""
+PAD_CONTACT_DAMPING_N_S_PER_M = 100.0
+"""Damping of the pads' contacts: about critical for the held cube on four such points."""
 
 
 FINGER_OVERCLOSE_TOL_M = 2e-4
@@ -63,20 +78,6 @@ def _opening(sum_m: float) -> float:
     if sum_m < -FINGER_OVERCLOSE_TOL_M:
         raise RuntimeError(f"gripper fingers closed past each other ({sum_m:.3g} m)")
     return max(float(sum_m), 0.0)
-
-
-def _shrink(part: ConvexPart, margin_m: float) -> np.ndarray:
-    """Vertices of ``part`` with every face plane moved inwards by ``margin_m``.
-
-    Each vertex becomes the least-squares meet of its faces' moved planes (exact where three
-    faces meet, as at every vertex of our prisms).
-    """
-    out = np.empty_like(part.vertices_O)
-    for i in range(len(part.vertices_O)):
-        faces = [k for k, f in enumerate(part.faces) if i in f]
-        N, d = part.normals_O[faces], part.offsets_m[faces] - margin_m
-        out[i] = np.linalg.lstsq(N, d, rcond=None)[0]
-    return out
 
 
 def pose_from_pybullet(position, quat_xyzw) -> np.ndarray:
@@ -114,6 +115,12 @@ class World:
         self.cid = p.connect(p.GUI if gui else p.DIRECT)
         p.setGravity(*GRAVITY_W, physicsClientId=self.cid)
         p.setTimeStep(time_step_s, physicsClientId=self.cid)
+        # Polyhedral contacts: a face on a face gives the corners of their overlap at every step
+        # (GJK gave one point a step, gathered in a manifold: the pads held the cube on single,
+        # arbitrary points). The separating axis by SAT, not GJK's: with GJK's, the cube's corner
+        # at the frame's top edge was pushed along the cube's own face normal with 2–3 mm of
+        # false depth (a 30 N stop round the frame's corner).
+        p.setPhysicsEngineParameter(enableSAT=1, physicsClientId=self.cid)
         self.bodies: dict[str, int] = {}
         self._X_OI: dict[str, np.ndarray] = {}  # inertial frame in the object frame
         with tempfile.TemporaryDirectory(prefix="telerobot-meshes-") as tmp:
@@ -126,17 +133,16 @@ class World:
         self.robot = self._load_robot()
 
     def _create_body(self, obj: SceneObject, tmp: Path) -> int:
-        """A pybullet body whose collision shape matches the model's faces exactly.
+        """A pybullet body whose collision shape is the model's convex parts, exactly.
 
-        pybullet grows every convex mesh by its collision margin, which would float blocks
-        ``PYBULLET_CONVEX_MARGIN_M`` above whatever they rest on; we hand it the parts shrunk by
-        that margin, so that the grown shapes are the model's (up to rounded edges).
+        With polyhedral (SAT) features pybullet clips the polyhedra themselves and leaves out
+        the collision margin (the parts used to be shrunk by it for GJK, rounding every edge).
         """
         model = obj.model
         collision_files, visual_files = [], []
         for k, part in enumerate(model.parts):
             for files, V, kind in (
-                (collision_files, _shrink(part, PYBULLET_CONVEX_MARGIN_M), "c"),
+                (collision_files, part.vertices_O, "c"),
                 (visual_files, part.vertices_O, "v"),
             ):
                 path = tmp / f"{obj.name}_{k}_{kind}.obj"
@@ -144,7 +150,10 @@ class World:
                 files.append(str(path))
         n = len(model.parts)
         collision = p.createCollisionShapeArray(
-            [p.GEOM_MESH] * n, fileNames=collision_files, physicsClientId=self.cid
+            [p.GEOM_MESH] * n,
+            fileNames=collision_files,
+            flags=[p.URDF_INITIALIZE_SAT_FEATURES] * n,
+            physicsClientId=self.cid,
         )
         visual = p.createVisualShapeArray(
             [p.GEOM_MESH] * n, fileNames=visual_files, physicsClientId=self.cid
@@ -186,7 +195,7 @@ class World:
             position,
             quat,
             useFixedBase=True,
-            flags=p.URDF_USE_INERTIA_FROM_FILE,
+            flags=p.URDF_USE_INERTIA_FROM_FILE | p.URDF_INITIALIZE_SAT_FEATURES,
             physicsClientId=self.cid,
         )
         joints, links = {}, {}
@@ -238,7 +247,13 @@ class World:
         self.unlock_fingers()
         for finger in self.finger_joints:
             p.changeDynamics(
-                robot, finger, lateralFriction=FINGER_PAD_FRICTION, physicsClientId=self.cid
+                robot,
+                finger,
+                lateralFriction=FINGER_PAD_FRICTION,
+                contactStiffness=PAD_CONTACT_STIFFNESS_N_PER_M,
+                contactDamping=PAD_CONTACT_DAMPING_N_S_PER_M,
+                frictionAnchor=FINGER_PAD_FRICTION_ANCHOR,
+                physicsClientId=self.cid,
             )
         return robot
 

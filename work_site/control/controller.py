@@ -74,7 +74,8 @@ programs of seeds 0–3, four start phases each: 2 of 16 against 13 of 14, docs/
 with the turn made off the new face and the offset carried right, seeds 0–19: 2 of 20 before,
 16 of 20 after). `work-site serve
 --surface-stiffness 1000` gives the isotropic impedance back. A 6 cm slide along a wall ends
-within 0.5 mm of its goal at every setting from 1,000 to 20,000 N/m."""
+0.38 mm short of its goal at 5,000 N/m, 2.16 mm at 1,000 (friction / stiffness; within 0.5 mm
+at every setting while the pads held the cube on single points, `work-site bench control`)."""
 
 
 @dataclass(frozen=True)
