@@ -76,6 +76,17 @@ def test_nearest_solution_to_q_is_q(q: np.ndarray) -> None:
         np.testing.assert_allclose(result.q, q, atol=1e-7)
 
 
+def test_a_joint_on_its_limit_with_the_arm_stretched_is_reached() -> None:
+    """Found by hypothesis: q2 on its lower limit, q3 ≈ 0 (elbow singularity) and q5 = 0. The
+    solutions' q2 came out 2e-9 and 6e-8 rad beyond the limit (acos near 1) and were refused."""
+    q = np.array([0.0, ROBOT.q_lower[1], -5.96e-8, 0.0, 0.0, 0.0])
+    result = ik_nearest(ROBOT.flange_pose_W(q), q, ROBOT)
+    assert result.ok, result.reason
+    assert "elbow" in result.singular
+    assert ROBOT.q_lower[1] <= result.q[1] <= ROBOT.q_upper[1]
+    np.testing.assert_allclose(ROBOT.flange_pose_W(result.q), ROBOT.flange_pose_W(q), atol=1e-5)
+
+
 def test_home_pose_gives_home() -> None:
     result = ik_nearest(ROBOT.flange_pose_W(np.array(HOME_Q)), np.array(HOME_Q), ROBOT)
     assert result.ok and not result.singular

@@ -29,6 +29,10 @@ SINGULAR_ELBOW = 1e-9
 """|cos q3| within this of 1: the arm is fully stretched or folded (elbow singularity)."""
 JOINT_LIMIT_TOL_RAD = 1e-9
 """A solution this close outside a joint limit is put on the limit (rounding), not refused."""
+ELBOW_LIMIT_TOL_RAD = 3e-7
+"""The same for q2 and q3 at the elbow singularity: there q3 = acos(cos q3) with cos q3 ≈ ±1,
+where a rounding error δ of the cosine (~1e-15) becomes √(2δ) ≈ 5e-8 rad of q3, and q2 follows
+(6e-8 rad seen: q2 on its limit, arm stretched, refused against the 1e-9 bound)."""
 REACH_TOL_M = 1e-9
 """A wrist centre this much beyond reach is still taken as reachable (rounding)."""
 _AXES = ((0, 0, 1), (0, 1, 0), (0, 1, 0), (0, 0, 1), (0, 1, 0), (0, 0, 1))
@@ -192,7 +196,10 @@ def ik_nearest(
             f"unreachable: wrist centre {d:.3f} m from the shoulder, "
             f"reach {g.upper_arm_m + g.forearm_m:.3f} m",
         )
-    lo, hi = robot.q_lower - JOINT_LIMIT_TOL_RAD, robot.q_upper + JOINT_LIMIT_TOL_RAD
+    limit_tol = np.full(6, JOINT_LIMIT_TOL_RAD)
+    if "elbow" in singular.split("+"):
+        limit_tol[1:3] = ELBOW_LIMIT_TOL_RAD
+    lo, hi = robot.q_lower - limit_tol, robot.q_upper + limit_tol
     w = np.ones(6) if weights is None else np.asarray(weights, dtype=np.float64)
     best, best_cost, violations = None, math.inf, []
     for q in solutions:
