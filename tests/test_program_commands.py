@@ -26,9 +26,10 @@ from operator_site.program import (
     scenarios,
     target_bias,
 )
-from operator_site.program.commands import CORNER_CLEARANCE_M
+from operator_site.program.commands import CORNER_CLEARANCE_M, _force_limit
 from operator_site.program.poses import interpolate
-from protocol import MotionCommand, MotionProgram, decode, encode
+from protocol import ContactState, MotionCommand, MotionProgram, decode, encode
+from work_site.control.controller import HARD_FORCE_LIMIT_N
 
 
 @pytest.fixture(scope="module")
@@ -383,3 +384,18 @@ def test_around_corner_demonstrations_become_programs_that_pass_the_check(seed: 
         for contacts in (n_before, n_after)
     ]
     assert float((normals[0] @ normals[1].T).max()) < np.cos(np.radians(20.0))
+
+
+def test_a_move_with_many_contacts_asks_no_more_than_the_work_site_allows() -> None:
+    """Four contact directions would ask 10 + 4 × 10 = 50 N; the work site refuses any command
+    above its own 40 N (around-corner seed 45's program was refused so)."""
+    params = CommandParams()
+    assert params.max_force_limit_n == HARD_FORCE_LIMIT_N
+    normals = np.eye(3)
+    contacts = (
+        ContactState(object="table", normals_W=normals[2:]),
+        ContactState(object="frame", normals_W=normals[:2]),
+        ContactState(object="hex_prism", normals_W=-normals[:1]),
+    )
+    assert _force_limit(contacts[:1], params) == 20.0
+    assert _force_limit(contacts, params) == HARD_FORCE_LIMIT_N

@@ -76,7 +76,10 @@ class CommandParams:
     the work site verifies each by a force along it. Round an outside corner the pivot meets
     friction and the real block's small turn in the grip on top of that: at 5 N per direction
     (20 N for wall and table) six of ten scripted runs stopped on the limit; at 10 two of them,
-    re-run, succeeded. The work site's own 40 N limit stays above every program's."""
+    re-run, succeeded. Capped at ``max_force_limit_n``."""
+    max_force_limit_n: float = 40.0
+    """The work site's own limit (``HARD_FORCE_LIMIT_N``), which it refuses any command to
+    exceed: four contact directions would ask 50 N (around-corner seed 45, refused)."""
     departure_m: float = 0.06
     """After the release the gripper rises this far (clears the 30 mm frame bars)."""
     target_bias_m: float = 0.005
@@ -101,7 +104,8 @@ def contact_direction_count(contacts: tuple[ContactState, ...]) -> int:
 
 def _force_limit(contacts: tuple[ContactState, ...], params: CommandParams) -> float:
     n = contact_direction_count(contacts)
-    return params.force_limit_n + params.contact_force_per_direction_n * n
+    wanted = params.force_limit_n + params.contact_force_per_direction_n * n
+    return min(wanted, params.max_force_limit_n)
 
 
 def _fits(path: WorkpiecePath, a: int, b: int, params: CommandParams) -> bool:
