@@ -17,13 +17,13 @@ from __future__ import annotations
 import functools
 import math
 import operator
-import sys
 from typing import Annotated, Any, Literal
 
 import msgspec
 import numpy as np
 
 from ._spec import (
+    _FLOAT_MAX,
     ArrayField,
     Field,
     FloatField,
@@ -37,10 +37,6 @@ from ._spec import (
 )
 from .errors import ProtocolError
 from .messages import MESSAGE_TYPES, SCHEMA_VERSION, Message
-
-_FLOAT_MAX = sys.float_info.max
-"""Bounds every float field with ±this, which is what refuses NaN (no comparison holds) and ±inf:
-the reference accepts finite floats only."""
 
 
 class _UnsupportedError(Exception):

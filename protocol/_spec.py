@@ -376,6 +376,8 @@ def check_spec_matches_fields(cls: type) -> None:
 
 
 _FLOAT_MAX = sys.float_info.max
+"""Bounds every float field with ±this (the generated constructors, msgspec's types), which is
+what refuses NaN (no comparison holds) and ±inf: the reference accepts finite floats only."""
 
 REFERENCE_INITS: dict[type, Callable[..., None]] = {}
 """Each record class's dataclass ``__init__`` (which runs ``Record.__post_init__``), kept when
