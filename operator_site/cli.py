@@ -63,6 +63,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--seeds", type=int, default=100, help="e2e: seeds per task (default: %(default)s)"
     )
     bench.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        metavar="N",
+        help="e2e: the first seed (default: %(default)s); seeds N … N + --seeds − 1 are run",
+    )
+    bench.add_argument(
+        "--keep",
+        action="store_true",
+        help="e2e: keep the rows of other tasks and seeds already in --out's e2e.jsonl and "
+        "summarise them with this run's (a long run in parts)",
+    )
+    bench.add_argument(
         "--oracle-vision",
         action="store_true",
         help="e2e: blocks' poses from the work site's ground truth instead of vision",
@@ -355,6 +368,8 @@ def run_bench(args: argparse.Namespace) -> int:
             oracle=args.oracle_vision,
             time_scale=args.time_scale,
             work_site_args=_work_site_args(args),
+            first_seed=args.first_seed,
+            keep=args.keep,
         )
         print(json.dumps(results))
         return 0

@@ -1,14 +1,18 @@
 """``operator-site bench e2e``: the scripted tasks over many seeds (issue 9).
 
 Each seed runs :func:`operator_site.scripted.run_scripted` against its own freshly started,
-seeded work site. Writes ``e2e.csv`` (one row per run), ``e2e.json`` (the summary) and
-``e2e.png`` (final errors and stage times) into the output directory.
+seeded work site. Writes ``e2e.jsonl`` (one JSON row per run, appended as each run ends, so a
+long run that is stopped loses nothing), ``e2e.csv`` (the same rows), ``e2e.json`` (the summary)
+and ``e2e.png`` (final errors and stage times) into the output directory. With ``keep``, the
+rows already in ``e2e.jsonl`` for other tasks or seeds stay and are summarised too: a 100-seed
+run can be made in parts (``--first-seed``), one task at a time.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import subprocess
 import sys
 from pathlib import Path
 
@@ -85,6 +89,33 @@ def _plot(out_dir: Path, by_task: dict[str, list[dict]]) -> None:
     plt.close(fig)
 
 
+def _tree() -> str:
+    """The source tree the rows come from: ``git describe`` of this checkout ("unknown" outside
+    git), ``-dirty`` when it has uncommitted changes."""
+    try:
+        return subprocess.run(
+            ["git", "describe", "--always", "--dirty"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _read_rows(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    rows = []
+    for k, line in enumerate(path.read_text().splitlines(), 1):
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError as e:  # a line cut by a killed run: say so, keep the rest
+            print(f"{path}:{k}: skipped, not a JSON row ({e})", file=sys.stderr)
+    return rows
+
+
 def main(
     out_dir: Path,
     seeds: int,
@@ -92,14 +123,21 @@ def main(
     oracle: bool = False,
     time_scale: float = 1.0,
     work_site_args: tuple[str, ...] = (),
+    first_seed: int = 0,
+    keep: bool = False,
 ) -> dict:
-    """Run ``seeds`` seeds of each task (work sites started at ``time_scale`` with
-    ``work_site_args``); write the files; the summary by task."""
+    """Run seeds ``first_seed`` … ``first_seed + seeds − 1`` of each task (work sites started at
+    ``time_scale`` with ``work_site_args``); write the files; the summary by task (over the
+    kept rows too with ``keep``)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    by_task: dict[str, list[dict]] = {}
+    rows_path = out_dir / "e2e.jsonl"
+    todo = {(task, seed) for task in tasks for seed in range(first_seed, first_seed + seeds)}
+    kept = [r for r in _read_rows(rows_path) if (r["task"], r["seed"]) not in todo] if keep else []
+    with rows_path.open("w") as f:
+        f.writelines(json.dumps(r) + "\n" for r in kept)
+    tree = _tree()
     for task in tasks:
-        rows = by_task.setdefault(task, [])
-        for seed in range(seeds):
+        for seed in range(first_seed, first_seed + seeds):
             r = run_scripted(
                 task,
                 seed,
@@ -108,7 +146,9 @@ def main(
                 time_scale=time_scale,
                 work_site_args=work_site_args,
             )
-            rows.append(r)
+            r["tree"] = tree
+            with rows_path.open("a") as f:
+                f.write(json.dumps(r) + "\n")
             print(
                 f"{task} seed {seed}: {'ok' if r.get('success') else 'FAILED'} "
                 f"{r.get('final_error_mm', float('nan')):.3f} mm "
@@ -116,10 +156,13 @@ def main(
                 file=sys.stderr,
                 flush=True,
             )
+    by_task: dict[str, list[dict]] = {}
+    for r in sorted(_read_rows(rows_path), key=lambda r: (TASKS.index(r["task"]), r["seed"])):
+        by_task.setdefault(r["task"], []).append(r)
     fields = ["task", "seed", "success", "workpiece", "corner", "final_error_mm",
               "final_error_deg", "contacts_required", "contacts_verified", "commands",
               "time_scale_achieved",
-              *[f"{s}_s" for s in STAGES], "execution", "error"]  # fmt: skip
+              *[f"{s}_s" for s in STAGES], "execution", "error", "tree"]  # fmt: skip
     with (out_dir / "e2e.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         writer.writeheader()
@@ -127,6 +170,8 @@ def main(
             for r in rows:
                 writer.writerow(r | {f"{s}_s": r["stage_s"].get(s) for s in STAGES})
     summary = {task: summarise(rows) for task, rows in by_task.items()}
+    for task, rows in by_task.items():
+        summary[task]["trees"] = sorted({r.get("tree", "unknown") for r in rows})
     summary["oracle_vision"] = oracle
     summary["time_scale"] = time_scale
     summary["work_site_args"] = list(work_site_args)
