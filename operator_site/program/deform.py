@@ -94,8 +94,12 @@ class DeformParams:
     max_step_fraction: float = 0.5
     """No point of a node moves further than this fraction of the spacing per sweep (longer
     moves near obstacles are checked at intermediate poses, so nothing is tunnelled through)."""
-    max_sweeps: int = 300
-    """Sweeps allowed over all levels together."""
+    max_sweeps: int = 45
+    """Sweeps allowed over all levels together. It bounds the cost (≈ 15 ms a sweep with about
+    20 nodes in contact): a path round an outside corner never settles, its corner node creeps
+    on by 0.2–0.6 mm a sweep, and 45 instead of 300 sweeps left the around-corner programs of
+    seeds 0–9 at most 12 mm from the uncapped ones (paths 0–10 mm longer) for 0.70 instead of
+    1.0 s median (docs/benchmarks.md). Fig. 12 and Fig. 13 stop before it."""
     max_sweeps_coarse: int = 15
     """Sweeps allowed at each level but the finest (they only prepare it)."""
     settle_coarse_fraction: float = 0.2
