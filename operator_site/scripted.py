@@ -17,7 +17,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,7 +26,7 @@ import numpy as np
 from models.scene import Scene, load_scene
 from models.transforms import make_pose, rpy_to_R, so3_log
 from operator_site.link import WorkSiteLink
-from operator_site.model_editor import WorkSiteModel
+from operator_site.model_editor import Correction, WorkSiteModel
 from operator_site.program import (
     CommandParams,
     DeformParams,
@@ -36,7 +36,7 @@ from operator_site.program import (
 )
 from operator_site.simulator import SimParams
 from operator_site.task import TaskSession
-from protocol import MotionProgram, TruthPoses, decode, key, make_config
+from protocol import MotionProgram, Recognition, Recognitions, TruthPoses, decode, key, make_config
 from protocol.messages import contact_directions
 from protocol.session import free_port_pair, link_endpoints
 
@@ -52,6 +52,11 @@ CONNECT_TIMEOUT_S = 60.0
 VISION_TIMEOUT_S = 120.0
 VISION_FRAMES = 3
 """Recognised frames waited for at most while they come back empty."""
+WORKPIECE_FRAMES = 6
+"""Recognised frames looked at in all, at most, while none fit for the task's workpiece is
+among them (3 s at the work site's 2 Hz)."""
+FRAME_TIMEOUT_S = 10.0
+"""A next recognised frame is waited for at most this long (the work site sends one a 0.5 s)."""
 EXECUTE_TIMEOUT_S = 240.0
 STATE_RATE_HZ = 100.0
 """The started work site's robot-state rate: one state a simulated control period, so that
@@ -169,15 +174,21 @@ class Demonstration:
     ideal_X_WO: np.ndarray
 
 
-def demonstrate(task: str, model: WorkSiteModel, rng: np.random.Generator) -> Demonstration:
-    """The scripted operator: choose the workpiece among :data:`WORKPIECES` in ``model`` and
-    the corner with ``rng``, then drag the block through ``task`` in a task session of the
-    model; RuntimeError if no candidate block is in the model."""
+def workpiece_candidates(task: str, model: WorkSiteModel) -> list[str]:
+    """The blocks in ``model`` fit to be ``task``'s workpiece, in :data:`WORKPIECES` order."""
     candidates = [n for n in WORKPIECES if n in model.poses]
     if task == "around-corner":
         # Pushed along a bar by its centre, a block whose centre is above the bar's top tips
         # over the bar's edge (the simulator tilts the tall block 11°), as a real one would.
         candidates = [n for n in candidates if _centre_height_m(model, n) < BAR_HEIGHT_M]
+    return candidates
+
+
+def demonstrate(task: str, model: WorkSiteModel, rng: np.random.Generator) -> Demonstration:
+    """The scripted operator: choose the workpiece among :data:`WORKPIECES` in ``model`` and
+    the corner with ``rng``, then drag the block through ``task`` in a task session of the
+    model; RuntimeError if no candidate block is in the model."""
+    candidates = workpiece_candidates(task, model)
     if not candidates:
         raise RuntimeError(f"none of {WORKPIECES} fit for {task} was recognised")
     workpiece = str(rng.choice(candidates))
@@ -221,6 +232,55 @@ def _centre_height_m(model: WorkSiteModel, name: str) -> float:
     obj = model.base.object(name).model
     V_W = np.vstack([part.vertices_O for part in obj.parts]) @ X[:3, :3].T
     return float((X[:3, :3] @ obj.com_O)[2] - V_W[:, 2].min())
+
+
+@dataclass(frozen=True, eq=False)
+class RecognisedModel:
+    """The model the scripted operator built from vision: the model, the model editor's
+    corrections, the recognised frames looked at, their vision time summed (s) and the model
+    editor's time for the last build (s)."""
+
+    model: WorkSiteModel
+    corrections: list[Correction]
+    frames: int
+    vision_s: float
+    model_s: float
+
+
+def model_from_frames(
+    task: str,
+    scene: Scene,
+    frames: Iterable[Recognitions],
+    log: Callable[[str], None] = lambda _: None,
+    max_frames: int = WORKPIECE_FRAMES,
+) -> RecognisedModel:
+    """The model editor fed as a person would: every recognition of the first of ``frames``
+    scoring at least :data:`ACCEPT_SCORE` accepted and made consistent; while no block fit for
+    ``task``'s workpiece is in the model, the next frames' recognitions of blocks not yet in it
+    are added (each frame has its own sensor noise), ``max_frames`` frames in all at most."""
+    found: dict[str, tuple[np.ndarray, float]] = {}
+    model, corrections, model_s = WorkSiteModel(scene), [], 0.0
+    n, vision_s = 0, 0.0
+    for recs in frames:
+        n += 1
+        vision_s += recs.elapsed_s
+        new = {
+            r.model: (r.X_WO, r.score)
+            for r in recs.objects
+            if r.score >= ACCEPT_SCORE and r.model not in found
+        }
+        log(f"frame {n}: recognised {[(r.model, round(r.score, 2)) for r in recs.objects]}")
+        if new or n == 1:
+            found |= new
+            t0 = time.monotonic()
+            model = WorkSiteModel(scene)
+            for name, (X, score) in found.items():
+                model.accept(name, X, score)
+            corrections = model.make_consistent()
+            model_s = time.monotonic() - t0
+        if workpiece_candidates(task, model) or n >= max_frames:
+            break
+    return RecognisedModel(model, corrections, n, vision_s, model_s)
 
 
 ProgramMaker = Callable[[TaskSession, str], MotionProgram]
@@ -349,32 +409,46 @@ def run_scripted(
         t0 = time.monotonic()
         seen: list = []
 
-        def recognised() -> bool:
+        def collect() -> int:
             r = link.recognitions
             if r is not None and (not seen or seen[-1].seq != r.seq):
                 seen.append(r)
-            return bool(seen) and (bool(seen[-1].objects) or len(seen) >= VISION_FRAMES)
+            return len(seen)
+
+        def recognised() -> bool:
+            return collect() > 0 and (bool(seen[-1].objects) or len(seen) >= VISION_FRAMES)
 
         if oracle:
             X_truth = {o.name: o.X_WO for o in truth.latest_after(time.time()).objects}
-            found = [(n, X, 1.0) for n, X in X_truth.items() if not scene.object(n).fixed]
-            stage_s["vision"] = 0.0
+            truth_frame = Recognitions(
+                seq=0,
+                stamp_s=time.time(),
+                elapsed_s=0.0,
+                objects=tuple(
+                    Recognition(model=n, X_WO=X, score=1.0)
+                    for n, X in X_truth.items()
+                    if not scene.object(n).fixed
+                ),
+            )
+            frames: Iterable[Recognitions] = [truth_frame]
         else:
             if not _wait(recognised, link, VISION_TIMEOUT_S):
                 raise RuntimeError(f"no recognitions within {VISION_TIMEOUT_S:.0f} s")
-            recs = seen[-1]
-            found = [(r.model, r.X_WO, r.score) for r in recs.objects]
-            stage_s["vision"] = recs.elapsed_s
-        stage_s["vision_wait"] = time.monotonic() - t0
-        log(f"recognised {[(n, round(score, 2)) for n, _, score in found]}")
 
-        t0 = time.monotonic()
-        model = WorkSiteModel(scene)
-        for name, X, score in found:
-            if score >= ACCEPT_SCORE:
-                model.accept(name, X, score)
-        corrections = model.make_consistent()
-        stage_s["model"] = time.monotonic() - t0
+            def more_than(n: int) -> Callable[[], bool]:
+                return lambda: collect() > n
+
+            def next_frames() -> Iterator[Recognitions]:
+                yield seen[-1]
+                while _wait(more_than(len(seen)), link, FRAME_TIMEOUT_S):
+                    yield seen[-1]
+
+            frames = next_frames()
+        rec = model_from_frames(task, scene, frames, log)
+        model, corrections = rec.model, rec.corrections
+        stage_s["vision"], stage_s["model"] = rec.vision_s, rec.model_s
+        out["vision_frames"] = rec.frames
+        stage_s["vision_wait"] = time.monotonic() - t0
         out["recognised"] = sorted(model.poses)
         out["corrections_mm"] = {c.name: round(c.moved_mm, 2) for c in corrections}
 

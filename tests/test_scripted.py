@@ -1,0 +1,63 @@
+"""The scripted operator's use of vision (issue 9): the model is built from the first recognised
+frame, and later frames are watched only while the task's workpiece is missing. The frames are
+real protocol records made here; the whole chain with a real work site is tests/test_e2e.py's."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.layout import random_layout
+from models.scene import load_scene
+from operator_site.scripted import ACCEPT_SCORE, model_from_frames, workpiece_candidates
+from protocol import Recognition, Recognitions
+
+
+@pytest.fixture(scope="module")
+def layout() -> dict[str, np.ndarray]:
+    return random_layout(load_scene(), 0)
+
+
+def _frame(seq: int, layout: dict[str, np.ndarray], scores: dict[str, float]) -> Recognitions:
+    return Recognitions(
+        seq=seq,
+        stamp_s=float(seq),
+        elapsed_s=0.07,
+        objects=tuple(Recognition(model=n, X_WO=layout[n], score=s) for n, s in scores.items()),
+    )
+
+
+def test_the_first_frame_is_enough_when_it_has_the_workpiece(layout) -> None:
+    frames = [_frame(1, layout, {"cube": 0.9, "plank": 0.8}), _frame(2, layout, {"wedge": 0.9})]
+    rec = model_from_frames("corner", load_scene(), iter(frames))
+    assert rec.frames == 1 and set(rec.model.poses) == {"cube", "plank"}
+    assert rec.vision_s == pytest.approx(0.07)
+    assert [c.name for c in rec.corrections] == ["cube", "plank"]
+
+
+def test_later_frames_add_the_missing_workpiece_and_their_vision_time(layout) -> None:
+    scene = load_scene()
+    low = ACCEPT_SCORE - 0.1
+    frames = [
+        _frame(1, layout, {"plank": 0.9}),
+        _frame(2, layout, {"plank": 0.8, "cube": low}),  # below the threshold: not accepted
+        _frame(3, layout, {"cube": 0.7, "wedge": 0.6}),
+        _frame(4, layout, {"tall_block": 0.9}),
+    ]
+    rec = model_from_frames("around-corner", scene, iter(frames))
+    assert rec.frames == 3
+    assert set(rec.model.poses) == {"plank", "cube", "wedge"}
+    assert workpiece_candidates("around-corner", rec.model) == ["cube"]
+    assert rec.vision_s == pytest.approx(3 * 0.07)
+
+
+def test_the_frames_watched_are_bounded_when_the_workpiece_never_shows(layout) -> None:
+    frames = (_frame(k, layout, {"plank": 0.9}) for k in range(1, 100))
+    rec = model_from_frames("corner", load_scene(), frames, max_frames=4)
+    assert rec.frames == 4 and set(rec.model.poses) == {"plank"}
+    assert workpiece_candidates("corner", rec.model) == []
+
+
+def test_no_frame_gives_an_empty_model() -> None:
+    rec = model_from_frames("corner", load_scene(), iter([]))
+    assert rec.frames == 0 and rec.model.poses == {} and rec.vision_s == 0.0
