@@ -92,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=1.0,
         metavar="X",
-        help="e2e: the started work sites simulate X seconds per wall second (default: 1); "
+        help="e2e, trade: the started work sites simulate X seconds per wall second (default: 1); "
         "the physics is stepped alike at any scale, only the wall time differs (the JSON's "
         "time_scale_achieved_min says how fast the machine managed)",
     )
@@ -381,7 +381,9 @@ def run_bench(args: argparse.Namespace) -> int:
             print(f"operator-site bench trade: unknown knob(s) {unknown} (known: "
                   f"{', '.join(e2e_trade.KNOBS)})", file=sys.stderr)  # fmt: skip
             return 2
-        results = e2e_trade.main(args.out, args.seeds, args.tasks[0], knobs)
+        results = e2e_trade.main(
+            args.out, args.seeds, args.tasks[0], knobs, time_scale=args.time_scale
+        )
         print(json.dumps(results))
         return 0
     from operator_site.simulator import benchmark

@@ -69,7 +69,7 @@ KNOBS: dict[str, Knob] = {
     ),
     "deform_sweeps": Knob(
         "deformation sweeps (max)", "deform", "max_sweeps",
-        (10, 30, DeformParams().max_sweeps), DeformParams().max_sweeps,
+        (10, DeformParams().max_sweeps, 300), DeformParams().max_sweeps,
     ),
     "sim_dt": Knob(
         "generator's simulator Δt (s)", "sim", "dt_s",
@@ -107,15 +107,19 @@ def _append(path: Path, row: dict) -> None:
         writer.writerow(row)
 
 
-def _previous(out_dir: Path, task: str, seeds: int, knobs: tuple[str, ...]) -> dict[str, Any]:
-    """What an earlier run into ``out_dir`` of the same task and seeds measured for other
-    knobs (kept, so that knobs can be run a few at a time), and its defaults' rows (reused)."""
+def _previous(
+    out_dir: Path, task: str, seeds: int, knobs: tuple[str, ...], time_scale: float
+) -> dict[str, Any]:
+    """What an earlier run into ``out_dir`` of the same task, seeds and time scale measured for
+    other knobs (kept, so that knobs can be run a few at a time), and its defaults' rows
+    (reused)."""
     kept: dict[str, Any] = {"rows": [], "default": [], "summary": {}}
     try:
         before = json.loads((out_dir / "trade.json").read_text())
     except (OSError, ValueError):
         return kept
-    if before.get("task") != task or before.get("seeds") != seeds:
+    same = (before.get("task"), before.get("seeds"), before.get("time_scale", 1.0))
+    if same != (task, seeds, time_scale):
         return kept
     kept["rows"] = [r for r in before.get("runs", []) if r["knob"] not in knobs]
     kept["default"] = [r for r in kept["rows"] if r["knob"] == "default"]
@@ -178,8 +182,10 @@ def main(
     task: str = "corner",
     knobs: tuple[str, ...] = tuple(KNOBS),
     log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+    time_scale: float = 1.0,
 ) -> dict:
-    """Run ``seeds`` seeds of ``task`` per knob value; write the files; the summary."""
+    """Run ``seeds`` seeds of ``task`` per knob value (work sites started at ``time_scale``);
+    write the files; the summary."""
     unknown = [k for k in knobs if k not in KNOBS]
     if unknown:
         raise ValueError(f"unknown knob(s) {unknown} (known: {', '.join(KNOBS)})")
@@ -192,7 +198,7 @@ def main(
     rows: list[dict] = []
     runs: dict[tuple[str, float], list[dict]] = {}
     csv_path = out_dir / "trade.csv"
-    kept = _previous(out_dir, task, seeds, knobs)
+    kept = _previous(out_dir, task, seeds, knobs, time_scale)
     if kept["default"]:
         runs[("default", 0.0)] = kept["default"]
     csv_path.unlink(missing_ok=True)
@@ -213,6 +219,7 @@ def main(
         for seed in range(seeds):
             r = run_scripted(
                 task, seed, log=lambda _: None, work_site_args=work_site_args,
+                time_scale=time_scale,
                 **({"make_program": make} if make is not None else {}),
             )  # fmt: skip
             row = {
@@ -242,6 +249,7 @@ def main(
     result = {
         "task": task,
         "seeds": seeds,
+        "time_scale": time_scale,
         "defaults": {n: KNOBS[n].default for n in summary},
         "knobs": summary,
         "runs": kept["rows"] + rows,

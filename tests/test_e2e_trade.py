@@ -65,8 +65,8 @@ def test_summary_counts_successes_and_takes_errors_of_successes_only() -> None:
 def test_knobs_run_a_few_at_a_time_add_up_and_reuse_the_defaults(monkeypatch, tmp_path) -> None:
     calls: list[tuple] = []
 
-    def fake_run(task, seed, log, work_site_args=(), make_program=None):
-        calls.append((seed, work_site_args, make_program is not None))
+    def fake_run(task, seed, log, work_site_args=(), make_program=None, time_scale=1.0):
+        calls.append((seed, work_site_args, make_program is not None, time_scale))
         return {"success": seed != 0, "final_error_mm": 0.2, "final_error_deg": 0.01,
                 "stage_s": {"computation": 0.4, "execute": 18.0}, "commands": 9,
                 "execution": "done: program complete"}  # fmt: skip
@@ -88,3 +88,9 @@ def test_knobs_run_a_few_at_a_time_add_up_and_reuse_the_defaults(monkeypatch, tm
     lines = (tmp_path / "trade.csv").read_text().splitlines()
     assert len(lines) == 1 + 2 * 4  # header; default, two speeds, one stiffness: two seeds each
     assert plotted == [{"contact_speed"}, {"contact_speed", "surface_stiffness"}]
+    # At another time scale nothing is reused: the defaults run again with the knob asked.
+    third = e2e_trade.main(
+        tmp_path, 2, "corner", ("surface_stiffness",), log=lambda _: None, time_scale=3.0
+    )
+    assert len(calls) == 2 * 3 + 2 + 2 * 2 and {c[3] for c in calls[-4:]} == {3.0}
+    assert set(third["knobs"]) == {"surface_stiffness"} and third["time_scale"] == 3.0
