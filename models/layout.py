@@ -21,6 +21,10 @@ circle): its inside corners are free, and a block can be slid round its outside.
 MAX_REACH_XY_M = 0.58
 """No block centre further than this from the robot's base axis (m): the wrist keeps ≥ 20 mm
 of reach in hand for grasps from above (the arm reaches 0.635 m from the shoulder)."""
+MIN_REACH_XY_M = 0.21
+"""No block centre nearer than this to the robot's base axis (m): nearer, a grasp from above
+folds the elbow past its limit (the tall block's at 0.189 m needed joint_3 at +2.532 rad, the
+limit +2.53; every block's grasp and the pose 5 cm above it are reachable from 0.19 m on)."""
 CLEARANCE_M = 0.012
 """Blocks start at least this far apart (between their bounding circles), room for fingers."""
 MAX_TRIES = 2000
@@ -47,7 +51,7 @@ def random_layout(scene: Scene, seed: int) -> dict[str, np.ndarray]:
             outside = np.maximum([fx0 - xy[0], fy0 - xy[1]], [xy[0] - fx1, xy[1] - fy1])
             if np.linalg.norm(np.maximum(outside, 0.0)) < r + LANE_M:
                 continue
-            if np.linalg.norm(xy) > MAX_REACH_XY_M:
+            if not MIN_REACH_XY_M <= np.linalg.norm(xy) <= MAX_REACH_XY_M:
                 continue
             if any(np.linalg.norm(xy - c) < r + rc + CLEARANCE_M for c, rc in placed.values()):
                 continue

@@ -192,3 +192,27 @@ def test_a_model_of_another_shape_is_refused() -> None:
     other = dataclasses.replace(ROBOT, joints=joints, _joint_by_name={j.name: j for j in joints})
     with pytest.raises(ValueError, match="joint_2 axis"):
         arm_geometry(other)
+
+
+def test_every_block_of_a_seeded_layout_can_be_grasped_from_above() -> None:
+    """The end-to-end layouts (models/layout.py) put blocks only where the arm reaches their
+    grasp and the pose 5 cm above it within its joint limits (a tall block at 0.189 m from the
+    base axis needed the elbow past its limit: issue 9, corner seed 33)."""
+    from models.layout import random_layout
+    from models.transforms import invert_pose
+    from operator_site.model_editor import WorkSiteModel
+    from operator_site.task import TaskSession
+
+    scene = load_scene()
+    robot = load_robot(PUMA_URDF)
+    for seed in range(30):
+        layout = random_layout(scene, seed)
+        session = TaskSession(WorkSiteModel(scene, layout).scene())
+        for name, X_WO in layout.items():
+            session.select(name)
+            X_WG = X_WO @ invert_pose(session.X_GP)
+            for lift_m in (0.0, 0.05):
+                X = X_WG.copy()
+                X[2, 3] += lift_m
+                result = ik_tcp(X, np.asarray(HOME_Q), robot)
+                assert result.ok, (seed, name, lift_m, result.reason)

@@ -261,6 +261,7 @@ def test_random_layouts_put_every_block_on_the_table_outside_the_frame_apart() -
         FRAME_OUTLINE_W,
         LANE_M,
         MAX_REACH_XY_M,
+        MIN_REACH_XY_M,
         perturbed_camera_pose,
         random_layout,
     )
@@ -274,7 +275,7 @@ def test_random_layouts_put_every_block_on_the_table_outside_the_frame_apart() -
         for name, c in centres.items():
             gap = np.maximum([fx0 - c[0], fy0 - c[1]], [c[0] - fx1, c[1] - fy1])
             assert np.linalg.norm(np.maximum(gap, 0.0)) >= LANE_M, (seed, name)
-            assert np.linalg.norm(c[:2]) <= MAX_REACH_XY_M
+            assert MIN_REACH_XY_M <= np.linalg.norm(c[:2]) <= MAX_REACH_XY_M
             assert c[2] == scene.object(name).X_WO[2, 3]  # resting as in the scene file
         assert random_layout(scene, seed).keys() == layout.keys()
         np.testing.assert_array_equal(random_layout(scene, seed)["cube"], layout["cube"])
