@@ -59,6 +59,7 @@ bench: $(BENCH_STAMP)
 	$(VENV)/bin/work-site bench vision --out docs/bench
 	$(VENV)/bin/operator-site bench net --out docs/bench
 	$(PY) bench/bench_lcp.py > docs/bench/lcp.json
+	$(PY) bench/bench_program_sweeps.py --out docs/bench
 	$(VENV)/bin/operator-site bench e2e --seeds $(E2E_SEEDS) --out docs/bench
 	$(VENV)/bin/operator-site bench trade --seeds $(TRADE_SEEDS) --tasks corner --out docs/bench
 	$(PY) bench/report.py

@@ -1,0 +1,142 @@
+"""The deformation's sweep cap on the scripted tasks: program generator CPU time against how far
+the program moves from the uncapped one (issue 9's computation figure, the ``deform_sweeps`` knob).
+
+Run: ``.venv/bin/python bench/bench_program_sweeps.py --out docs/bench`` (about 2 min). For each
+seed, the scripted operator's demonstration of each task on the seed's layout (the work site's
+``--seed`` layout, taken as recognised: no vision, no work site), then :func:`generate_program`
+at each sweep cap, CPU time best of ``--repeats``. "Targets away": the largest distance of a
+program's targets from the polyline of the reference cap's targets (m; the reference is the
+largest cap). Writes ``program_sweeps.csv``, ``program_sweeps.json`` (medians per task and cap)
+and ``program_sweeps.png``; prints the JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from models.layout import random_layout
+from models.scene import load_scene
+from operator_site.model_editor import WorkSiteModel
+from operator_site.program import DeformParams
+from operator_site.scripted import TASKS, demonstrate, generated_program
+
+CAPS = (10, 20, 30, 45, 100, 300)
+
+
+def _polyline_distance_m(p: np.ndarray, line: np.ndarray) -> float:
+    """Distance from point ``p`` (3,) to the polyline through ``line`` (n, 3) (m)."""
+    if len(line) == 1:
+        return float(np.linalg.norm(p - line[0]))
+    a, b = line[:-1], line[1:]
+    ab = b - a
+    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum((ab * ab).sum(1), 1e-30), 0, 1)
+    return float(np.min(np.linalg.norm(a + t[:, None] * ab - p, axis=1)))
+
+
+def targets_away_m(program, reference) -> float:
+    """Largest distance of ``program``'s target positions from ``reference``'s target polyline."""
+    ref = np.array([c.X_WP[:3, 3] for c in reference.commands])
+    return max(_polyline_distance_m(c.X_WP[:3, 3], ref) for c in program.commands)
+
+
+def run(seeds: range, caps: tuple[int, ...], repeats: int) -> list[dict]:
+    scene = load_scene()
+    rows = []
+    for task in TASKS:
+        for seed in seeds:
+            model = WorkSiteModel(scene)
+            for name, X in random_layout(scene, seed).items():
+                model.accept(name, X, 1.0)
+            model.make_consistent()
+            demo = demonstrate(task, model, np.random.default_rng(seed))
+            programs = {}
+            for cap in caps:
+                params = DeformParams(max_sweeps=cap)
+                best = float("inf")
+                for _ in range(repeats):
+                    t0 = time.process_time()
+                    programs[cap] = generated_program(demo.session, "p", deform_params=params)
+                    best = min(best, time.process_time() - t0)
+                rows.append({"task": task, "seed": seed, "max_sweeps": cap, "cpu_s": best,
+                             "commands": len(programs[cap].commands)})  # fmt: skip
+            for r in rows[-len(caps) :]:
+                r["targets_away_mm"] = 1e3 * targets_away_m(programs[r["max_sweeps"]],
+                                                             programs[max(caps)])  # fmt: skip
+            print(json.dumps(rows[-len(caps) :]), flush=True)
+    return rows
+
+
+def summarise(rows: list[dict], caps: tuple[int, ...]) -> dict:
+    out: dict = {"default_max_sweeps": DeformParams().max_sweeps}
+    for task in TASKS:
+        out[task] = {}
+        for cap in caps:
+            sel = [r for r in rows if r["task"] == task and r["max_sweeps"] == cap]
+            out[task][str(cap)] = {
+                "cpu_s_median": float(np.median([r["cpu_s"] for r in sel])),
+                "cpu_s_max": float(np.max([r["cpu_s"] for r in sel])),
+                "targets_away_mm_max": float(np.max([r["targets_away_mm"] for r in sel])),
+                "targets_away_mm_median": float(np.median([r["targets_away_mm"] for r in sel])),
+                "seeds": len(sel),
+            }
+    return out
+
+
+def plot(summary: dict, caps: tuple[int, ...], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for task in TASKS:
+        cpu = [summary[task][str(c)]["cpu_s_median"] for c in caps]
+        away = [summary[task][str(c)]["targets_away_mm_max"] for c in caps]
+        ax.plot(cpu, away, "o-", label=task)
+        for c, x, y in zip(caps, cpu, away, strict=True):
+            bold = c == summary["default_max_sweeps"]
+            ax.annotate(f"{c}" + (" (default)" if bold else ""), (x, y), fontsize=8,
+                        fontweight="bold" if bold else "normal",
+                        xytext=(4, 4), textcoords="offset points")  # fmt: skip
+    ax.axvline(1.0, color="grey", ls="--", lw=0.8)
+    ax.set(
+        xscale="log",
+        xlabel="program generator CPU time, median over seeds (s)",
+        ylabel=f"targets away from the {max(caps)}-sweep program, max (mm)",
+        title="Deformation sweep cap: cost against change",
+    )
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, default=10, help="seeds 0 … N − 1 (default: 10)")
+    parser.add_argument("--repeats", type=int, default=2, help="CPU time: best of (default: 2)")
+    parser.add_argument("--caps", type=int, nargs="+", default=list(CAPS), help="sweep caps")
+    parser.add_argument("--out", type=Path, default=Path("docs/bench"), help="output directory")
+    args = parser.parse_args()
+    caps = tuple(sorted(args.caps))
+    rows = run(range(args.seeds), caps, args.repeats)
+    args.out.mkdir(parents=True, exist_ok=True)
+    with (args.out / "program_sweeps.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    summary = summarise(rows, caps)
+    summary["date_utc"] = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
+    (args.out / "program_sweeps.json").write_text(json.dumps(summary, indent=1))
+    plot(summary, caps, args.out / "program_sweeps.png")
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()
