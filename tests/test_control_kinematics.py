@@ -196,12 +196,13 @@ def test_a_model_of_another_shape_is_refused() -> None:
 
 def test_every_block_of_a_seeded_layout_can_be_grasped_from_above() -> None:
     """The end-to-end layouts (models/layout.py) put blocks only where the arm reaches their
-    grasp and the pose 5 cm above it within its joint limits (a tall block at 0.189 m from the
+    grasp and its approach from above within its joint limits (a tall block at 0.189 m from the
     base axis needed the elbow past its limit: issue 9, corner seed 33)."""
     from models.layout import random_layout
     from models.transforms import invert_pose
     from operator_site.model_editor import WorkSiteModel
     from operator_site.task import TaskSession
+    from work_site.control.executor import GRASP_APPROACH_M
 
     scene = load_scene()
     robot = load_robot(PUMA_URDF)
@@ -211,7 +212,7 @@ def test_every_block_of_a_seeded_layout_can_be_grasped_from_above() -> None:
         for name, X_WO in layout.items():
             session.select(name)
             X_WG = X_WO @ invert_pose(session.X_GP)
-            for lift_m in (0.0, 0.05):
+            for lift_m in (0.0, GRASP_APPROACH_M):
                 X = X_WG.copy()
                 X[2, 3] += lift_m
                 result = ik_tcp(X, np.asarray(HOME_Q), robot)

@@ -114,6 +114,8 @@ def test_each_unsafe_program_is_refused_with_its_reason_before_motion(site) -> N
     low, far = X.copy(), X.copy()
     low[2, 3] = 0.0
     far[:3, 3] = (0.74, 0.44, 0.49)  # inside the box, out of the arm's reach
+    near = X.copy()
+    near[:3, 3] = (0.19, 0.0, 0.06)  # next to the base
     grasp = cmd("guarded_grasp")
     cases = {
         "nothing is held": program(cmd("contact_move", contacts=(table,))),
@@ -127,7 +129,11 @@ def test_each_unsafe_program_is_refused_with_its_reason_before_motion(site) -> N
         "outside the workspace": program(cmd("move", low)),
         "speed": program(cmd("move", speed=1.0)),
         "unreachable": program(cmd("move", far)),
+        # The grasp pose is reachable, the approach 6 cm above it is not (the elbow folds past
+        # its limit): refused here, not on the way down.
+        "outside joint limits": program(cmd("guarded_grasp", near)),
     }
+    assert check_program(program(cmd("move", near)), controller) == ""
     # NaN never gets this far: the message refuses it (tests/test_protocol_*).
     with pytest.raises(ProtocolError, match="finite"):
         cmd("move", np.full((4, 4), math.nan))

@@ -126,10 +126,17 @@ def check_program(program: MotionProgram, controller: TaskController) -> str:
                 f"{where}: gripper target {np.round(p, 3).tolist()} m is outside the "
                 f"workspace {WORKSPACE_MIN_W.tolist()}–{WORKSPACE_MAX_W.tolist()} m"
             )
-        result = ik_tcp(X_WG, q, controller.robot, controller.X_WB, controller.geometry)
-        if not result.ok:
-            return f"{where}: {result.reason}"
-        q = result.q
+        # Every pose the command's motions aim at (a grasp's approach from above and lift, a
+        # guard's overtravel, a contact move's bias), not only its target: a program refused
+        # here never stops half done on a pose it cannot reach.
+        for action in expand(program, i):
+            if isinstance(action, MoveTo):
+                result = ik_tcp(
+                    action.X_WG, q, controller.robot, controller.X_WB, controller.geometry
+                )
+                if not result.ok:
+                    return f"{where}: {result.reason}"
+                q = result.q
     return ""
 
 
