@@ -97,9 +97,12 @@ class DeformParams:
     max_sweeps: int = 45
     """Sweeps allowed over all levels together. It bounds the cost (≈ 15 ms a sweep with about
     20 nodes in contact): a path round an outside corner never settles, its corner node creeps
-    on by 0.2–0.6 mm a sweep, and 45 instead of 300 sweeps left the around-corner programs of
-    seeds 0–9 at most 12 mm from the uncapped ones (paths 0–10 mm longer) for 0.70 instead of
-    1.0 s median (docs/benchmarks.md). Fig. 12 and Fig. 13 stop before it."""
+    on by 0.2–0.6 mm a sweep until it stops on ``patience_sweeps`` (before 100 sweeps on the
+    scripted around-corner demonstrations of seeds 0–9). At 45 their programs' targets were at
+    most 10.6 mm (median 5.7 mm) from those at 100 or 300 sweeps, for 0.46 instead of 0.62 s
+    CPU median (`bench/bench_program_sweeps.py`, docs/benchmarks.md); corner's are the same at
+    any cap from 45 on. A program the check refuses after a capped deformation is made again
+    with more sweeps (``generate.REFUSED_RETRY_MAX_SWEEPS``)."""
     max_sweeps_coarse: int = 15
     """Sweeps allowed at each level but the finest (they only prepare it)."""
     settle_coarse_fraction: float = 0.2
