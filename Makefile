@@ -48,8 +48,8 @@ lint: $(STAMP)
 # Every benchmark; figures land in docs/bench/ (JSON, CSV, PNG), then bench/report.py rewrites
 # the summary at the top of docs/benchmarks.md from the JSON (the sections below it discuss them).
 # e2e: E2E_SEEDS seeds per task, the issue's 100 by default (the work sites simulate 3× faster
-# than real time where the machine keeps up: about 25 s a corner run and 35 s an around-corner
-# run on 2 cores, 1 h in all); a quick look: `make bench E2E_SEEDS=10`.
+# than real time where the machine keeps up: an around-corner run took about 21 s alone on
+# 2 cores, so the 200 runs take over an hour); a quick look: `make bench E2E_SEEDS=10`.
 E2E_SEEDS ?= 100
 # trade: each user knob's values on each task, TRADE_SEEDS seeds a value (the defaults' runs
 # shared).

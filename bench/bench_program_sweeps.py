@@ -20,11 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from models.layout import random_layout
 from models.scene import load_scene
-from operator_site.model_editor import WorkSiteModel
 from operator_site.program import DeformParams
-from operator_site.scripted import TASKS, demonstrate, generated_program
+from operator_site.scripted import TASKS, generated_program, layout_demonstration
 
 CAPS = (10, 20, 30, 45, 100, 300)
 
@@ -50,11 +48,7 @@ def run(seeds: range, caps: tuple[int, ...], repeats: int) -> list[dict]:
     rows = []
     for task in TASKS:
         for seed in seeds:
-            model = WorkSiteModel(scene)
-            for name, X in random_layout(scene, seed).items():
-                model.accept(name, X, 1.0)
-            model.make_consistent()
-            demo = demonstrate(task, model, np.random.default_rng(seed))
+            demo = layout_demonstration(task, seed, scene)
             programs = {}
             for cap in caps:
                 params = DeformParams(max_sweeps=cap)
@@ -101,13 +95,10 @@ def plot(summary: dict, caps: tuple[int, ...], path: Path) -> None:
         away = [summary[task][str(c)]["targets_away_mm_max"] for c in caps]
         ax.plot(cpu, away, "o-", label=task)
         # Caps giving the same program (the deformation stopped before them) share one label.
-        points: dict[tuple[float, float], list[int]] = {}
-        where: dict[tuple[float, float], tuple[float, float]] = {}
+        points: dict[tuple[float, float], tuple[float, float, list[int]]] = {}
         for c, x, y in zip(caps, cpu, away, strict=True):
-            points.setdefault((round(x, 2), round(y, 1)), []).append(c)
-            where.setdefault((round(x, 2), round(y, 1)), (x, y))
-        for key, same in points.items():
-            x, y = where[key]
+            points.setdefault((round(x, 2), round(y, 1)), (x, y, []))[2].append(c)
+        for x, y, same in points.values():
             label = ", ".join(map(str, same)) + (f" (default {default})" if default in same else "")
             weight = "bold" if default in same else "normal"
             ax.annotate(label, (x, y), fontsize=8, fontweight=weight, xytext=(4, 4),

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from models.layout import random_layout
 from models.scene import Scene, load_scene
 from models.transforms import make_pose, rpy_to_R, so3_log
 from operator_site.link import WorkSiteLink
@@ -214,6 +215,16 @@ def demonstrate(task: str, model: WorkSiteModel, rng: np.random.Generator) -> De
     return Demonstration(session, workpiece, corner, ideal)
 
 
+def layout_demonstration(task: str, seed: int, scene: Scene | None = None) -> Demonstration:
+    """The scripted operator's demonstration of ``task`` on seed ``seed``'s layout (the work
+    site's ``--seed`` one), taken as recognised: no vision, no work site. For measuring and
+    testing what comes after the demonstration."""
+    scene = scene or load_scene()
+    model = WorkSiteModel(scene, random_layout(scene, seed))
+    model.make_consistent()
+    return demonstrate(task, model, np.random.default_rng(seed))
+
+
 def _clearance_to_blocks_m(session: TaskSession, X_WO: np.ndarray) -> float:
     """Distance from the workpiece at ``X_WO`` to the nearest block other than the frame and
     the table (m; inf when none is within 2 cm)."""
@@ -368,6 +379,31 @@ def _start_work_site(
         return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
 
 
+def _recognised_frames(link: WorkSiteLink) -> Iterator[Recognitions]:
+    """The work site's recognised frames as they arrive: first the first one with objects (or
+    the :data:`VISION_FRAMES`-th if they all come back empty; RuntimeError if none within
+    :data:`VISION_TIMEOUT_S`), then each next one until none comes within
+    :data:`FRAME_TIMEOUT_S`."""
+    seen: list[Recognitions] = []
+
+    def arrived(after: int, need_objects: bool) -> Callable[[], bool]:
+        def check() -> bool:
+            r = link.recognitions
+            if r is not None and (not seen or seen[-1].seq != r.seq):
+                seen.append(r)
+            if len(seen) <= after:
+                return False
+            return not need_objects or bool(seen[-1].objects) or len(seen) >= VISION_FRAMES
+
+        return check
+
+    if not _wait(arrived(0, need_objects=True), link, VISION_TIMEOUT_S):
+        raise RuntimeError(f"no recognitions within {VISION_TIMEOUT_S:.0f} s")
+    yield seen[-1]
+    while _wait(arrived(len(seen), need_objects=False), link, FRAME_TIMEOUT_S):
+        yield seen[-1]
+
+
 def run_scripted(
     task: str,
     seed: int,
@@ -407,17 +443,6 @@ def run_scripted(
             raise RuntimeError(f"no work site at {connect} within {CONNECT_TIMEOUT_S:.0f} s")
         stage_s["connect"] = time.monotonic() - t0
         t0 = time.monotonic()
-        seen: list = []
-
-        def collect() -> int:
-            r = link.recognitions
-            if r is not None and (not seen or seen[-1].seq != r.seq):
-                seen.append(r)
-            return len(seen)
-
-        def recognised() -> bool:
-            return collect() > 0 and (bool(seen[-1].objects) or len(seen) >= VISION_FRAMES)
-
         if oracle:
             X_truth = {o.name: o.X_WO for o in truth.latest_after(time.time()).objects}
             truth_frame = Recognitions(
@@ -432,18 +457,7 @@ def run_scripted(
             )
             frames: Iterable[Recognitions] = [truth_frame]
         else:
-            if not _wait(recognised, link, VISION_TIMEOUT_S):
-                raise RuntimeError(f"no recognitions within {VISION_TIMEOUT_S:.0f} s")
-
-            def more_than(n: int) -> Callable[[], bool]:
-                return lambda: collect() > n
-
-            def next_frames() -> Iterator[Recognitions]:
-                yield seen[-1]
-                while _wait(more_than(len(seen)), link, FRAME_TIMEOUT_S):
-                    yield seen[-1]
-
-            frames = next_frames()
+            frames = _recognised_frames(link)
         rec = model_from_frames(task, scene, frames, log)
         model, corrections = rec.model, rec.corrections
         stage_s["vision"], stage_s["model"] = rec.vision_s, rec.model_s

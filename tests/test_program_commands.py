@@ -341,18 +341,9 @@ def test_around_corner_demonstrations_become_programs_that_pass_the_check(seed: 
     corner were refined by halving; seed 57 after the deformation's sweep cap, until a refused
     program was made again from a longer deformation): a program that keeps frame and table to
     the end."""
-    from models.layout import random_layout
-    from models.scene import load_scene
-    from operator_site.model_editor import WorkSiteModel
-    from operator_site.scripted import demonstrate, generated_program
+    from operator_site.scripted import generated_program, layout_demonstration
 
-    scene = load_scene()
-    model = WorkSiteModel(scene)
-    for name, X in random_layout(scene, seed).items():
-        if not scene.object(name).fixed:
-            model.accept(name, X, 1.0)
-    model.make_consistent()
-    demo = demonstrate("around-corner", model, np.random.default_rng(seed))
+    demo = layout_demonstration("around-corner", seed)
     program = generated_program(demo.session, f"around-{seed}")
     kinds = [c.kind for c in program.commands]
     assert kinds[0] == "guarded_grasp" and kinds[-2:] == ["release", "move"]

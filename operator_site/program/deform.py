@@ -95,10 +95,10 @@ class DeformParams:
     """No point of a node moves further than this fraction of the spacing per sweep (longer
     moves near obstacles are checked at intermediate poses, so nothing is tunnelled through)."""
     max_sweeps: int = 45
-    """Sweeps allowed over all levels together. It bounds the cost (≈ 15 ms a sweep with about
-    20 nodes in contact): a path round an outside corner never settles, its corner node creeps
-    on by 0.2–0.6 mm a sweep until it stops on ``patience_sweeps`` (before 100 sweeps on the
-    scripted around-corner demonstrations of seeds 0–9). At 45 their programs' targets were at
+    """Sweeps allowed over all levels together. It bounds the cost: a path round an outside
+    corner does not settle, its nodes in contact creep on until ``patience_sweeps`` stops them
+    (before 100 sweeps on the scripted around-corner demonstrations of seeds 0–9: their
+    programs at 100 and 300 sweeps are identical). At 45 their programs' targets were at
     most 10.6 mm (median 5.7 mm) from those at 100 or 300 sweeps, for 0.46 instead of 0.62 s
     CPU median (`bench/bench_program_sweeps.py`, docs/benchmarks.md); corner's are the same at
     any cap from 45 on. A program the check refuses after a capped deformation is made again
