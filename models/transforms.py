@@ -13,6 +13,9 @@ import numpy as np
 ROTATION_ORTHONORMAL_TOL = 1e-6
 """Largest ``|RᵀR − I|`` entry accepted as a rotation read from a file or the wire."""
 
+GIMBAL_LOCK_TOL = 1e-9
+"""|cos(pitch)| below which roll and yaw are one rotation and :func:`R_to_rpy` sets roll to 0."""
+
 
 def make_pose(R_AB: np.ndarray | None = None, p_AB: np.ndarray | None = None) -> np.ndarray:
     """The 4×4 pose ``X_AB`` from a rotation ``R_AB`` (3×3) and a translation ``p_AB`` (m)."""
@@ -44,6 +47,15 @@ def rpy_to_R(rpy_rad: np.ndarray) -> np.ndarray:
             [-sp, cp * sr, cp * cr],
         ]
     )
+
+
+def R_to_rpy(R: np.ndarray) -> np.ndarray:
+    """URDF roll-pitch-yaw (rad) of a rotation matrix, the inverse of :func:`rpy_to_R`; at
+    pitch ±π/2, where roll and yaw turn about one axis, roll is 0."""
+    pitch = math.atan2(-R[2, 0], math.hypot(R[0, 0], R[1, 0]))
+    if math.hypot(R[2, 1], R[2, 2]) < GIMBAL_LOCK_TOL:
+        return np.array([0.0, pitch, math.atan2(-R[0, 1], R[1, 1])])
+    return np.array([math.atan2(R[2, 1], R[2, 2]), pitch, math.atan2(R[1, 0], R[0, 0])])
 
 
 def rotation_error(R: np.ndarray) -> float:
