@@ -14,11 +14,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pybullet as p
 
 from models.scene import CameraModel, Scene, load_scene
 from models.transforms import invert_pose, make_pose
-from work_site.camera import LIGHT_DIRECTION_W, opengl_matrices
+from work_site.camera import render_grey
 from work_site.vision.model import convex_overlap_depth, project, transform
 from work_site.vision.table import rest_rotations
 
@@ -137,7 +136,7 @@ class SceneRenderer:
             self.world.set_object_pose(name, X_WO)
         cam = self.scene.camera
         s = self.supersample
-        grey, seg = render_with_segmentation(self.world.cid, cam, s)
+        grey, seg = render_grey(self.world.cid, cam, s, segmentation=True)
         truth = []
         for obj in self.movable:
             X_WO = poses[obj.name]
@@ -147,32 +146,6 @@ class SceneRenderer:
             frac = float(min(1.0, visible / full)) if full > 0 else 0.0
             truth.append(GroundTruth(obj.name, X_WO, frac))
         return grey, truth
-
-
-def render_with_segmentation(
-    cid: int, camera: CameraModel, supersample: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Grey image (h, w) uint8 at the camera's size and the segmentation buffer (h·k, w·k)
-    int64 of body ids (−1 for none) at the supersampled size ``k``."""
-    view, proj = opengl_matrices(camera)
-    w, h = camera.width * supersample, camera.height * supersample
-    _, _, rgba, _, seg = p.getCameraImage(
-        w,
-        h,
-        view,
-        proj,
-        lightDirection=LIGHT_DIRECTION_W,
-        shadow=0,
-        renderer=p.ER_TINY_RENDERER,
-        physicsClientId=cid,
-    )
-    rgba = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)
-    seg = np.asarray(seg, dtype=np.int64).reshape(h, w)
-    seg = np.where(seg < 0, -1, seg & ((1 << 24) - 1))
-    grey = cv2.cvtColor(rgba, cv2.COLOR_RGBA2GRAY)
-    if supersample > 1:
-        grey = cv2.resize(grey, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
-    return grey, seg
 
 
 def _projected_area_px(camera: CameraModel, X_WO: np.ndarray, parts, supersample: int) -> float:
