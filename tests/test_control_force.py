@@ -9,9 +9,9 @@ import numpy as np
 import pybullet as p
 import pytest
 
+from bench import control as benchmark
 from models.transforms import make_pose, rpy_to_R
 from protocol import ContactState, MotionCommand, MotionProgram
-from work_site.control import benchmark
 from work_site.control.controller import Impedance, compliant_projector
 from work_site.control.executor import (
     CONTACT_VERIFY_N,

@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
+from bench.vision_dataset import SceneRenderer
 from models.scene import load_scene
 from models.transforms import invert_pose, make_pose, rpy_to_R
 from work_site.camera import render_grey
-from work_site.vision.dataset import SceneRenderer
 from work_site.vision.model import project, transform, vision_model
 
 SUPERSAMPLE = 4

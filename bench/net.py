@@ -1,4 +1,4 @@
-"""``operator-site bench net``: round trips and camera frames over zenoh, beside plain TCP.
+"""``python -m bench net``: round trips and camera frames over zenoh, beside plain TCP.
 
 What is measured (all round trips sequential ping-pong: send, wait for the answer, repeat; the
 kinds interleaved sample by sample, taking turns to go first, so they share the same conditions):
@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import importlib.util
 import json
 import os
 import signal
@@ -51,12 +50,12 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
 import zenoh
 
+from deploy import netns
 from protocol import (
     CameraFrame,
     ExecutionReport,
@@ -346,17 +345,6 @@ def _image_phase(client: _Client, args: argparse.Namespace) -> dict[str, Any]:
 # ----------------------------------------------------------------------- the orchestrator
 
 
-def _load_netns() -> ModuleType:
-    """``deploy/netns.py`` (a tool beside the package, not part of it)."""
-    spec = importlib.util.spec_from_file_location("_telerobot_netns", REPO / "deploy" / "netns.py")
-    if spec is None or spec.loader is None:
-        raise ImportError("deploy/netns.py not found")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -364,7 +352,7 @@ def _free_port() -> int:
 
 
 def _self_argv(*args: str) -> list[str]:
-    return [sys.executable, "-m", "operator_site.netbench", *args]
+    return [sys.executable, "-m", "bench", "net", *args]
 
 
 def _start_echo(argv: list[str]) -> subprocess.Popen:
@@ -516,8 +504,8 @@ def measure_work_site(
     }
 
 
-def measure_programs_over_link(netns: ModuleType, params: dict[str, Any], runs: int) -> dict:
-    """The issue's harsh link (e.g. 100 ± 20 ms each way, 2 % loss): per run, a fresh real work
+def measure_programs_over_link(params: dict[str, Any], runs: int) -> dict:
+    """A harsh link (e.g. 100 ± 20 ms each way, 2 % loss): per run, a fresh real work
     site in the work namespace (link seed ``params["seed"] + run``) and
     ``deploy/operator_probe.py``'s pick-and-place from the operators' namespace. Per run: the
     sends, the acknowledgement time (program sent → "accepted" back: the command latency), the
@@ -694,7 +682,6 @@ def measure_frames(args: argparse.Namespace) -> list[dict[str, Any]]:
         )
     if args.net_no_link:
         return rows
-    netns = _load_netns()
     reason = netns.unavailable_reason()
     if reason is not None:
         print(f"netbench: frames over the emulated link skipped: {reason}", flush=True)
@@ -882,7 +869,6 @@ def run(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, list[float]
     if args.net_no_link:
         summary["link"] = "skipped (--net-no-link)"
         return summary, samples
-    netns = _load_netns()
     reason = netns.unavailable_reason()
     if reason is not None:
         print(f"netbench: emulated link skipped: {reason}", flush=True)
@@ -929,7 +915,7 @@ def run(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, list[float]
             "seed": args.net_link_seed,
         }
         print(f"netbench: programs over a harsher link {harsh} ({args.net_harsh_runs} runs)...")
-        summary.update(measure_programs_over_link(netns, harsh, args.net_harsh_runs))
+        summary.update(measure_programs_over_link(harsh, args.net_harsh_runs))
     if single is not None:
         for name in ("command", "command_with_images", "command_without_images"):
             samples[f"link_single_{name}"] = single[name]
@@ -1012,10 +998,6 @@ def write_outputs(out: Path, summary: dict[str, Any], samples: dict[str, list[fl
     plt.close(fig)
 
 
-def _has_option(parser: argparse.ArgumentParser, option: str) -> bool:
-    return option in parser._option_string_actions
-
-
 def _positive_int(text: str) -> int:
     try:
         n = int(text)
@@ -1027,14 +1009,14 @@ def _positive_int(text: str) -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``bench net``'s options (``--out`` only if the parser has none yet)."""
-    if not _has_option(parser, "--out"):
-        parser.add_argument(
-            "--out",
-            type=Path,
-            default=Path("docs/bench"),
-            help="directory for net.json, net_samples.csv, net_rtt.png (default: %(default)s)",
-        )
+    """Options of ``python -m bench net``."""
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/bench"),
+        help="directory for net.json, net_samples.csv, net_rtt.png and net_frames.* "
+        "(default: %(default)s)",
+    )
     g = parser.add_argument_group("bench net")
     g.add_argument(
         "--net-count", type=int, default=2000, help="loopback round trips per kind and run"
@@ -1160,11 +1142,3 @@ def main(args: argparse.Namespace) -> int:
         summary["frames"] = rows
     print(json.dumps(summary), flush=True)
     return 0
-
-
-if __name__ == "__main__":
-    _parser = argparse.ArgumentParser(
-        prog="operator-site bench net", description=__doc__.split("\n\n")[0]
-    )
-    add_arguments(_parser)
-    sys.exit(main(_parser.parse_args()))

@@ -1,4 +1,4 @@
-"""``work-site bench control``: how well the arm executes moves and contact programs (issue 5).
+"""``python -m bench control``: how well the arm executes moves and contact programs.
 
 - tracking: a 10 cm TCP line at several speeds, commanded against measured;
 - guarded: closed fingertips lowered onto the table until 10 N, at several speeds: the force's
@@ -13,6 +13,7 @@ Prints a JSON object; writes ``control.csv``, ``control_guarded.csv`` and ``cont
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import math
@@ -337,7 +338,7 @@ def slide_sweep() -> list[dict]:
     return rows
 
 
-def main(out_dir: Path) -> dict:
+def run(out_dir: Path) -> dict:
     """Run every case; write control.json, the CSVs and the plot under ``out_dir``; return the
     JSON summary."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -361,3 +362,20 @@ def main(out_dir: Path) -> dict:
     }
     (out_dir / "control.json").write_text(json.dumps(summary, indent=1))
     return summary
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``python -m bench control``."""
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/bench"),
+        help="directory for control.json, control.csv, control_guarded.csv, control_slide.csv "
+        "and control.png (default: %(default)s)",
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the benchmark; print its JSON (one line) last."""
+    print(json.dumps(run(args.out)))
+    return 0
