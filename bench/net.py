@@ -1017,9 +1017,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="directory for net.json, net_samples.csv, net_rtt.png and net_frames.* "
         "(default: %(default)s)",
     )
-    g = parser.add_argument_group("bench net")
+    g = parser.add_argument_group("what is measured")
     g.add_argument(
-        "--net-count", type=int, default=2000, help="loopback round trips per kind and run"
+        "--net-count",
+        type=int,
+        default=2000,
+        help="round trips of each kind in each loopback run (default: %(default)s)",
     )
     g.add_argument(
         "--net-loopback-runs",
@@ -1032,7 +1035,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--net-image-count",
         type=int,
         default=500,
-        help="loopback command round trips with and without images",
+        help="loopback command round trips timed with and without camera frames streaming "
+        "(default: %(default)s)",
     )
     g.add_argument(
         "--net-frame-size",
@@ -1041,12 +1045,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="size of the echo's raw frames (default: the scene camera's)",
     )
     g.add_argument(
-        "--net-frame-seconds", type=float, default=5.0, help="seconds of real work-site frames"
+        "--net-frame-seconds",
+        type=float,
+        default=5.0,
+        help="seconds of camera frames received from a real work site (default: %(default)s)",
     )
-    g.add_argument("--net-no-link", action="store_true", help="skip the emulated link")
-    g.add_argument("--net-link-delay-ms", type=float, default=50.0, help="one-way delay (ms)")
-    g.add_argument("--net-link-loss", type=float, default=0.01, help="loss fraction each way")
-    g.add_argument("--net-link-seed", type=int, default=1, help="link schedule seed")
+    g.add_argument(
+        "--net-no-link", action="store_true", help="skip every measurement over the emulated link"
+    )
+    g.add_argument(
+        "--net-link-delay-ms",
+        type=float,
+        default=50.0,
+        help="the emulated link's one-way delay, ms (default: %(default)s)",
+    )
+    g.add_argument(
+        "--net-link-loss",
+        type=float,
+        default=0.01,
+        help="the emulated link's loss fraction each way (default: %(default)s)",
+    )
+    g.add_argument(
+        "--net-link-seed",
+        type=int,
+        default=1,
+        help="seed of the emulated link's delay and loss schedule (default: %(default)s)",
+    )
     g.add_argument(
         "--net-no-single",
         action="store_true",
@@ -1054,7 +1078,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "two: commands apart from images)",
     )
     g.add_argument(
-        "--net-link-count", type=int, default=500, help="round trips per kind over the link"
+        "--net-link-count",
+        type=int,
+        default=500,
+        help="round trips of each kind over the emulated link (default: %(default)s)",
     )
     g.add_argument(
         "--net-frame-encodings",
@@ -1074,7 +1101,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--net-frame-link-commands",
         type=int,
         default=100,
-        help="command round trips with and without each encoding's frames over the link",
+        help="command round trips over the emulated link with and without each encoding's "
+        "frames streaming (default: %(default)s)",
     )
     g.add_argument(
         "--net-only-frames",
@@ -1088,16 +1116,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--net-harsh-runs",
         type=int,
         default=3,
-        help="pick-and-place programs run by a real work site over the harsher link (0: none)",
+        help="pick-and-place programs run by a real work site over the harsher link, 0 for "
+        "none (default: %(default)s)",
     )
-    g.add_argument("--net-harsh-delay-ms", type=float, default=100.0, help="its one-way delay")
-    g.add_argument("--net-harsh-jitter-ms", type=float, default=20.0, help="its jitter (± ms)")
-    g.add_argument("--net-harsh-loss", type=float, default=0.02, help="its loss each way")
+    g.add_argument(
+        "--net-harsh-delay-ms",
+        type=float,
+        default=100.0,
+        help="the harsher link's one-way delay, ms (default: %(default)s)",
+    )
+    g.add_argument(
+        "--net-harsh-jitter-ms",
+        type=float,
+        default=20.0,
+        help="the harsher link's delay jitter, ± ms (default: %(default)s)",
+    )
+    g.add_argument(
+        "--net-harsh-loss",
+        type=float,
+        default=0.02,
+        help="the harsher link's loss fraction each way (default: %(default)s)",
+    )
     g.add_argument(
         "--net-link-image-count",
         type=int,
         default=200,
-        help="link command round trips with and without images",
+        help="command round trips over the emulated link timed with and without camera "
+        "frames streaming (default: %(default)s)",
     )
     # The roles of the helper processes this benchmark starts (not for users).
     parser.add_argument("--role", choices=["echo", "client"], help=argparse.SUPPRESS)
