@@ -45,29 +45,29 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-# Every benchmark; figures land in docs/bench/ (JSON, CSV, PNG), then bench/report.py rewrites
-# the summary at the top of docs/benchmarks.md from the JSON (the sections below it discuss them).
-# e2e: E2E_SEEDS seeds per task, the issue's 100 by default (the work sites simulate 3× faster
-# than real time where the machine keeps up: an around-corner run took about 21 s alone on
-# 2 cores, so the 200 runs take over an hour); a quick look: `make bench E2E_SEEDS=10`.
+# Every benchmark (`python -m bench NAME`, from the repository root); figures land in docs/bench/
+# (JSON, CSV, PNG), then `python -m bench report` rewrites the summary at the top of
+# docs/benchmarks.md from the JSON (the sections below it discuss them).
+# e2e: E2E_SEEDS seeds per task, 100 by default (the work sites simulate 3× faster than real time
+# where the machine keeps up; the 200 runs take over an hour); a quick look:
+# `make bench E2E_SEEDS=10`.
 E2E_SEEDS ?= 100
 # trade: each user knob's values on each task, TRADE_SEEDS seeds a value (the defaults' runs
 # shared).
 TRADE_SEEDS ?= 5
 bench: $(BENCH_STAMP)
-	$(VENV)/bin/operator-site bench sim --out docs/bench
-	$(VENV)/bin/operator-site bench deform --out docs/bench
-	$(VENV)/bin/work-site bench control --out docs/bench
-	$(VENV)/bin/work-site bench vision --out docs/bench
-	$(VENV)/bin/operator-site bench net --out docs/bench
-	$(PY) bench/bench_lcp.py > docs/bench/lcp.json
-	$(PY) bench/bench_program_sweeps.py --out docs/bench
-	$(VENV)/bin/operator-site bench e2e --seeds $(E2E_SEEDS) --time-scale 3 --out docs/bench
-	$(VENV)/bin/operator-site bench trade --seeds $(TRADE_SEEDS) --time-scale 3 --tasks corner \
-	  --out docs/bench
-	$(VENV)/bin/operator-site bench trade --seeds $(TRADE_SEEDS) --time-scale 3 \
-	  --tasks around-corner --out docs/bench/trade-around-corner
-	$(PY) bench/report.py
+	$(PY) -m bench sim --out docs/bench
+	$(PY) -m bench deform --out docs/bench
+	$(PY) -m bench control --out docs/bench
+	$(PY) -m bench vision --out docs/bench
+	$(PY) -m bench net --out docs/bench
+	$(PY) -m bench lcp > docs/bench/lcp.json
+	$(PY) -m bench program_sweeps --out docs/bench
+	$(PY) -m bench e2e --seeds $(E2E_SEEDS) --time-scale 3 --out docs/bench
+	$(PY) -m bench trade --seeds $(TRADE_SEEDS) --time-scale 3 --tasks corner --out docs/bench
+	$(PY) -m bench trade --seeds $(TRADE_SEEDS) --time-scale 3 --tasks around-corner \
+	  --out docs/bench/trade-around-corner
+	$(PY) -m bench report
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

@@ -1,7 +1,7 @@
 """Regenerate the summary at the top of docs/benchmarks.md from the benchmarks' JSON files.
 
-Run: ``.venv/bin/python bench/report.py [--bench-dir docs/bench] [--page docs/benchmarks.md]``
-(``make bench`` runs it last). Every headline figure of every issue is read from the JSON its
+Run: ``.venv/bin/python -m bench report [--bench-dir docs/bench] [--page docs/benchmarks.md]``
+(``make bench`` runs it last). Every headline figure of every benchmark is read from the JSON its
 benchmark wrote into ``docs/bench/`` and set against its goal, with the date of the file it came
 from (its last commit, or its modification time when it is newer than that commit or not
 committed). Only the block between the two markers below is rewritten; the sections after it are
@@ -28,8 +28,8 @@ END = "<!-- end of the generated summary -->"
 
 
 ISSUE_SEEDS = 100
-"""Issue 9 counts success over this many seeds a task: fewer runs never meet its goal, however
-many of them succeed (ten successes in ten do not show 98 in 100)."""
+"""The end-to-end goals count success over this many seeds a task: fewer runs never meet them,
+however many of them succeed (ten successes in ten do not show 98 in 100)."""
 
 
 @dataclass(frozen=True)
@@ -268,13 +268,25 @@ def update_page(page: Path, block: str) -> None:
     page.write_text(text)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Write the summary into the page and print it."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--bench-dir", type=Path, default=REPO / "docs" / "bench")
-    parser.add_argument("--page", type=Path, default=REPO / "docs" / "benchmarks.md")
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``python -m bench report``."""
+    parser.add_argument(
+        "--bench-dir",
+        type=Path,
+        default=REPO / "docs" / "bench",
+        help="directory of the benchmarks' JSON files (default: docs/bench)",
+    )
+    parser.add_argument(
+        "--page",
+        type=Path,
+        default=REPO / "docs" / "benchmarks.md",
+        help="page whose summary block is rewritten (default: docs/benchmarks.md)",
+    )
     parser.add_argument("--check", action="store_true", help="print only; do not write the page")
-    args = parser.parse_args(argv)
+
+
+def main(args: argparse.Namespace) -> int:
+    """Write the summary into the page and print it."""
     if not args.page.exists():
         print(f"report: no page {args.page}", file=sys.stderr)
         return 2
@@ -284,7 +296,3 @@ def main(argv: list[str] | None = None) -> int:
         update_page(args.page, block)
         print(f"report: wrote the summary into {args.page} ({counts})")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

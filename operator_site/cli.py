@@ -44,83 +44,6 @@ def build_parser() -> argparse.ArgumentParser:
         "this machine and serves the operator page connected to it. Ctrl-C "
         "stops both.",
     )
-    bench = sub.add_parser(
-        "bench",
-        help="run a benchmark and print its JSON summary",
-        description="Benchmarks print a JSON summary on the last line and "
-        "write CSV files and PNG plots into --out.",
-    )
-    bench.add_argument(
-        "name",
-        choices=["sim", "deform", "net", "e2e", "trade"],
-        help="sim: the task simulator (issue 3 scenes, MuJoCo comparison if installed, knob "
-        "sweeps); deform: the program generator's path deformation (issue 6); net: round trips "
-        "and frames over zenoh against plain TCP, on loopback and an emulated link (issue 8); "
-        "e2e: the scripted tasks end to end over --seeds seeds (issue 9); trade: each user "
-        "knob's effect on the first of --tasks end to end, --seeds seeds per value",
-    )
-    bench.add_argument(
-        "--seeds", type=int, default=100, help="e2e: seeds per task (default: %(default)s)"
-    )
-    bench.add_argument(
-        "--first-seed",
-        type=int,
-        default=0,
-        metavar="N",
-        help="e2e: the first seed (default: %(default)s); seeds N … N + --seeds − 1 are run",
-    )
-    bench.add_argument(
-        "--keep",
-        action="store_true",
-        help="e2e: keep the rows of other tasks and seeds already in --out's e2e.jsonl and "
-        "summarise them with this run's (a long run in parts)",
-    )
-    bench.add_argument(
-        "--oracle-vision",
-        action="store_true",
-        help="e2e: blocks' poses from the work site's ground truth instead of vision",
-    )
-    bench.add_argument(
-        "--surface-stiffness",
-        type=float,
-        default=None,
-        metavar="N_PER_M",
-        help="e2e: the started work sites' `--surface-stiffness` (default: theirs)",
-    )
-    bench.add_argument(
-        "--time-scale",
-        type=float,
-        default=1.0,
-        metavar="X",
-        help="e2e, trade: the started work sites simulate X seconds per wall second (default: 1); "
-        "the physics is stepped alike at any scale, only the wall time differs (the JSON's "
-        "time_scale_achieved_min says how fast the machine managed)",
-    )
-    bench.add_argument(
-        "--tasks",
-        nargs="+",
-        choices=["corner", "around-corner"],
-        default=["corner", "around-corner"],
-        help="e2e: which scripted tasks (default: both)",
-    )
-    bench.add_argument(
-        "--knobs",
-        nargs="+",
-        default=None,
-        metavar="KNOB",
-        help="trade: which knobs (default: all; see operator_site/e2e_trade.py KNOBS)",
-    )
-    bench.add_argument(
-        "--out",
-        type=Path,
-        default=Path("docs/bench"),
-        help="directory for CSV and PNG files (default: %(default)s)",
-    )
-    bench.add_argument("--quick", action="store_true", help="skip the sweeps")
-    from operator_site import netbench
-
-    netbench.add_arguments(bench)
-    bench.add_argument("-v", "--verbose", action="store_true", help="log more")
     for p in (serve, demo):
         p.add_argument(
             "--scene",
@@ -309,8 +232,6 @@ def main(argv: list[str]) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s: %(message)s",
     )
-    if args.command == "bench":
-        return run_bench(args)
     if args.command == "demo" and args.scripted:
         return run_scripted_demo(args, connect_given="--connect" in argv)
     return demo(args) if args.command == "demo" else serve(args)
@@ -344,53 +265,6 @@ def run_scripted_demo(args: argparse.Namespace, connect_given: bool) -> int:
         for k, v in result.items():
             print(f"{k}: {v}")
     return 0 if result["success"] else 1
-
-
-def run_bench(args: argparse.Namespace) -> int:
-    """Run benchmark ``args.name``; print its JSON (one line) last."""
-    import json
-
-    if args.name == "net":
-        from operator_site import netbench
-
-        return netbench.main(args)
-    if args.name == "deform":
-        from operator_site.program import benchmark as deform_bench
-
-        return deform_bench.main(args)
-    if args.name == "e2e":
-        from operator_site import e2e_bench
-
-        results = e2e_bench.main(
-            args.out,
-            args.seeds,
-            tuple(args.tasks),
-            oracle=args.oracle_vision,
-            time_scale=args.time_scale,
-            work_site_args=_work_site_args(args),
-            first_seed=args.first_seed,
-            keep=args.keep,
-        )
-        print(json.dumps(results))
-        return 0
-    if args.name == "trade":
-        from operator_site import e2e_trade
-
-        knobs = tuple(args.knobs) if args.knobs else tuple(e2e_trade.KNOBS)
-        if unknown := [k for k in knobs if k not in e2e_trade.KNOBS]:
-            print(f"operator-site bench trade: unknown knob(s) {unknown} (known: "
-                  f"{', '.join(e2e_trade.KNOBS)})", file=sys.stderr)  # fmt: skip
-            return 2
-        results = e2e_trade.main(
-            args.out, args.seeds, args.tasks[0], knobs, time_scale=args.time_scale
-        )
-        print(json.dumps(results))
-        return 0
-    from operator_site.simulator import benchmark
-
-    results = benchmark.main(args.out, quick=args.quick)
-    print(json.dumps(results))
-    return 0
 
 
 def run() -> None:

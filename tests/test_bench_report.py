@@ -2,24 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def _report():
-    spec = importlib.util.spec_from_file_location("_bench_report", REPO / "bench" / "report.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+from bench import report
 
 
 def test_the_summary_sets_each_figure_against_its_goal_and_replaces_only_its_block(tmp_path):
-    report = _report()
     bench = tmp_path / "bench"
     bench.mkdir()
     (bench / "vision.json").write_text(json.dumps({"recall": 0.97, "precision": 0.98}))

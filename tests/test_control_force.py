@@ -3,15 +3,17 @@ in real pybullet with the block's real pose as the judge (issue 5)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pybullet as p
 import pytest
 
+from bench import control as benchmark
+from models.scene import load_scene
 from models.transforms import make_pose, rpy_to_R
 from protocol import ContactState, MotionCommand, MotionProgram
-from work_site.control import benchmark
 from work_site.control.controller import Impedance, compliant_projector
 from work_site.control.executor import (
     CONTACT_VERIFY_N,
@@ -166,6 +168,22 @@ def test_an_unexpected_force_stops_the_arm_at_the_commands_limit(site) -> None:
     assert c.move is None  # held where it stopped
 
 
+def test_the_frames_opening_is_read_from_its_parts_wherever_it_stands() -> None:
+    scene = load_scene()
+    (x0, x1), (y0, y1) = benchmark.frame_inner_W(scene)
+    np.testing.assert_allclose([x0, x1, y0, y1], [0.35, 0.55, -0.10, 0.10], atol=1e-12)
+    # Moved 5 cm along x and turned a quarter turn: the square opening moves with it.
+    X_WO = make_pose(rpy_to_R(np.array([0.0, 0.0, np.pi / 2])), (0.50, 0.0, 0.0))
+    moved = dataclasses.replace(
+        scene,
+        objects=tuple(
+            dataclasses.replace(o, X_WO=X_WO) if o.name == "frame" else o for o in scene.objects
+        ),
+    )
+    (x0, x1), (y0, y1) = benchmark.frame_inner_W(moved)
+    np.testing.assert_allclose([x0, x1, y0, y1], [0.40, 0.60, -0.10, 0.10], atol=1e-12)
+
+
 def test_the_target_bias_solves_N_dp_equals_minus_d() -> None:
     corner = np.eye(3)
     dp = target_bias_W(corner)
@@ -209,7 +227,7 @@ def test_leaving_a_contact_the_hand_does_not_push_back_into_it() -> None:
     alone: the offset the wall's bias left does not pull the hand back into the wall (it did,
     stiffer along the surfaces: 21.5 N, over the move's 20 N limit)."""
     world, c = benchmark._site()
-    (x0, _), _ = benchmark.FRAME_INNER_M
+    (x0, _), _ = benchmark.frame_inner_W(world.scene)
     wall = ContactState(object="frame", normals_W=np.array([[1.0, 0.0, 0.0]]))
     on_wall = make_pose(np.eye(3), (x0 + benchmark.CUBE_HALF_M, 0.0, benchmark.CUBE_HALF_M))
     off_wall = on_wall.copy()

@@ -7,10 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 
+from bench import scenarios
 from models.geometry import make_convex_part, mass_properties
 from models.scene import ObjectModel, Scene, SceneObject
 from models.transforms import make_pose
-from operator_site.program import scenarios
 from operator_site.program.contact_step import ContactStepper
 from operator_site.program.deform import Deformer, DeformParams, DeformResult
 from operator_site.program.path import (

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from operator_site import e2e_bench
+from bench import e2e as e2e_bench
 
 
 def _fake_run(task: str, seed: int, **_kwargs) -> dict:
@@ -50,9 +50,9 @@ def _rows(out: Path) -> list[tuple[str, int]]:
 def test_a_run_in_parts_summarises_every_kept_row(
     tmp_path: Path, fake_chain: list[tuple[str, int]]
 ) -> None:
-    e2e_bench.main(tmp_path, 3, ("corner",))
-    e2e_bench.main(tmp_path, 3, ("corner",), first_seed=3, keep=True)
-    summary = e2e_bench.main(tmp_path, 2, ("around-corner",), keep=True)
+    e2e_bench.run(tmp_path, 3, ("corner",))
+    e2e_bench.run(tmp_path, 3, ("corner",), first_seed=3, keep=True)
+    summary = e2e_bench.run(tmp_path, 2, ("around-corner",), keep=True)
     assert fake_chain == [("corner", s) for s in range(6)] + [
         ("around-corner", 0),
         ("around-corner", 1),
@@ -69,19 +69,19 @@ def test_a_run_in_parts_summarises_every_kept_row(
 def test_a_rerun_replaces_its_seeds_and_without_keep_starts_afresh(
     tmp_path: Path, fake_chain: list[tuple[str, int]]
 ) -> None:
-    e2e_bench.main(tmp_path, 4, ("corner",))
-    e2e_bench.main(tmp_path, 2, ("corner",), first_seed=1, keep=True)
+    e2e_bench.run(tmp_path, 4, ("corner",))
+    e2e_bench.run(tmp_path, 2, ("corner",), first_seed=1, keep=True)
     assert sorted(_rows(tmp_path)) == [("corner", s) for s in range(4)]
-    summary = e2e_bench.main(tmp_path, 1, ("corner",))
+    summary = e2e_bench.run(tmp_path, 1, ("corner",))
     assert _rows(tmp_path) == [("corner", 0)] and summary["corner"]["runs"] == 1
 
 
 def test_a_row_cut_by_a_killed_run_is_skipped_with_a_message(
     tmp_path: Path, fake_chain: list[tuple[str, int]], capsys: pytest.CaptureFixture[str]
 ) -> None:
-    e2e_bench.main(tmp_path, 2, ("corner",))
+    e2e_bench.run(tmp_path, 2, ("corner",))
     with (tmp_path / "e2e.jsonl").open("a") as f:
         f.write('{"task": "corner", "se')
-    summary = e2e_bench.main(tmp_path, 1, ("corner",), first_seed=2, keep=True)
+    summary = e2e_bench.run(tmp_path, 1, ("corner",), first_seed=2, keep=True)
     assert summary["corner"]["runs"] == 3
     assert "e2e.jsonl:3: skipped, not a JSON row" in capsys.readouterr().err

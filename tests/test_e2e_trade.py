@@ -1,11 +1,12 @@
-"""operator_site/e2e_trade.py: knobs reach the program generator; the summary counts right."""
+"""bench/trade.py: knobs reach the program generator; the summary counts right."""
 
 from __future__ import annotations
 
 import pytest
 
-from operator_site import e2e_trade, scripted
-from operator_site.e2e_trade import KNOBS
+from bench import trade as e2e_trade
+from bench.trade import KNOBS
+from operator_site import scripted
 
 
 @pytest.mark.parametrize("name", list(KNOBS))
@@ -77,9 +78,9 @@ def test_knobs_run_a_few_at_a_time_add_up_and_reuse_the_defaults(monkeypatch, tm
     monkeypatch.setattr(
         e2e_trade, "_plot", lambda _out, _task, summary: plotted.append(set(summary))
     )
-    first = e2e_trade.main(tmp_path, 2, "corner", ("contact_speed",), log=lambda _: None)
+    first = e2e_trade.run(tmp_path, 2, "corner", ("contact_speed",), log=lambda _: None)
     assert len(calls) == 2 * 3  # the default and the two other speeds, two seeds each
-    second = e2e_trade.main(tmp_path, 2, "corner", ("surface_stiffness",), log=lambda _: None)
+    second = e2e_trade.run(tmp_path, 2, "corner", ("surface_stiffness",), log=lambda _: None)
     assert len(calls) == 2 * 3 + 2  # only the one non-default stiffness: the defaults reused
     assert calls[-1][1] == ("--surface-stiffness", "1000.0")
     assert set(second["knobs"]) == {"contact_speed", "surface_stiffness"}
@@ -89,7 +90,7 @@ def test_knobs_run_a_few_at_a_time_add_up_and_reuse_the_defaults(monkeypatch, tm
     assert len(lines) == 1 + 2 * 4  # header; default, two speeds, one stiffness: two seeds each
     assert plotted == [{"contact_speed"}, {"contact_speed", "surface_stiffness"}]
     # At another time scale nothing is reused: the defaults run again with the knob asked.
-    third = e2e_trade.main(
+    third = e2e_trade.run(
         tmp_path, 2, "corner", ("surface_stiffness",), log=lambda _: None, time_scale=3.0
     )
     assert len(calls) == 2 * 3 + 2 + 2 * 2 and {c[3] for c in calls[-4:]} == {3.0}

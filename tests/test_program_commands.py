@@ -9,6 +9,8 @@ import json
 import numpy as np
 import pytest
 
+from bench import deform as benchmark
+from bench import scenarios
 from models.robot import load_robot
 from models.transforms import make_pose
 from operator_site.grasp import top_grasp
@@ -17,13 +19,11 @@ from operator_site.program import (
     ProgramRefusedError,
     Sweeper,
     WorkpiecePath,
-    benchmark,
     build_program,
     check_program,
     fit_targets,
     generate_program,
     program_to_json,
-    scenarios,
     target_bias,
 )
 from operator_site.program.commands import CORNER_CLEARANCE_M, _force_limit

@@ -238,8 +238,8 @@ def test_mutated_frames_decode_to_a_valid_frame_or_are_refused(
 
 
 def test_the_benchmark_measures_each_encoding(tmp_path) -> None:
-    """``operator-site bench net``'s codec figures, and its net_frames outputs."""
-    from operator_site.netbench import FRAME_COLUMNS, codec_costs, write_frame_outputs
+    """``python -m bench net``'s codec figures, and its net_frames outputs."""
+    from bench.net import FRAME_COLUMNS, codec_costs, write_frame_outputs
 
     image = scene_like_image(480, 640)
     costs = {spec: codec_costs(image, spec, n=3) for spec in ("raw", "png", "jpeg:90", "jpeg:50")}

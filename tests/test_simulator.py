@@ -6,6 +6,7 @@ import dataclasses
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +19,8 @@ from models.transforms import make_pose, rpy_to_R, so3_exp, so3_log
 from operator_site.simulator.contacts import contact_manifold
 from operator_site.simulator.params import SimParams
 from operator_site.simulator.stepper import Simulator
+
+REPO = Path(__file__).resolve().parents[1]
 
 P = SimParams()
 CUBE_HALF = 0.025
@@ -299,7 +302,8 @@ def test_manifold_crossing_edges_is_their_crossing_point() -> None:
 
 def test_benchmark_command_runs_and_reports_the_issue_keys(tmp_path) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "operator_site", "bench", "sim", "--quick", "--out", str(tmp_path)],
+        [sys.executable, "-m", "bench", "sim", "--quick", "--out", str(tmp_path)],
+        cwd=REPO,
         capture_output=True,
         text=True,
         timeout=300,

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from bench.vision_dataset import SceneRenderer
 from models.scene import load_camera, load_scene
 from models.transforms import make_pose, rpy_to_R, so3_log
 from work_site.vision.calibration import (
@@ -17,7 +18,6 @@ from work_site.vision.calibration import (
     render_board_views,
 )
 from work_site.vision.cli import main
-from work_site.vision.dataset import SceneRenderer
 
 
 @pytest.fixture(scope="module")

@@ -1,8 +1,9 @@
-"""`work-site recognize` and `render-dataset`: clear refusals of bad input, JSON as DESIGN.md
-says, and a rendered scene recognised end to end."""
+"""`work-site recognize` and the benchmark's dataset renderer: clear refusals of bad input, JSON
+as DESIGN.md says, and a rendered scene recognised end to end."""
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from bench import vision_dataset
 from models.scene import DEFAULT_SCENE, load_scene
 from work_site.vision.cli import main
 
@@ -74,9 +76,15 @@ def test_an_all_black_image_gives_no_objects(tmp_path, camera_json, cache_dir, c
     assert doc["objects"] == [] and doc["elapsed_s"] >= 0
 
 
+def _render_dataset(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser()
+    vision_dataset.add_arguments(parser)
+    return vision_dataset.main(parser.parse_args(argv))
+
+
 def test_render_a_scene_then_recognise_it(tmp_path, cache_dir, capsys):
     out = tmp_path / "data"
-    assert main(["render-dataset", "--n", "1", "--seed", "5", "--out", str(out)]) == 0
+    assert _render_dataset(["--n", "1", "--seed", "5", "--out", str(out)]) == 0
     truth = json.loads((out / "scene_0000.json").read_text())
     assert {o["model"] for o in truth["objects"]} == {
         "cube", "tall_block", "plank", "wedge", "l_block", "hex_prism"
@@ -97,5 +105,5 @@ def test_render_a_scene_then_recognise_it(tmp_path, cache_dir, capsys):
 
 
 def test_render_dataset_refuses_bad_counts(tmp_path, capsys):
-    assert main(["render-dataset", "--n", "0", "--out", str(tmp_path)]) == 2
+    assert _render_dataset(["--n", "0", "--out", str(tmp_path)]) == 2
     assert "--n must be" in capsys.readouterr().err

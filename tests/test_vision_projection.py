@@ -6,9 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
+from bench.vision_dataset import SceneRenderer
 from models.scene import load_scene
 from models.transforms import invert_pose, make_pose, rpy_to_R
-from work_site.vision.dataset import SceneRenderer, render_with_segmentation
+from work_site.camera import render_grey
 from work_site.vision.model import project, transform, vision_model
 
 SUPERSAMPLE = 4
@@ -40,7 +41,7 @@ def test_projected_silhouette_corners_match_the_rendering(renderer, name, rpy, x
     for k, other in enumerate(renderer.movable):
         renderer.world.set_object_pose(other.name, make_pose(None, [5.0 + k, 5.0, -1.0]))
     renderer.world.set_object_pose(name, X_WO)
-    _, seg = render_with_segmentation(renderer.world.cid, camera, SUPERSAMPLE)
+    _, seg = render_grey(renderer.world.cid, camera, SUPERSAMPLE, segmentation=True)
     mask = (seg == renderer.world.bodies[name]).astype(np.uint8)
     assert mask.sum() > 1000, "the object must be in view"
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)

@@ -1,15 +1,15 @@
 """Recognition on scenes rendered by the test: floors below the benchmark's goals, so the suite
-stays fast and stable; the benchmark (`work-site bench vision`) measures the real figures."""
+stays fast and stable; the benchmark (`python -m bench vision`) measures the real figures."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from bench.vision_dataset import SceneRenderer
+from bench.vision_evaluate import score_scene
 from models.scene import load_scene
 from models.transforms import make_pose
-from work_site.vision.dataset import SceneRenderer
-from work_site.vision.evaluate import score_scene
 from work_site.vision.recognizer import Recognizer
 
 N_SCENES = 6

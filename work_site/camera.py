@@ -14,6 +14,7 @@ import multiprocessing as mp
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
+from typing import Literal, overload
 
 import cv2
 import numpy as np
@@ -58,17 +59,33 @@ def opengl_matrices(
     return view.T.flatten().tolist(), proj.T.flatten().tolist()
 
 
-def render_grey(cid: int, camera: CameraModel, supersample: int = 1) -> np.ndarray:
+@overload
+def render_grey(
+    cid: int, camera: CameraModel, supersample: int = 1, *, segmentation: Literal[False] = False
+) -> np.ndarray: ...
+
+
+@overload
+def render_grey(
+    cid: int, camera: CameraModel, supersample: int = 1, *, segmentation: Literal[True]
+) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def render_grey(
+    cid: int, camera: CameraModel, supersample: int = 1, *, segmentation: bool = False
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Render physics client ``cid`` through ``camera`` as an 8-bit grey image (h, w).
 
     ``supersample`` > 1 renders that many times larger and averages down (``INTER_AREA``), for
-    sub-pixel edges closer to a real camera's, at about ``supersample²`` times the cost.
+    sub-pixel edges closer to a real camera's, at about ``supersample²`` times the cost. With
+    ``segmentation``, also the segmentation buffer (h·k, w·k) int64 of body ids (−1 for none)
+    at the supersampled size k: the ground truth of what each pixel sees.
     """
     if supersample < 1:
         raise ValueError(f"supersample must be ≥ 1, got {supersample}")
     view, proj = opengl_matrices(camera)
     w, h = camera.width * supersample, camera.height * supersample
-    _, _, rgba, _, _ = p.getCameraImage(
+    _, _, rgba, _, seg = p.getCameraImage(
         w,
         h,
         view,
@@ -82,7 +99,11 @@ def render_grey(cid: int, camera: CameraModel, supersample: int = 1) -> np.ndarr
     grey = cv2.cvtColor(rgba, cv2.COLOR_RGBA2GRAY)
     if supersample > 1:
         grey = cv2.resize(grey, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
-    return grey
+    if not segmentation:
+        return grey
+    seg = np.asarray(seg, dtype=np.int64).reshape(h, w)
+    # Body ids sit in the low 24 bits (pybullet puts link indices above them when asked to).
+    return grey, np.where(seg < 0, -1, seg & ((1 << 24) - 1))
 
 
 @dataclass(frozen=True)

@@ -47,25 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run the work-site server until Ctrl-C or SIGTERM.",
     )
     add_serve_arguments(serve)
-    bench = sub.add_parser(
-        "bench",
-        help="run a benchmark and print its JSON summary",
-        description="Prints a JSON summary as its last line and writes CSV files into --out.",
-    )
-    bench.add_argument(
-        "name",
-        choices=["control", "vision"],
-        help="control: the arm's execution of moves (issue 5); vision: recognition and pose "
-        "accuracy, speed and their trades on rendered scenes (issue 4)",
-    )
-    bench.add_argument(
-        "--out",
-        type=Path,
-        default=Path("docs/bench"),
-        help="directory for CSV and PNG files (default: %(default)s)",
-    )
-    vision_cli.add_bench_arguments(bench)
-    vision_cli.register(sub)  # recognize, render-dataset, calibrate
+    vision_cli.register(sub)  # recognize, calibrate
     return parser
 
 
@@ -358,17 +340,7 @@ def main(argv: list[str]) -> int:
     )
     if args.command == "serve":
         return serve(args)
-    if args.command == "bench":
-        import json
-
-        if args.name == "vision":
-            print(json.dumps(vision_cli.bench_main(args)))
-            return 0
-        from work_site.control import benchmark
-
-        print(json.dumps(benchmark.main(args.out)))
-        return 0
-    if hasattr(args, "func"):  # recognize, render-dataset, calibrate
+    if hasattr(args, "func"):  # recognize, calibrate
         return args.func(args)
     parser.print_help()
     return 2

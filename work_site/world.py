@@ -53,7 +53,7 @@ ENV_CONTACT_STIFFNESS_N_PER_M = 1e4
 """Contact stiffness of the fixed environment (table, frame): wood backed by a robot that is
 not infinitely stiff. pybullet's default rigid contact answered a 20 mm/s touch with a 1,012 N
 spike in one 1 ms step, which no force guard can catch; at 1e4 N/m a 10 N guard stops within
-0.2 N of its threshold (`work-site bench control`), and a 75 g block sinks 0.07 mm."""
+0.2 N of its threshold (`python -m bench control`), and a 75 g block sinks 0.07 mm."""
 ENV_CONTACT_DAMPING_N_S_PER_M = 100.0
 """Damping of those contacts: enough that a touch does not bounce."""
 PAD_CONTACT_STIFFNESS_N_PER_M = 5e4

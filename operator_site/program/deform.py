@@ -100,7 +100,7 @@ class DeformParams:
     (before 100 sweeps on the scripted around-corner demonstrations of seeds 0–9: their
     programs at 100 and 300 sweeps are identical). At 45 their programs' targets were at
     most 10.6 mm (median 5.7 mm) from those at 100 or 300 sweeps, for 0.46 instead of 0.62 s
-    CPU median (`bench/bench_program_sweeps.py`, docs/benchmarks.md); corner's are the same at
+    CPU median (`python -m bench program_sweeps`, docs/benchmarks.md); corner's are the same at
     any cap from 45 on. A program the check refuses after a capped deformation is made again
     with more sweeps (``generate.REFUSED_RETRY_MAX_SWEEPS``)."""
     max_sweeps_coarse: int = 15

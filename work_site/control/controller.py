@@ -42,7 +42,7 @@ stop's deceleration as tens of newtons; neither is a contact. The window delays 
 3.6 N). Its length is even so that it cancels a period-2 chatter exactly: a block held against
 a wall and the table can make the simulated contacts alternate by ±38 N from one step to the
 next, of which a 5-step window let ±7.6 N through (the test of leaving a wall stopped at
-20.6 N > 20 N with 5 steps; `work-site bench control`, 5 → 4 steps on the same machine:
+20.6 N > 20 N with 5 steps; `python -m bench control`, 5 → 4 steps on the same machine:
 guarded overshoot 1.60 → 2.00 N, corner 0.14 → 0.11 mm, slide force 2.7–7.6 → 1.5–8.8 N)."""
 LIMIT_WINDOW_STEPS = 10
 """The force limit looks at the mean of this many 1 ms readings, one control period: in contact
@@ -75,7 +75,7 @@ with the turn made off the new face and the offset carried right, seeds 0–19: 
 16 of 20 after). `work-site serve
 --surface-stiffness 1000` gives the isotropic impedance back. A 6 cm slide along a wall ends
 0.38 mm short of its goal at 5,000 N/m, 2.16 mm at 1,000 (friction / stiffness; within 0.5 mm
-at every setting while the pads held the cube on single points, `work-site bench control`)."""
+at every setting while the pads held the cube on single points, `python -m bench control`)."""
 
 
 @dataclass(frozen=True)

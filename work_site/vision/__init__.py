@@ -2,8 +2,8 @@
 
 ``Recognizer(...).recognise(image, camera)`` → list of :class:`Recognition` (model name, pose
 ``X_WO``, score). Lines (:mod:`.lines`) → groups and the model index (:mod:`.index`) →
-Lowe's pose fit (:mod:`.pose`) → verification (:mod:`.recognizer`). Rendered test scenes with
-ground truth: :mod:`.dataset`; scoring: :mod:`.evaluate`; calibration: :mod:`.calibration`.
+Lowe's pose fit (:mod:`.pose`) → verification (:mod:`.recognizer`). Calibration:
+:mod:`.calibration`; rendered scenes with ground truth and their scoring are in ``bench/``.
 """
 
 from work_site.vision.index import GroupParams, IndexParams

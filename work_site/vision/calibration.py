@@ -18,7 +18,7 @@ import pybullet as p
 
 from models.scene import CameraModel, Scene, SceneObject
 from models.transforms import invert_pose, make_pose, rpy_to_R
-from work_site.camera import LIGHT_DIRECTION_W, opengl_matrices
+from work_site.camera import render_grey
 from work_site.vision.lines import LineParams, detect_lines
 from work_site.vision.model import VisionModel, transform, visible_edges, vision_model
 from work_site.vision.pose import fit_pose
@@ -95,7 +95,6 @@ def render_board_views(
     try:
         bodies = _make_board(cid)
         rng = np.random.default_rng(seed)
-        view, proj = opengl_matrices(camera)
         images = []
         for _ in range(n_views):
             d = rng.uniform(0.45, 0.8)
@@ -109,20 +108,7 @@ def render_board_views(
                 body, offset = (b, [0.0, 0.0, 0.0]) if isinstance(b, int) else b
                 pos, quat = pose_to_pybullet(X_WB @ make_pose(None, offset))
                 p.resetBasePositionAndOrientation(body, pos, quat, physicsClientId=cid)
-            w, h = camera.width * supersample, camera.height * supersample
-            _, _, rgba, _, _ = p.getCameraImage(
-                w,
-                h,
-                view,
-                proj,
-                lightDirection=LIGHT_DIRECTION_W,
-                shadow=0,
-                renderer=p.ER_TINY_RENDERER,
-                physicsClientId=cid,
-            )
-            grey = cv2.cvtColor(np.asarray(rgba, np.uint8).reshape(h, w, 4), cv2.COLOR_RGBA2GRAY)
-            grey = cv2.resize(grey, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
-            images.append(grey)
+            images.append(render_grey(cid, camera, supersample))
         return images
     finally:
         p.disconnect(cid)

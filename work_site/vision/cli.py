@@ -1,10 +1,9 @@
-"""Vision commands of ``work-site``: ``recognize``, ``render-dataset`` and ``bench vision``.
+"""Vision commands of ``work-site``: ``recognize`` and ``calibrate``.
 
 work-site recognize IMAGE.png --camera CAMERA.json [--models DIR] [--scene FILE] [--json]
-work-site render-dataset --n N --seed S --out DIR [--supersample K] [--noise SIGMA]
+work-site calibrate --out CAMERA.json [--camera FILE] [--scene FILE] [--image FILE]
 
-Also runnable before it is wired into ``work-site``:
-``python -m work_site.vision.cli recognize …`` / ``render-dataset …`` / ``bench …``.
+Also runnable alone: ``python -m work_site.vision.cli recognize …`` / ``calibrate …``.
 """
 
 from __future__ import annotations
@@ -18,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from models.errors import ModelError
-from models.scene import DEFAULT_SCENE, load_camera, load_object, load_scene
+from models.layout import random_layout
+from models.scene import DEFAULT_SCENE, Scene, load_camera, load_object, load_scene
 
 
 def add_recognize_arguments(parser: argparse.ArgumentParser) -> None:
@@ -46,26 +46,6 @@ def add_recognize_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the recognitions JSON")
 
 
-def add_render_dataset_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--n", type=int, required=True, help="number of scenes")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
-    parser.add_argument("--out", type=Path, required=True, help="output directory")
-    parser.add_argument(
-        "--supersample",
-        type=int,
-        default=4,
-        metavar="K",
-        help="render K× larger and average down, for sub-pixel edges (default: %(default)s)",
-    )
-    parser.add_argument(
-        "--noise",
-        type=float,
-        default=1.0,
-        metavar="SIGMA",
-        help="Gaussian image noise, grey levels (default: %(default)s)",
-    )
-
-
 def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="camera JSON to write")
     parser.add_argument(
@@ -84,40 +64,22 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
         "--image",
         type=Path,
         default=None,
-        help="camera image of the work site for the pose (default: render one)",
+        help="camera image of the work site for the pose (default: render the simulated work "
+        "site, its blocks laid out by --seed)",
     )
     parser.add_argument(
         "--views", type=int, default=15, help="chessboard views for the intrinsics (default: 15)"
     )
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-
-
-def add_bench_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``bench vision`` (harmless for other benchmarks sharing the parser)."""
     parser.add_argument(
-        "--scenes", type=int, default=200, help="vision: scenes in the main run (default: 200)"
-    )
-    parser.add_argument(
-        "--sweep-scenes",
+        "--seed",
         type=int,
-        default=30,
-        help="vision: scenes per point of each sweep (default: 30)",
-    )
-    parser.add_argument("--seed", type=int, default=1, help="vision: dataset seed (default: 1)")
-    parser.add_argument(
-        "--dataset",
-        type=Path,
-        default=None,
-        help="vision: rendered dataset directory (default: under ~/.cache/telerobot/vision, "
-        "rendered if missing)",
-    )
-    parser.add_argument(
-        "--no-sweeps", action="store_true", help="vision: only the main run, no sweeps"
+        default=0,
+        help="seed of the chessboard views and of the rendered image's block layout (default: 0)",
     )
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``recognize`` and ``render-dataset`` to a ``work-site`` sub-command set."""
+    """Add ``recognize`` and ``calibrate`` to a ``work-site`` sub-command set."""
     rec = subparsers.add_parser(
         "recognize",
         help="recognise and locate the blocks in one camera image",
@@ -125,14 +87,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_recognize_arguments(rec)
     rec.set_defaults(func=recognize_main)
-    ren = subparsers.add_parser(
-        "render-dataset",
-        help="render random block layouts with ground truth, for tests and benchmarks",
-        description="Write N grey PNG scenes, camera.json and per-scene ground-truth JSON "
-        "(poses X_WO and visible fraction of every block).",
-    )
-    add_render_dataset_arguments(ren)
-    ren.set_defaults(func=render_dataset_main)
     cal = subparsers.add_parser(
         "calibrate",
         help="calibrate the camera: intrinsics from a chessboard, pose from the frame",
@@ -207,22 +161,19 @@ def recognize_main(args: argparse.Namespace) -> int:
     return 0
 
 
-def render_dataset_main(args: argparse.Namespace) -> int:
-    """Render the dataset; returns the exit code."""
-    from work_site.vision.dataset import write_dataset
+def _render(scene: Scene, seed: int) -> np.ndarray:
+    """The simulated work site's camera image, the blocks laid out by ``seed`` around the frame
+    (as ``work-site serve --seed`` lays them), supersampled 3× for sub-pixel edges."""
+    from work_site.camera import render_grey
+    from work_site.world import World
 
-    if args.n < 1:
-        print("work-site render-dataset: --n must be ≥ 1", file=sys.stderr)
-        return 2
-    if not 1 <= args.supersample <= 8:
-        print("work-site render-dataset: --supersample must be in 1..8", file=sys.stderr)
-        return 2
-    if not 0 <= args.noise <= 64:
-        print("work-site render-dataset: --noise must be in [0, 64]", file=sys.stderr)
-        return 2
-    paths = write_dataset(args.out, args.n, args.seed, args.supersample, args.noise)
-    print(f"wrote {len(paths)} scenes to {args.out}")
-    return 0
+    world = World(scene)
+    try:
+        for name, X_WO in random_layout(scene, seed).items():
+            world.set_object_pose(name, X_WO)
+        return render_grey(world.cid, scene.camera, supersample=3)
+    finally:
+        world.close()
 
 
 def calibrate_main(args: argparse.Namespace) -> int:
@@ -234,7 +185,6 @@ def calibrate_main(args: argparse.Namespace) -> int:
         frame_object,
         render_board_views,
     )
-    from work_site.vision.dataset import SceneRenderer
 
     try:
         if not 4 <= args.views <= 200:
@@ -243,14 +193,7 @@ def calibrate_main(args: argparse.Namespace) -> int:
         guess = load_camera(args.camera) if args.camera is not None else scene.camera
         # The simulated camera is the scene's: render through it, estimate from the images.
         intr = calibrate_intrinsics(render_board_views(scene.camera, args.views, args.seed))
-        if args.image is not None:
-            image = _read_image(args.image)
-        else:
-            renderer = SceneRenderer(scene, supersample=3)
-            try:
-                image, _ = renderer.render(renderer.random_layout(np.random.default_rng(args.seed)))
-            finally:
-                renderer.close()
+        image = _read_image(args.image) if args.image is not None else _render(scene, args.seed)
         with_k = calibrated_camera(guess, intr, None)
         extr = calibrate_extrinsics(image, with_k, frame_object(scene))
     except (ModelError, ValueError) as e:
@@ -270,33 +213,12 @@ def calibrate_main(args: argparse.Namespace) -> int:
     return 0
 
 
-def bench_main(args: argparse.Namespace) -> dict:
-    """``bench vision``: run the benchmark, write CSV + PNG into ``args.out``; the summary."""
-    from work_site.vision import bench
-
-    return bench.main(
-        args.out,
-        n_scenes=args.scenes,
-        sweep_scenes=args.sweep_scenes,
-        seed=args.seed,
-        dataset=args.dataset,
-        sweeps=not args.no_sweeps,
-    )
-
-
 def main(argv: list[str]) -> int:
-    """``python -m work_site.vision.cli COMMAND …`` for use before wiring into work-site."""
+    """``python -m work_site.vision.cli COMMAND …``: the vision commands without the server's."""
     parser = argparse.ArgumentParser(prog="work-site", description="Vision commands.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     register(sub)
-    bench = sub.add_parser("bench", help="run the vision benchmark")
-    bench.add_argument("name", choices=["vision"])
-    bench.add_argument("--out", type=Path, default=Path("docs/bench"))
-    add_bench_arguments(bench)
     args = parser.parse_args(argv)
-    if args.command == "bench":
-        print(json.dumps(bench_main(args)))
-        return 0
     if not hasattr(args, "func"):
         parser.print_help()
         return 2

@@ -4,21 +4,24 @@ Each scene is a grey PNG (pybullet's renderer, supersampled and averaged down so
 sub-pixel grey levels), the camera JSON and the ground truth: every movable object's pose
 ``X_WO`` and the fraction of its projected area that is visible (occlusion by other objects and
 the robot, and the image border, count as hidden).
+
+Render one to a directory: ``python -m bench.vision_dataset --n N --seed S --out DIR``.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
-import pybullet as p
 
 from models.scene import CameraModel, Scene, load_scene
 from models.transforms import invert_pose, make_pose
-from work_site.camera import LIGHT_DIRECTION_W, opengl_matrices
+from work_site.camera import render_grey
 from work_site.vision.model import convex_overlap_depth, project, transform
 from work_site.vision.table import rest_rotations
 
@@ -137,7 +140,7 @@ class SceneRenderer:
             self.world.set_object_pose(name, X_WO)
         cam = self.scene.camera
         s = self.supersample
-        grey, seg = render_with_segmentation(self.world.cid, cam, s)
+        grey, seg = render_grey(self.world.cid, cam, s, segmentation=True)
         truth = []
         for obj in self.movable:
             X_WO = poses[obj.name]
@@ -147,32 +150,6 @@ class SceneRenderer:
             frac = float(min(1.0, visible / full)) if full > 0 else 0.0
             truth.append(GroundTruth(obj.name, X_WO, frac))
         return grey, truth
-
-
-def render_with_segmentation(
-    cid: int, camera: CameraModel, supersample: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Grey image (h, w) uint8 at the camera's size and the segmentation buffer (h·k, w·k)
-    int64 of body ids (−1 for none) at the supersampled size ``k``."""
-    view, proj = opengl_matrices(camera)
-    w, h = camera.width * supersample, camera.height * supersample
-    _, _, rgba, _, seg = p.getCameraImage(
-        w,
-        h,
-        view,
-        proj,
-        lightDirection=LIGHT_DIRECTION_W,
-        shadow=0,
-        renderer=p.ER_TINY_RENDERER,
-        physicsClientId=cid,
-    )
-    rgba = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)
-    seg = np.asarray(seg, dtype=np.int64).reshape(h, w)
-    seg = np.where(seg < 0, -1, seg & ((1 << 24) - 1))
-    grey = cv2.cvtColor(rgba, cv2.COLOR_RGBA2GRAY)
-    if supersample > 1:
-        grey = cv2.resize(grey, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
-    return grey, seg
 
 
 def _projected_area_px(camera: CameraModel, X_WO: np.ndarray, parts, supersample: int) -> float:
@@ -261,3 +238,58 @@ def read_truth(path: Path) -> list[GroundTruth]:
         GroundTruth(o["model"], np.array(o["X_WO"], dtype=np.float64), o["visible_fraction"])
         for o in doc["objects"]
     ]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``python -m bench.vision_dataset``."""
+    parser.add_argument("--n", type=int, required=True, help="number of scenes to render")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the layouts and the noise (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--out", type=Path, required=True, help="directory for the PNG, scene JSON and camera.json"
+    )
+    parser.add_argument(
+        "--supersample",
+        type=int,
+        default=4,
+        metavar="K",
+        help="render K× larger and average down, for sub-pixel edges (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--noise",
+        type=float,
+        default=1.0,
+        metavar="SIGMA",
+        help="standard deviation of the Gaussian noise added to each pixel, grey levels "
+        "(default: %(default)s)",
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    """Render the dataset; returns the exit code (2 for options out of range)."""
+    problem = (
+        "--n must be ≥ 1" if args.n < 1
+        else "--supersample must be in 1..8" if not 1 <= args.supersample <= 8
+        else "--noise must be in [0, 64]" if not 0 <= args.noise <= 64
+        else None
+    )  # fmt: skip
+    if problem:
+        print(f"bench.vision_dataset: {problem}", file=sys.stderr)
+        return 2
+    paths = write_dataset(args.out, args.n, args.seed, args.supersample, args.noise)
+    print(f"wrote {len(paths)} scenes to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    _parser = argparse.ArgumentParser(
+        prog="python -m bench.vision_dataset",
+        description="Write N grey PNG scenes, camera.json and per-scene ground-truth JSON "
+        "(poses X_WO and visible fraction of every block).",
+    )
+    add_arguments(_parser)
+    sys.exit(main(_parser.parse_args()))

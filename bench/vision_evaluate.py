@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bench.vision_dataset import GroundTruth
 from models.scene import CameraModel
 from models.transforms import invert_pose
-from work_site.vision.dataset import GroundTruth
 from work_site.vision.model import VisionModel, project, transform
 
 MATCH_POSITION_M = 0.01

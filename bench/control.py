@@ -1,4 +1,4 @@
-"""``work-site bench control``: how well the arm executes moves and contact programs (issue 5).
+"""``python -m bench control``: how well the arm executes moves and contact programs.
 
 - tracking: a 10 cm TCP line at several speeds, commanded against measured;
 - guarded: closed fingertips lowered onto the table until 10 N, at several speeds: the force's
@@ -13,6 +13,7 @@ Prints a JSON object; writes ``control.csv``, ``control_guarded.csv`` and ``cont
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import math
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from models.robot import load_robot
-from models.scene import load_scene
+from models.scene import Scene, load_scene
 from models.transforms import invert_pose, make_pose, rpy_to_R, so3_log
 from protocol import ContactState, MotionCommand, MotionProgram
 from work_site.control.controller import TCP_ACCEL_MPS2, Guard, Impedance, TaskController
@@ -41,14 +42,43 @@ TOUCH_PHASES = 5
 """Each guarded speed is run this many times, the touch falling at evenly spread points of the
 10 ms control period (the overshoot depends on where it falls)."""
 CUBE_HALF_M = 0.025
-FRAME_INNER_M = ((0.35, 0.55), (-0.10, 0.10))
-"""The frame's inner walls: x from, x to; y from, y to (DESIGN.md: 0.2 m opening at 0.45, 0)."""
 FINGERTIPS_BELOW_TCP_M = 0.015
 CORNER_GRIP_DEPTH_M = 0.018
 """The fingertips reach this far down the cube: 2 mm above the frame's 30 mm bars."""
 CONTACT_FORCE_LIMIT_N = 20.0
 PLACE_GUARD_N = 4.0
 """Setting the block down stops at this force (N)."""
+
+
+def frame_inner_W(scene: Scene) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The frame's inner walls in W (x from, to; y from, to; m): where rays from the middle of
+    the frame's bounding box, along −x, +x, −y and +y, first enter one of its convex parts."""
+    frame = scene.object("frame")
+    R_WO, p_WO = frame.X_WO[:3, :3], frame.X_WO[:3, 3]
+    V_W = np.vstack([pt.vertices_O for pt in frame.model.parts]) @ R_WO.T + p_WO
+    c_W = 0.5 * (V_W.min(axis=0) + V_W.max(axis=0))
+    c_O = R_WO.T @ (c_W - p_WO)
+
+    def entry_m(u_W: np.ndarray) -> float:
+        u_O = R_WO.T @ u_W
+        nearest = math.inf
+        for part in frame.model.parts:  # the ray against each face plane: n·(c + t u) ≤ d
+            along, room = part.normals_O @ u_O, part.offsets_m - part.normals_O @ c_O
+            if np.any((np.abs(along) < 1e-12) & (room < 0)):
+                continue  # parallel to a face and outside it
+            t_in = max((room[along < -1e-12] / along[along < -1e-12]).max(initial=0.0), 0.0)
+            t_out = (room[along > 1e-12] / along[along > 1e-12]).min(initial=math.inf)
+            if t_in <= t_out:
+                nearest = min(nearest, t_in)
+        if not math.isfinite(nearest):
+            raise ValueError(f"no wall of the frame along {u_W.tolist()} from its middle")
+        return nearest
+
+    x_axis, y_axis = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    return (
+        (float(c_W[0] - entry_m(-x_axis)), float(c_W[0] + entry_m(x_axis))),
+        (float(c_W[1] - entry_m(-y_axis)), float(c_W[1] + entry_m(y_axis))),
+    )
 
 
 def _site() -> tuple[World, TaskController]:
@@ -184,12 +214,15 @@ def _set_down(
     )
 
 
-def corner_program(X_WP_start: np.ndarray) -> tuple[MotionProgram, np.ndarray]:
-    """The cube from ``X_WP_start`` into the frame's (−x, −y) inside corner, and the goal pose.
+def corner_program(
+    X_WP_start: np.ndarray, scene: Scene | None = None
+) -> tuple[MotionProgram, np.ndarray]:
+    """The cube from ``X_WP_start`` into the frame's (−x, −y) inside corner of ``scene`` (default:
+    the puzzle scene), and the goal pose.
 
     Like a deformed operator path (Fig. 12): over the bars, down onto the table 1 cm out from
     both walls, then a contact move into the corner with table and both walls required."""
-    (x0, _), (y0, _) = FRAME_INNER_M
+    (x0, _), (y0, _) = frame_inner_W(scene or load_scene())
     goal = make_pose(np.eye(3), (x0 + CUBE_HALF_M, y0 + CUBE_HALF_M, CUBE_HALF_M))
     table = ContactState(object="table", normals_W=np.array([[0.0, 0.0, 1.0]]))
     walls = ContactState(object="frame", normals_W=np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
@@ -208,7 +241,7 @@ def corner() -> dict:
     world, c = _site()
     reports: list[tuple] = []
     try:
-        program, goal = corner_program(world.object_pose("cube"))
+        program, goal = corner_program(world.object_pose("cube"), world.scene)
         problem = check_program(program, c)
         if problem:
             raise RuntimeError(f"corner program refused: {problem}")
@@ -236,7 +269,7 @@ def slide(impedance: Impedance | None = None) -> dict:
     contact move: the force along the wall's normal at each period of the slide, and how far
     short of its goal along the wall the cube ends (friction against the impedance)."""
     world, c = _site()
-    (x0, _), _ = FRAME_INNER_M
+    (x0, _), _ = frame_inner_W(world.scene)
     start_y, end_y = -0.03, 0.03
     table = ContactState(object="table", normals_W=np.array([[0.0, 0.0, 1.0]]))
     wall = ContactState(object="frame", normals_W=np.array([[1.0, 0.0, 0.0]]))
@@ -337,7 +370,7 @@ def slide_sweep() -> list[dict]:
     return rows
 
 
-def main(out_dir: Path) -> dict:
+def run(out_dir: Path) -> dict:
     """Run every case; write control.json, the CSVs and the plot under ``out_dir``; return the
     JSON summary."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -361,3 +394,20 @@ def main(out_dir: Path) -> dict:
     }
     (out_dir / "control.json").write_text(json.dumps(summary, indent=1))
     return summary
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``python -m bench control``."""
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/bench"),
+        help="directory for control.json, control.csv, control_guarded.csv, control_slide.csv "
+        "and control.png (default: %(default)s)",
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the benchmark; print its JSON (one line) last."""
+    print(json.dumps(run(args.out)))
+    return 0

@@ -1,7 +1,8 @@
 """The deformation's sweep cap on the scripted tasks: program generator CPU time against how far
-the program moves from the uncapped one (issue 9's computation figure, the ``deform_sweeps`` knob).
+the program moves from the uncapped one (the end-to-end computation figure, the ``deform_sweeps``
+knob).
 
-Run: ``.venv/bin/python bench/bench_program_sweeps.py --out docs/bench`` (about 2 min). For each
+Run: ``.venv/bin/python -m bench program_sweeps --out docs/bench``. For each
 seed, the scripted operator's demonstration of each task on the seed's layout (the work site's
 ``--seed`` layout, taken as recognised: no vision, no work site), then :func:`generate_program`
 at each sweep cap, CPU time best of ``--repeats``. "Targets away": the largest distance of a
@@ -103,7 +104,7 @@ def plot(summary: dict, caps: tuple[int, ...], path: Path) -> None:
             weight = "bold" if default in same else "normal"
             ax.annotate(label, (x, y), fontsize=8, fontweight=weight, xytext=(4, 4),
                         textcoords="offset points")  # fmt: skip
-    ax.axvline(1.0, color="grey", ls="--", lw=0.8, label="issue 9: ≤ 1 s computation a task")
+    ax.axvline(1.0, color="grey", ls="--", lw=0.8, label="goal: ≤ 1 s computation a task")
     ax.set(
         xscale="log",
         xlabel="program generator CPU time, median over seeds (s)",
@@ -116,20 +117,46 @@ def plot(summary: dict, caps: tuple[int, ...], path: Path) -> None:
     plt.close(fig)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=int, default=10, help="seeds 0 … N − 1 (default: 10)")
-    parser.add_argument("--repeats", type=int, default=2, help="CPU time: best of (default: 2)")
-    parser.add_argument("--caps", type=int, nargs="+", default=list(CAPS), help="sweep caps")
-    parser.add_argument("--out", type=Path, default=Path("docs/bench"), help="output directory")
-    parser.add_argument("--plot-only", action="store_true", help="redraw the plot from the JSON")
-    args = parser.parse_args()
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``python -m bench program_sweeps``."""
+    parser.add_argument(
+        "--seeds", type=int, default=10, help="run seeds 0 … N − 1 (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=2,
+        help="CPU time is the best of this many runs (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--caps",
+        type=int,
+        nargs="+",
+        default=list(CAPS),
+        help="deformation sweep caps to compare; the largest is the reference (default: "
+        "%(default)s)",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/bench"),
+        help="directory for program_sweeps.csv, .json and .png (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--plot-only",
+        action="store_true",
+        help="redraw program_sweeps.png from --out's program_sweeps.json, measuring nothing",
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the sweep (or only redraw the plot); print its JSON (one line) last."""
     caps = tuple(sorted(args.caps))
     if args.plot_only:
         summary = json.loads((args.out / "program_sweeps.json").read_text())
         caps = tuple(sorted(int(c) for c in summary[TASKS[0]]))
         plot(summary, caps, args.out / "program_sweeps.png")
-        return
+        return 0
     rows = run(range(args.seeds), caps, args.repeats)
     args.out.mkdir(parents=True, exist_ok=True)
     with (args.out / "program_sweeps.csv").open("w", newline="") as f:
@@ -141,7 +168,4 @@ def main() -> None:
     (args.out / "program_sweeps.json").write_text(json.dumps(summary, indent=1))
     plot(summary, caps, args.out / "program_sweeps.png")
     print(json.dumps(summary))
-
-
-if __name__ == "__main__":
-    main()
+    return 0

@@ -1,4 +1,4 @@
-"""``operator-site bench deform``: the program generator on the paper's figures (issue 6).
+"""``python -m bench deform``: the program generator on the paper's figures.
 
 Prints a JSON list (one object per case) and writes ``deform.csv``, ``deform_trade.csv`` and
 the PNG plots ``deform_scaling.png`` and ``deform_trade.png`` into the output directory. Times
@@ -20,14 +20,13 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from bench import scenarios
 from models.transforms import make_pose
-from operator_site.program import scenarios
 from operator_site.program.check import Sweeper
 from operator_site.program.commands import CommandParams, build_program
 from operator_site.program.deform import Deformer, DeformParams
@@ -82,7 +81,8 @@ def run_case(
     command_params: CommandParams | None = None,
     repeats: int = 1,
 ) -> dict:
-    """Deform ``raw``, build and check its program; the metrics of issue 6."""
+    """Deform ``raw``, build and check its program; the path, contact, timing and program
+    metrics of one case."""
     times, cpu = [], []
     for _ in range(repeats):
         deformer = Deformer(sim.scene, "cube", deform_params, sim.params)
@@ -226,12 +226,13 @@ def _plot(
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``operator-site bench deform``."""
+    """Options of ``python -m bench deform``."""
     parser.add_argument(
         "--out",
         type=Path,
         default=Path("docs/bench"),
-        help="directory for CSV and PNG files (default: %(default)s)",
+        help="directory for deform.json, deform.csv, deform_trade.csv and the PNG plots "
+        "(default: %(default)s)",
     )
     parser.add_argument(
         "--quick", action="store_true", help="one timed run per case, no trade sweep"
@@ -261,9 +262,3 @@ def main(args: argparse.Namespace) -> int:
     """Run the benchmark; print its JSON (one line) last."""
     print(json.dumps(run(args.out, args.quick)))
     return 0
-
-
-if __name__ == "__main__":
-    _parser = argparse.ArgumentParser(prog="operator-site bench deform", description=__doc__)
-    add_arguments(_parser)
-    sys.exit(main(_parser.parse_args()))

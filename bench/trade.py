@@ -1,4 +1,4 @@
-"""``operator-site bench trade``: each user knob's effect on the scripted task end to end (issue 9).
+"""``python -m bench trade``: each user knob's effect on the scripted task end to end.
 
 For every knob, the scripted task (:func:`operator_site.scripted.run_scripted`) runs over the
 same seeds at each of the knob's values, all other knobs at their defaults; the defaults' runs
@@ -17,6 +17,7 @@ is dragged with the default simulator); the work site's apply to the work site t
 
 from __future__ import annotations
 
+import argparse
 import csv
 import dataclasses
 import functools
@@ -29,8 +30,9 @@ from typing import Any
 
 import numpy as np
 
+from bench.e2e import add_time_scale_argument
 from operator_site.program import CommandParams, DeformParams
-from operator_site.scripted import generated_program, run_scripted
+from operator_site.scripted import TASKS, generated_program, run_scripted
 from operator_site.simulator import SimParams
 from operator_site.task import TaskSession
 from protocol import MotionProgram
@@ -176,7 +178,7 @@ def _plot(out_dir: Path, task: str, summary: dict[str, dict]) -> None:
     plt.close(fig)
 
 
-def main(
+def run(
     out_dir: Path,
     seeds: int,
     task: str = "corner",
@@ -257,3 +259,43 @@ def main(
     (out_dir / "trade.json").write_text(json.dumps(result, indent=1))
     _plot(out_dir, task, summary)
     return result
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``python -m bench trade``."""
+    parser.add_argument(
+        "--seeds", type=int, default=100, help="seeds per knob value (default: %(default)s)"
+    )
+    add_time_scale_argument(parser)
+    parser.add_argument(
+        "--tasks",
+        nargs="+",
+        choices=TASKS,
+        default=list(TASKS),
+        help="the scripted task to run is the first of these (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--knobs",
+        nargs="+",
+        default=None,
+        metavar="KNOB",
+        help=f"which knobs to turn, one at a time (default: all: {', '.join(KNOBS)})",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/bench"),
+        help="directory for trade.csv, trade.json and trade.png (default: %(default)s)",
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the benchmark; print its JSON (one line) last; 2 for an unknown knob."""
+    knobs = tuple(args.knobs) if args.knobs else tuple(KNOBS)
+    if unknown := [k for k in knobs if k not in KNOBS]:
+        print(f"python -m bench trade: unknown knob(s) {unknown} (known: {', '.join(KNOBS)})",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    result = run(args.out, args.seeds, args.tasks[0], knobs, time_scale=args.time_scale)
+    print(json.dumps(result))
+    return 0

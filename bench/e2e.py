@@ -1,4 +1,4 @@
-"""``operator-site bench e2e``: the scripted tasks over many seeds (issue 9).
+"""``python -m bench e2e``: the scripted tasks over many seeds.
 
 Each seed runs :func:`operator_site.scripted.run_scripted` against its own freshly started,
 seeded work site. Writes ``e2e.jsonl`` (one JSON row per run, appended as each run ends, so a
@@ -10,6 +10,7 @@ run can be made in parts (``--first-seed``), one task at a time.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import subprocess
@@ -116,7 +117,7 @@ def _read_rows(path: Path) -> list[dict]:
     return rows
 
 
-def main(
+def run(
     out_dir: Path,
     seeds: int,
     tasks: tuple[str, ...] = TASKS,
@@ -178,3 +179,79 @@ def main(
     (out_dir / "e2e.json").write_text(json.dumps(summary, indent=1))
     _plot(out_dir, by_task)
     return summary
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``python -m bench e2e``."""
+    parser.add_argument(
+        "--seeds", type=int, default=100, help="seeds per task (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        metavar="N",
+        help="the first seed (default: %(default)s); seeds N … N + --seeds − 1 are run",
+    )
+    parser.add_argument(
+        "--keep",
+        action="store_true",
+        help="keep the rows of other tasks and seeds already in --out's e2e.jsonl and "
+        "summarise them with this run's (a long run in parts)",
+    )
+    parser.add_argument(
+        "--oracle-vision",
+        action="store_true",
+        help="blocks' poses from the work site's ground truth instead of vision",
+    )
+    parser.add_argument(
+        "--surface-stiffness",
+        type=float,
+        default=None,
+        metavar="N_PER_M",
+        help="the started work sites' `--surface-stiffness` (default: theirs)",
+    )
+    add_time_scale_argument(parser)
+    parser.add_argument(
+        "--tasks",
+        nargs="+",
+        choices=TASKS,
+        default=list(TASKS),
+        help="which scripted tasks (default: all)",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/bench"),
+        help="directory for e2e.jsonl, e2e.csv, e2e.json and e2e.png (default: %(default)s)",
+    )
+
+
+def add_time_scale_argument(parser: argparse.ArgumentParser) -> None:
+    """``--time-scale``, shared with ``python -m bench trade``."""
+    parser.add_argument(
+        "--time-scale",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="the started work sites simulate X seconds per wall second (default: 1); the "
+        "physics is stepped alike at any scale, only the wall time differs (the JSON's "
+        "time_scale_achieved_min says how fast the machine managed)",
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the benchmark; print its JSON (one line) last."""
+    stiffness = args.surface_stiffness
+    summary = run(
+        args.out,
+        args.seeds,
+        tuple(args.tasks),
+        oracle=args.oracle_vision,
+        time_scale=args.time_scale,
+        work_site_args=() if stiffness is None else ("--surface-stiffness", str(stiffness)),
+        first_seed=args.first_seed,
+        keep=args.keep,
+    )
+    print(json.dumps(summary))
+    return 0

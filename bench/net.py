@@ -1,4 +1,4 @@
-"""``operator-site bench net``: round trips and camera frames over zenoh, beside plain TCP.
+"""``python -m bench net``: round trips and camera frames over zenoh, beside plain TCP.
 
 What is measured (all round trips sequential ping-pong: send, wait for the answer, repeat; the
 kinds interleaved sample by sample, taking turns to go first, so they share the same conditions):
@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import importlib.util
 import json
 import os
 import signal
@@ -51,12 +50,12 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
 import zenoh
 
+from deploy import netns
 from protocol import (
     CameraFrame,
     ExecutionReport,
@@ -346,17 +345,6 @@ def _image_phase(client: _Client, args: argparse.Namespace) -> dict[str, Any]:
 # ----------------------------------------------------------------------- the orchestrator
 
 
-def _load_netns() -> ModuleType:
-    """``deploy/netns.py`` (a tool beside the package, not part of it)."""
-    spec = importlib.util.spec_from_file_location("_telerobot_netns", REPO / "deploy" / "netns.py")
-    if spec is None or spec.loader is None:
-        raise ImportError("deploy/netns.py not found")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -364,7 +352,7 @@ def _free_port() -> int:
 
 
 def _self_argv(*args: str) -> list[str]:
-    return [sys.executable, "-m", "operator_site.netbench", *args]
+    return [sys.executable, "-m", "bench", "net", *args]
 
 
 def _start_echo(argv: list[str]) -> subprocess.Popen:
@@ -516,8 +504,8 @@ def measure_work_site(
     }
 
 
-def measure_programs_over_link(netns: ModuleType, params: dict[str, Any], runs: int) -> dict:
-    """The issue's harsh link (e.g. 100 ± 20 ms each way, 2 % loss): per run, a fresh real work
+def measure_programs_over_link(params: dict[str, Any], runs: int) -> dict:
+    """A harsh link (e.g. 100 ± 20 ms each way, 2 % loss): per run, a fresh real work
     site in the work namespace (link seed ``params["seed"] + run``) and
     ``deploy/operator_probe.py``'s pick-and-place from the operators' namespace. Per run: the
     sends, the acknowledgement time (program sent → "accepted" back: the command latency), the
@@ -694,7 +682,6 @@ def measure_frames(args: argparse.Namespace) -> list[dict[str, Any]]:
         )
     if args.net_no_link:
         return rows
-    netns = _load_netns()
     reason = netns.unavailable_reason()
     if reason is not None:
         print(f"netbench: frames over the emulated link skipped: {reason}", flush=True)
@@ -882,7 +869,6 @@ def run(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, list[float]
     if args.net_no_link:
         summary["link"] = "skipped (--net-no-link)"
         return summary, samples
-    netns = _load_netns()
     reason = netns.unavailable_reason()
     if reason is not None:
         print(f"netbench: emulated link skipped: {reason}", flush=True)
@@ -929,7 +915,7 @@ def run(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, list[float]
             "seed": args.net_link_seed,
         }
         print(f"netbench: programs over a harsher link {harsh} ({args.net_harsh_runs} runs)...")
-        summary.update(measure_programs_over_link(netns, harsh, args.net_harsh_runs))
+        summary.update(measure_programs_over_link(harsh, args.net_harsh_runs))
     if single is not None:
         for name in ("command", "command_with_images", "command_without_images"):
             samples[f"link_single_{name}"] = single[name]
@@ -1012,10 +998,6 @@ def write_outputs(out: Path, summary: dict[str, Any], samples: dict[str, list[fl
     plt.close(fig)
 
 
-def _has_option(parser: argparse.ArgumentParser, option: str) -> bool:
-    return option in parser._option_string_actions
-
-
 def _positive_int(text: str) -> int:
     try:
         n = int(text)
@@ -1027,17 +1009,20 @@ def _positive_int(text: str) -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``bench net``'s options (``--out`` only if the parser has none yet)."""
-    if not _has_option(parser, "--out"):
-        parser.add_argument(
-            "--out",
-            type=Path,
-            default=Path("docs/bench"),
-            help="directory for net.json, net_samples.csv, net_rtt.png (default: %(default)s)",
-        )
-    g = parser.add_argument_group("bench net")
+    """Options of ``python -m bench net``."""
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/bench"),
+        help="directory for net.json, net_samples.csv, net_rtt.png and net_frames.* "
+        "(default: %(default)s)",
+    )
+    g = parser.add_argument_group("what is measured")
     g.add_argument(
-        "--net-count", type=int, default=2000, help="loopback round trips per kind and run"
+        "--net-count",
+        type=int,
+        default=2000,
+        help="round trips of each kind in each loopback run (default: %(default)s)",
     )
     g.add_argument(
         "--net-loopback-runs",
@@ -1050,7 +1035,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--net-image-count",
         type=int,
         default=500,
-        help="loopback command round trips with and without images",
+        help="loopback command round trips timed with and without camera frames streaming "
+        "(default: %(default)s)",
     )
     g.add_argument(
         "--net-frame-size",
@@ -1059,12 +1045,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="size of the echo's raw frames (default: the scene camera's)",
     )
     g.add_argument(
-        "--net-frame-seconds", type=float, default=5.0, help="seconds of real work-site frames"
+        "--net-frame-seconds",
+        type=float,
+        default=5.0,
+        help="seconds of camera frames received from a real work site (default: %(default)s)",
     )
-    g.add_argument("--net-no-link", action="store_true", help="skip the emulated link")
-    g.add_argument("--net-link-delay-ms", type=float, default=50.0, help="one-way delay (ms)")
-    g.add_argument("--net-link-loss", type=float, default=0.01, help="loss fraction each way")
-    g.add_argument("--net-link-seed", type=int, default=1, help="link schedule seed")
+    g.add_argument(
+        "--net-no-link", action="store_true", help="skip every measurement over the emulated link"
+    )
+    g.add_argument(
+        "--net-link-delay-ms",
+        type=float,
+        default=50.0,
+        help="the emulated link's one-way delay, ms (default: %(default)s)",
+    )
+    g.add_argument(
+        "--net-link-loss",
+        type=float,
+        default=0.01,
+        help="the emulated link's loss fraction each way (default: %(default)s)",
+    )
+    g.add_argument(
+        "--net-link-seed",
+        type=int,
+        default=1,
+        help="seed of the emulated link's delay and loss schedule (default: %(default)s)",
+    )
     g.add_argument(
         "--net-no-single",
         action="store_true",
@@ -1072,7 +1078,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "two: commands apart from images)",
     )
     g.add_argument(
-        "--net-link-count", type=int, default=500, help="round trips per kind over the link"
+        "--net-link-count",
+        type=int,
+        default=500,
+        help="round trips of each kind over the emulated link (default: %(default)s)",
     )
     g.add_argument(
         "--net-frame-encodings",
@@ -1092,7 +1101,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--net-frame-link-commands",
         type=int,
         default=100,
-        help="command round trips with and without each encoding's frames over the link",
+        help="command round trips over the emulated link with and without each encoding's "
+        "frames streaming (default: %(default)s)",
     )
     g.add_argument(
         "--net-only-frames",
@@ -1106,16 +1116,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--net-harsh-runs",
         type=int,
         default=3,
-        help="pick-and-place programs run by a real work site over the harsher link (0: none)",
+        help="pick-and-place programs run by a real work site over the harsher link, 0 for "
+        "none (default: %(default)s)",
     )
-    g.add_argument("--net-harsh-delay-ms", type=float, default=100.0, help="its one-way delay")
-    g.add_argument("--net-harsh-jitter-ms", type=float, default=20.0, help="its jitter (± ms)")
-    g.add_argument("--net-harsh-loss", type=float, default=0.02, help="its loss each way")
+    g.add_argument(
+        "--net-harsh-delay-ms",
+        type=float,
+        default=100.0,
+        help="the harsher link's one-way delay, ms (default: %(default)s)",
+    )
+    g.add_argument(
+        "--net-harsh-jitter-ms",
+        type=float,
+        default=20.0,
+        help="the harsher link's delay jitter, ± ms (default: %(default)s)",
+    )
+    g.add_argument(
+        "--net-harsh-loss",
+        type=float,
+        default=0.02,
+        help="the harsher link's loss fraction each way (default: %(default)s)",
+    )
     g.add_argument(
         "--net-link-image-count",
         type=int,
         default=200,
-        help="link command round trips with and without images",
+        help="command round trips over the emulated link timed with and without camera "
+        "frames streaming (default: %(default)s)",
     )
     # The roles of the helper processes this benchmark starts (not for users).
     parser.add_argument("--role", choices=["echo", "client"], help=argparse.SUPPRESS)
@@ -1160,11 +1187,3 @@ def main(args: argparse.Namespace) -> int:
         summary["frames"] = rows
     print(json.dumps(summary), flush=True)
     return 0
-
-
-if __name__ == "__main__":
-    _parser = argparse.ArgumentParser(
-        prog="operator-site bench net", description=__doc__.split("\n\n")[0]
-    )
-    add_arguments(_parser)
-    sys.exit(main(_parser.parse_args()))

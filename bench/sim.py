@@ -1,4 +1,4 @@
-"""``operator-site bench sim``: the task simulator's speed and accuracy on the scenes of issue 3.
+"""``python -m bench sim``: the task simulator's speed and accuracy on the benchmark scenes.
 
 Prints a JSON list (one object per scene) and writes ``sim.csv``, ``sim_sweeps.csv`` and PNG
 plots into the output directory. Wall times are per step, on this machine, one core.
@@ -6,6 +6,7 @@ plots into the output directory. Wall times are per step, on this machine, one c
 
 from __future__ import annotations
 
+import argparse
 import csv
 import dataclasses
 import json
@@ -104,7 +105,8 @@ def corner_scene(scene: Scene, params: SimParams, steps: int = 200) -> dict:
 
 
 def scenes(params: SimParams) -> list[dict]:
-    """The scenes of issue 3, the far-objects comparison and the MuJoCo peer."""
+    """The benchmark scenes (free, slide, corner, around the corner), the far-objects
+    comparison and the MuJoCo peer."""
     scene = load_scene()
     results = []
     sim = Simulator(scene, "cube", params, X_WO={"cube": _pose(0.3, 0.3, 0.2)})
@@ -345,7 +347,7 @@ REPEATS = 3
 timings wander by ±50 % between runs)."""
 
 
-def main(out_dir: Path, quick: bool = False) -> list[dict]:
+def run(out_dir: Path, quick: bool = False) -> list[dict]:
     """Run the scenes (and, unless ``quick``, the sweeps); write sim.json, CSV and PNG; return
     the JSON."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -364,3 +366,23 @@ def main(out_dir: Path, quick: bool = False) -> list[dict]:
         _write_csv(rows, out_dir / "sim_sweeps.csv")
         _plot(rows, out_dir / "sim_sweeps.png")
     return results
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``python -m bench sim``."""
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/bench"),
+        help="directory for sim.json, sim.csv, sim_sweeps.csv and sim_sweeps.png "
+        "(default: %(default)s)",
+    )
+    parser.add_argument(
+        "--quick", action="store_true", help="each scene once, a shorter drift run, no sweeps"
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the benchmark; print its JSON (one line) last."""
+    print(json.dumps(run(args.out, quick=args.quick)))
+    return 0

@@ -1,4 +1,4 @@
-"""``work-site bench vision``: recall, precision, pose accuracy and time per frame on rendered
+"""``python -m bench vision``: recall, precision, pose accuracy and time per frame on rendered
 scenes, plus the trade-offs: image resolution, index viewpoint density, refinement iterations,
 the table prior, and image noise, blur and lighting.
 
@@ -10,6 +10,7 @@ Writes into ``out``: ``vision_objects.csv`` (one row per ground-truth object of 
 
 from __future__ import annotations
 
+import argparse
 import csv
 import dataclasses
 import json
@@ -20,14 +21,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from bench.vision_dataset import SceneRenderer, degrade, read_truth, write_dataset
+from bench.vision_evaluate import score_scene
 from models.scene import CameraModel, load_camera, load_scene
-from work_site.vision.dataset import degrade, read_truth, write_dataset
-from work_site.vision.evaluate import score_scene
 from work_site.vision.index import IndexParams, default_cache_dir
 from work_site.vision.recognizer import Recognizer, RecognizerParams
 
 VISIBLE_MIN = 0.7
-"""Recall counts objects at least this visible (the issue's target population)."""
+"""Recall counts objects at least this visible (the population the recall goal is set on)."""
 
 
 def _ensure_dataset(path: Path, n: int, seed: int, supersample: int = 4) -> list[Path]:
@@ -39,7 +40,7 @@ def _ensure_dataset(path: Path, n: int, seed: int, supersample: int = 4) -> list
     return write_dataset(path, n, seed, supersample=supersample)
 
 
-def run(
+def score(
     recognizer: Recognizer,
     scenes: list[tuple[np.ndarray, CameraModel, list]],
     rows: list[dict] | None = None,
@@ -117,7 +118,7 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
         w.writerows(rows)
 
 
-def main(
+def run(
     out: Path,
     n_scenes: int = 200,
     sweep_scenes: int = 30,
@@ -136,7 +137,7 @@ def main(
     recognizer = Recognizer(cache_dir=cache_dir)
     rows: list[dict] = []
     load_before = os.getloadavg()
-    summary = run(recognizer, scenes, rows)
+    summary = score(recognizer, scenes, rows)
     # Others' work on the same cores slows the wall clock: keep the load next to the times.
     summary["load_average_1min"] = [round(load_before[0], 2), round(os.getloadavg()[0], 2)]
     _write_csv(out / "vision_objects.csv", rows)
@@ -161,7 +162,7 @@ def _sweeps(out: Path, scenes: list, seed: int, cache_dir: Path | None) -> list[
     rows: list[dict] = []
 
     def point(sweep: str, value, rec: Recognizer, data: list) -> None:
-        m = run(rec, data)
+        m = score(rec, data)
         rows.append({"sweep": sweep, "value": value, **m})
 
     base = Recognizer(cache_dir=cache_dir)
@@ -213,8 +214,6 @@ def _with_params(rec: Recognizer, params: RecognizerParams) -> Recognizer:
 def _resolution_sets(n: int, seed: int, out: Path) -> dict[int, list]:
     """The first ``n`` layouts of a dataset rendered at 1280×960 (2× supersampled), and the
     same images averaged down to 640×480 and 320×240, each with its scaled camera."""
-    from work_site.vision.dataset import SceneRenderer
-
     scene = load_scene()
     big = scene.camera.scaled(2.0)
     renderer = SceneRenderer(dataclasses.replace(scene, camera=big), supersample=2)
@@ -289,3 +288,47 @@ def _plot(out: Path, rows: list[dict]) -> None:
     fig.tight_layout()
     fig.savefig(out / "vision_degradation.png", dpi=110)
     plt.close(fig)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``python -m bench vision``."""
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/bench"),
+        help="directory for vision.json, the CSV files and the PNG plots (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--scenes", type=int, default=200, help="scenes in the main run (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--sweep-scenes",
+        type=int,
+        default=30,
+        help="scenes per point of each sweep, the first of the main run's (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--seed", type=int, default=1, help="seed of the rendered dataset (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--dataset",
+        type=Path,
+        default=None,
+        help="rendered dataset directory (default: under ~/.cache/telerobot/vision, rendered if "
+        "missing)",
+    )
+    parser.add_argument("--no-sweeps", action="store_true", help="only the main run, no sweeps")
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the benchmark; print its JSON (one line) last."""
+    summary = run(
+        args.out,
+        n_scenes=args.scenes,
+        sweep_scenes=args.sweep_scenes,
+        seed=args.seed,
+        dataset=args.dataset,
+        sweeps=not args.no_sweeps,
+    )
+    print(json.dumps(summary))
+    return 0
