@@ -104,8 +104,8 @@ class Sweeper:
         self.stepper = ContactStepper(world, self.c_O, self.params, 0.02)
         self._swept: dict[tuple[bytes, bytes, frozenset[str], frozenset[str]], SegmentCheck] = {}
         """Segments swept so far: the program generator tries a move while fitting targets, again
-        round corners, and the final check sweeps it once more, so many sweeps repeat one. A
-        sweep depends on nothing else (the world is fixed)."""
+        round corners, and the final check sweeps it once more: many sweeps repeat an earlier
+        one. A sweep depends on nothing else (the world is fixed)."""
 
     def segment(
         self,
