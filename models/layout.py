@@ -23,10 +23,7 @@ MAX_REACH_XY_M = 0.58
 of reach in hand for grasps from above (the arm reaches 0.635 m from the shoulder)."""
 MIN_REACH_XY_M = 0.21
 """No block centre nearer than this to the robot's base axis (m): nearer, a grasp from above
-folds the elbow past its limit (the tall block's at 0.189 m needed joint_3 at +2.532 rad, the
-limit +2.53). In a scan of azimuths ±69° and four yaws, every block's grasp and its approach
-6 cm above it were reachable from 0.20 m on (the tall block and the L block at 0.19 m only at
-some yaws); tests/test_control_kinematics.py checks seeds 0–29."""
+folds the elbow past joint 3's limit (tests/test_control_kinematics.py checks seeded layouts)."""
 CLEARANCE_M = 0.012
 """Blocks start at least this far apart (between their bounding circles), room for fingers."""
 MAX_TRIES = 2000

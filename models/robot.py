@@ -35,11 +35,10 @@ HOME_Q: tuple[float, float, float, float, float, float] = (
 )
 """Home arm configuration (rad) of the Puma: gripper z axis along −z of W, TCP G at
 (0.18, 0, 0.40) m in W, elbow up (behind the base), wrist pitch ≈ 1.56 rad (far from the
-q5 = 0 singularity). Out of the camera's view: the arm at rest hides no block from vision (at
-(0.30, 0, 0.25), the home before, it hid blocks lying near (0.2, 0.3) on the table: no cube
-recognised on scripted around-corner seeds 13 and 17, every run). Found with the closed-form
-IK; ``tests/test_robot_model.py`` checks it with forward kinematics and
-``tests/test_work_site_world.py`` that the camera sees all of the layout region past it."""
+q5 = 0 singularity). Out of the camera's view, so that the arm at rest hides no block from
+vision. Found with the closed-form IK; ``tests/test_robot_model.py`` checks it with forward
+kinematics and ``tests/test_work_site_world.py`` that the camera sees all of the layout region
+past it."""
 
 FLANGE_LINK = "flange"
 SENSOR_LINK = "ft_sensor"

@@ -332,3 +332,56 @@ def load_scene(path: Path | str = DEFAULT_SCENE) -> Scene:
     return Scene(
         name=str(data["name"]), path=path, objects=tuple(objects), robot=placement, camera=camera
     )
+
+
+FRAME_DECIMALS = 9
+"""The frame's walls are rounded to this many decimals of a metre, far below the model files'
+precision, so that a frame placed at round coordinates has round walls (0.57, not 0.45 + 0.12 =
+0.5700000000000001)."""
+
+Box2 = tuple[tuple[float, float], tuple[float, float]]
+"""An axis-aligned rectangle in W: ``((x0, x1), (y0, y1))`` m."""
+
+
+def _part_boxes_W(scene: Scene, name: str) -> np.ndarray:
+    """Axis-aligned boxes (parts, 2, 3) m in W of object ``name``'s convex parts, rounded to
+    :data:`FRAME_DECIMALS`; ValueError unless its pose turns O's axes onto W's."""
+    obj = scene.object(name)
+    R = obj.X_WO[:3, :3]
+    if not np.allclose(np.abs(R), np.round(np.abs(R)), atol=1e-9):
+        raise ValueError(f"object {name!r} is not square with W's axes")
+    boxes = []
+    for part in obj.model.parts:
+        V_W = part.vertices_O @ R.T + obj.X_WO[:3, 3]
+        boxes.append([V_W.min(axis=0), V_W.max(axis=0)])
+    return np.round(np.array(boxes), FRAME_DECIMALS)
+
+
+def frame_outer_W(scene: Scene, name: str = "frame") -> Box2:
+    """The frame's outer faces in W, ``((x0, x1), (y0, y1))`` m."""
+    boxes = _part_boxes_W(scene, name)
+    lo, hi = boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0)
+    return (float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1]))
+
+
+def frame_opening_W(scene: Scene, name: str = "frame") -> Box2:
+    """The frame's inner walls in W, ``((x0, x1), (y0, y1))`` m: the faces of the first bars met
+    going out from the centre of its outline along ±x and ±y; ValueError where there is none."""
+    boxes = _part_boxes_W(scene, name)
+    centre = (boxes[:, 0].min(axis=0) + boxes[:, 1].max(axis=0)) / 2
+    walls = []
+    for axis, across in ((0, 1), (1, 0)):
+        # the parts that the line through the centre along ``axis`` passes through
+        on_line = (boxes[:, 0, across] <= centre[across]) & (centre[across] <= boxes[:, 1, across])
+        below = boxes[on_line & (boxes[:, 1, axis] <= centre[axis]), 1, axis]
+        above = boxes[on_line & (boxes[:, 0, axis] >= centre[axis]), 0, axis]
+        if below.size == 0 or above.size == 0:
+            raise ValueError(f"object {name!r} has no wall on both sides along {'xy'[axis]}")
+        walls.append((float(below.max()), float(above.min())))
+    return walls[0], walls[1]
+
+
+def frame_bar_height_m(scene: Scene, name: str = "frame") -> float:
+    """How high the frame's bars stand above its base (m): above the table it stands on."""
+    boxes = _part_boxes_W(scene, name)
+    return float(np.round(boxes[:, 1, 2].max() - boxes[:, 0, 2].min(), FRAME_DECIMALS))

@@ -41,8 +41,8 @@ BAR_CLEARANCE_M = 0.032
 """Fingertips at least this high above the table pass over the frame's 30 mm bars, so a block
 held that way can be pushed against a bar (DESIGN.md: grip high enough to clear them)."""
 MIN_GRIP_STRIP_M = 0.015
-"""A grip shorter than this down the block's sides is not trusted; lower blocks are held at
-mid-height (measured at the work site: an 18 mm strip carries the cube, 0.06 mm off)."""
+"""A grip shorter than this down the block's sides is not trusted to carry the block; lower
+blocks are held at mid-height."""
 
 
 def bar_clearing_depth_m(bbox_O: np.ndarray) -> float | None:

@@ -1,4 +1,4 @@
-"""``operator-site demo --scripted TASK``: the whole chain without a person (issue 9).
+"""``operator-site demo --scripted TASK``: the whole chain without a person.
 
 The work site renders its camera frame (blocks laid out by the seed, camera a little off its
 calibration); vision recognises the blocks; the model editor accepts every recognition above the
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from models.layout import random_layout
-from models.scene import Scene, load_scene
+from models.scene import Box2, Scene, frame_bar_height_m, frame_opening_W, frame_outer_W, load_scene
 from models.transforms import make_pose, rpy_to_R, so3_log
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import Correction, WorkSiteModel
@@ -44,10 +44,6 @@ from protocol.session import free_port_pair, link_endpoints
 TASKS = ("corner", "around-corner")
 WORKPIECES = ("cube", "tall_block")
 """Blocks the scripted tasks may choose: tall enough to be held above the frame's bars."""
-BAR_HEIGHT_M = 0.03
-"""The frame's bars stand this high on the table (DESIGN.md)."""
-FRAME_INNER_W = ((0.35, 0.55), (-0.10, 0.10))
-"""The frame's inner walls (x from, to; y from, to; m), DESIGN.md."""
 ACCEPT_SCORE = 0.5
 CONNECT_TIMEOUT_S = 60.0
 VISION_TIMEOUT_S = 120.0
@@ -76,13 +72,14 @@ def _yaw(R: np.ndarray) -> float:
 
 
 def corner_waypoints(
-    X_WO: np.ndarray, bbox_O: np.ndarray, corner: int
+    X_WO: np.ndarray, bbox_O: np.ndarray, corner: int, opening_W: Box2
 ) -> tuple[list[np.ndarray], np.ndarray]:
     """The dragger's targets for putting a block at ``X_WO`` into inside corner ``corner`` (0–3)
-    of the frame, as a person would: lift, carry over the bars to above a point 2 cm out from
-    both walls, turn square with the frame, lower onto the table, push into the corner. Also
-    the ideal goal pose (touching both walls and the table)."""
-    (x0, x1), (y0, y1) = FRAME_INNER_W
+    of the frame whose inner walls are ``opening_W`` (:func:`~models.scene.frame_opening_W`), as
+    a person would: lift, carry over the bars to above a point 2 cm out from both walls, turn
+    square with the frame, lower onto the table, push into the corner. Also the ideal goal pose
+    (touching both walls and the table)."""
+    (x0, x1), (y0, y1) = opening_W
     cx, sx = (x0, 1.0) if corner in (0, 3) else (x1, -1.0)
     cy, sy = (y0, 1.0) if corner in (0, 1) else (y1, -1.0)
     # Square with the frame: the yaw nearest the block's own among quarter turns.
@@ -105,26 +102,29 @@ def corner_waypoints(
     return [up, above, down, push], goal
 
 
-FRAME_OUTER_W = ((0.33, 0.57), (-0.12, 0.12))
-"""The frame's outer faces (x from, to; y from, to; m): inner opening plus the 20 mm bars."""
 PRESS_M = 0.004
 """The dragger is held this far into a surface the block should stay against (m)."""
 
 
 AROUND_END_M = (0.05, 0.04, 0.03, 0.02)
-"""How far along the x = 0.33 face past the corner the around-corner task may end (m): the
-first whose end pose is :data:`END_CLEARANCE_M` clear of every other block."""
+"""How far along the frame's outer face at its smallest x past the corner the around-corner task
+may end (m): the first whose end pose is :data:`END_CLEARANCE_M` clear of every other block."""
 END_CLEARANCE_M = 0.005
 
 
 def around_corner_waypoints(
-    X_WO: np.ndarray, bbox_O: np.ndarray, corner: int, end_m: float = AROUND_END_M[0]
+    X_WO: np.ndarray,
+    bbox_O: np.ndarray,
+    corner: int,
+    outer_W: Box2,
+    end_m: float = AROUND_END_M[0],
 ) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
-    """Fig. 2 / Fig. 13: the block set down against the outside of the frame's near bar
-    (y = ∓0.12 for ``corner`` 0 / 1), slid along it past the outer corner at x = 0.33, round
-    the corner and along the x = 0.33 face. Returns the waypoints before capturing frame and
-    table, those after, and the ideal end pose (against the x = 0.33 face, on the table)."""
-    (ox0, _), (oy0, oy1) = FRAME_OUTER_W
+    """Fig. 2 / Fig. 13: the block set down against the outside of the frame's near bar (the
+    outer face at y0 of ``outer_W`` for ``corner`` 0, y1 for 1; see
+    :func:`~models.scene.frame_outer_W`), slid along it past the outer corner at x0, round the
+    corner and along the x0 face. Returns the waypoints before capturing frame and table, those
+    after, and the ideal end pose (against the x0 face, on the table)."""
+    (ox0, _), (oy0, oy1) = outer_W
     sy = -1.0 if corner == 0 else 1.0  # the side of the frame the block starts on
     face_y = oy0 if corner == 0 else oy1
     yaw = _yaw(X_WO[:3, :3])
@@ -180,8 +180,9 @@ def workpiece_candidates(task: str, model: WorkSiteModel) -> list[str]:
     candidates = [n for n in WORKPIECES if n in model.poses]
     if task == "around-corner":
         # Pushed along a bar by its centre, a block whose centre is above the bar's top tips
-        # over the bar's edge (the simulator tilts the tall block 11°), as a real one would.
-        candidates = [n for n in candidates if _centre_height_m(model, n) < BAR_HEIGHT_M]
+        # over the bar's edge, in the simulator as a real one would.
+        bar_m = frame_bar_height_m(model.base)
+        candidates = [n for n in candidates if _centre_height_m(model, n) < bar_m]
     return candidates
 
 
@@ -198,13 +199,15 @@ def demonstrate(task: str, model: WorkSiteModel, rng: np.random.Generator) -> De
     session.select(workpiece)
     bbox = session.scene.object(workpiece).model.bbox_O
     if task == "corner":
-        waypoints, ideal = corner_waypoints(session.X_WO[workpiece], bbox, corner)
+        opening_W = frame_opening_W(session.scene)
+        waypoints, ideal = corner_waypoints(session.X_WO[workpiece], bbox, corner, opening_W)
         drag(session, waypoints)
     else:
         corner %= 2
+        outer_W = frame_outer_W(session.scene)
         for end_m in AROUND_END_M:  # as a person would: end where there is room
             before, after, ideal = around_corner_waypoints(
-                session.X_WO[workpiece], bbox, corner, end_m
+                session.X_WO[workpiece], bbox, corner, outer_W, end_m
             )
             if _clearance_to_blocks_m(session, ideal) >= END_CLEARANCE_M:
                 break

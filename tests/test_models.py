@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -13,7 +14,16 @@ import models
 from models.errors import ModelError
 from models.generate import generate
 from models.geometry import make_convex_part, write_obj
-from models.scene import DEFAULT_SCENE, load_camera, load_object, load_scene
+from models.scene import (
+    DEFAULT_SCENE,
+    frame_bar_height_m,
+    frame_opening_W,
+    frame_outer_W,
+    load_camera,
+    load_object,
+    load_scene,
+)
+from models.transforms import rpy_to_R
 
 DIMENSION_TOL_M = 1e-4  # the 0.1 mm
 MODELS_DIR = Path(models.__file__).parent
@@ -295,3 +305,39 @@ def test_a_scaled_camera_keeps_pixel_centres_consistent() -> None:
     np.testing.assert_allclose(half.scaled(2.0).K, camera.K, atol=1e-12)
     with pytest.raises(ValueError, match="scale factor"):
         camera.scaled(0.0)
+
+
+def _with_frame_at(scene: models.Scene, X_WO: np.ndarray) -> models.Scene:
+    objects = tuple(
+        dataclasses.replace(o, X_WO=X_WO) if o.name == "frame" else o for o in scene.objects
+    )
+    return dataclasses.replace(scene, objects=objects)
+
+
+def test_the_frames_walls_come_from_its_parts(scene: models.Scene) -> None:
+    # The puzzle scene's frame: a 0.20 m opening centred at (0.45, 0), 0.02 m bars 0.03 m tall;
+    # exactly the round numbers, as the scripted operator typed them before.
+    assert frame_opening_W(scene) == ((0.35, 0.55), (-0.10, 0.10))
+    assert frame_outer_W(scene) == ((0.33, 0.57), (-0.12, 0.12))
+    assert frame_bar_height_m(scene) == 0.03
+
+
+def test_the_frames_walls_follow_the_frame_when_it_moves(scene: models.Scene) -> None:
+    X = scene.object("frame").X_WO.copy()
+    X[:3, 3] += (0.05, -0.03, 0.0)
+    moved = _with_frame_at(scene, X)
+    assert frame_opening_W(moved) == ((0.40, 0.60), (-0.13, 0.07))
+    assert frame_outer_W(moved) == ((0.38, 0.62), (-0.15, 0.09))
+    assert frame_bar_height_m(moved) == 0.03
+    # A quarter turn about z maps the square frame onto itself; lifting it keeps its height.
+    turned = X.copy()
+    turned[:3, :3] = rpy_to_R(np.array([0.0, 0.0, np.pi / 2]))
+    turned[2, 3] += 0.01
+    assert frame_opening_W(_with_frame_at(scene, turned)) == frame_opening_W(moved)
+    assert frame_bar_height_m(_with_frame_at(scene, turned)) == 0.03
+    askew = X.copy()
+    askew[:3, :3] = rpy_to_R(np.array([0.0, 0.0, 0.3]))
+    with pytest.raises(ValueError, match="not square"):
+        frame_opening_W(_with_frame_at(scene, askew))
+    with pytest.raises(ValueError, match="no wall"):
+        frame_opening_W(scene, "table")

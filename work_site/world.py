@@ -35,41 +35,33 @@ FINGER_MAX_FORCE_N = 40.0
 FINGER_COUPLING_MAX_FORCE_N = 200.0
 FINGER_LOCK_MAX_FORCE_N = 200.0
 FINGER_PAD_FRICTION = 2.0
-"""Rubber finger pads: pybullet multiplies it with the wood's default 0.5. Measured carrying the
-cube 6 cm up and 5.8 cm across: with 0.5 it slid 20 mm in the grip, with 2.0 it ends 1.1 mm off."""
+"""Rubber finger pads: pybullet multiplies it with the wood's default 0.5, at which a carried
+block slides in the grip."""
 FINGER_PAD_FRICTION_ANCHOR = True
 """pybullet's friction anchors on the pads (positional friction correction): without them its
-velocity-level friction let the held cube creep about the grip axis under loads far below the
-slip torque, 0.1° a free move (0.7° before the first contact, scripted around-corner seed 4;
-0.14° with them, through the contact moves too)."""
+velocity-level friction lets the held cube creep about the grip axis under loads far below the
+slip torque."""
 SERVO_POSITION_GAIN = 0.3
-"""pybullet's joint servo gain (its default is 0.1). Measured on a 10 cm TCP line at 0.1 m/s:
-tracking error 0.48 mm at 0.1, 0.31 mm at 0.3, 0.10 mm at 1.0. At 1.0 the servo closes its
-whole error in one 1 ms step, and against the contacts (≈ 1e5 N/m) that rang: the wrist read
-±30–60 N from one step to the next while the held cube pressed 5 N on the table and the frame
-(0.0 N in free space), tens of newtons the force limit had to average away. At 0.5 it still
-rang (±5–10 N), at 0.3 it reads 5.0 ± 0.1 N (scripted around-corner seed 5, command 10)."""
+"""pybullet's joint servo gain (its default is 0.1): higher tracks the TCP line more closely, but
+a servo that closes its whole error in one 1 ms step rings against the stiff contacts, and the
+wrist force with it."""
 ENV_CONTACT_STIFFNESS_N_PER_M = 1e4
 """Contact stiffness of the fixed environment (table, frame): wood backed by a robot that is
-not infinitely stiff. pybullet's default rigid contact answered a 20 mm/s touch with a 1,012 N
-spike in one 1 ms step, which no force guard can catch; at 1e4 N/m a 10 N guard stops within
-0.2 N of its threshold (`python -m bench control`), and a 75 g block sinks 0.07 mm."""
+not infinitely stiff. pybullet's default rigid contact answers a touch with a spike within one
+1 ms step, which no force guard can catch."""
 ENV_CONTACT_DAMPING_N_S_PER_M = 100.0
 """Damping of those contacts: enough that a touch does not bounce."""
 PAD_CONTACT_STIFFNESS_N_PER_M = 5e4
-"""Contact stiffness of the finger pads (rubber; per contact point, four a pad). Rigid, the
-40 N grip sat on one corner of each pad's overlap with the cube, diagonally opposite ones (the
-cube a few hundredths of a degree off parallel is enough): a hinge about the line between them,
-and the held cube turned 5–35° in contact moves round the frame's corner. Compliant, each pad
-presses with ≈ 10 N on each of the four corners (0.2 mm compression), the cube tips 0.01° at
-1 N·m about the axes across the grip, and it holds 1.0 N·m about the grip axis (0.6 before)."""
+"""Contact stiffness of the finger pads (rubber; per contact point, four a pad). Rigid pads
+hold the cube on two diagonally opposite corners, a hinge about which it turns in contact
+moves; compliant, each pad presses on all four corners of its overlap with the cube."""
 PAD_CONTACT_DAMPING_N_S_PER_M = 100.0
 """Damping of the pads' contacts: about critical for the held cube on four such points."""
 
 
 FINGER_OVERCLOSE_TOL_M = 2e-4
-"""Closed on nothing, the coupled fingers settle a hair past zero (seen: −2e-8 m; −1e-5 m with
-closed fingertips pressed onto the table, where the gear constraint gives a little)."""
+"""Closed on nothing, the coupled fingers settle a hair past zero, a little further with closed
+fingertips pressed onto the table, where the gear constraint gives."""
 
 
 def _opening(sum_m: float) -> float:
@@ -115,11 +107,8 @@ class World:
         self.cid = p.connect(p.GUI if gui else p.DIRECT)
         p.setGravity(*GRAVITY_W, physicsClientId=self.cid)
         p.setTimeStep(time_step_s, physicsClientId=self.cid)
-        # Polyhedral contacts: a face on a face gives the corners of their overlap at every step
-        # (GJK gave one point a step, gathered in a manifold: the pads held the cube on single,
-        # arbitrary points). The separating axis by SAT, not GJK's: with GJK's, the cube's corner
-        # at the frame's top edge was pushed along the cube's own face normal with 2–3 mm of
-        # false depth (a 30 N stop round the frame's corner).
+        # Polyhedral contacts (SAT, not GJK): a face on a face gives the corners of their overlap
+        # at every step, where GJK gives one arbitrary point a step and false depths at edges.
         p.setPhysicsEngineParameter(enableSAT=1, physicsClientId=self.cid)
         self.bodies: dict[str, int] = {}
         self._X_OI: dict[str, np.ndarray] = {}  # inertial frame in the object frame
@@ -136,7 +125,7 @@ class World:
         """A pybullet body whose collision shape is the model's convex parts, exactly.
 
         With polyhedral (SAT) features pybullet clips the polyhedra themselves and leaves out
-        the collision margin (the parts used to be shrunk by it for GJK, rounding every edge).
+        the collision margin, so the parts are not shrunk by it.
         """
         model = obj.model
         collision_files, visual_files = [], []
@@ -221,7 +210,7 @@ class World:
         for j in self.finger_joints:
             p.resetJointState(robot, j, self.finger_target_m, physicsClientId=self.cid)
         # A parallel gripper's fingers are coupled: two independently servoed fingers that both
-        # saturate on a block leave it free to drift sideways between them (it did: 11 mm).
+        # saturate on a block leave it free to drift sideways between them.
         left, right = self.finger_joints
         gear = p.createConstraint(
             robot,
@@ -260,11 +249,10 @@ class World:
     def lock_fingers(self) -> None:
         """Hold the right finger where it is, uncoupled, while the left one keeps squeezing.
 
-        pybullet leaves the gear constraint's force out of the wrist sensor joint's reaction:
-        a 40 N grip on a cube read as a steady 11.5 N false force, drifting as the arm moved.
-        A held block needs no centring, so the grip is then one locked jaw and one pushing jaw
-        (it holds against side forces up to the pushing motor's limit); the sensor then reads
-        the held cube's weight to 1 mN (0.736 N).
+        pybullet leaves the gear constraint's force out of the wrist sensor joint's reaction,
+        which a grip then shows as a false force. A held block needs no centring, so the grip
+        is then one locked jaw and one pushing jaw (it holds against side forces up to the
+        pushing motor's limit), and the sensor reads the held block's weight.
         """
         right = self.finger_joints[1]
         self._right_locked_m = p.getJointState(self.robot, right, physicsClientId=self.cid)[0]

@@ -1,4 +1,4 @@
-"""The check before sending (issue 6): every segment between program targets swept against the
+"""The check before sending: every segment between program targets swept against the
 model, and the program refused with a reason if anything would collide or a required contact
 would be lost.
 
@@ -104,8 +104,8 @@ class Sweeper:
         self.stepper = ContactStepper(world, self.c_O, self.params, 0.02)
         self._swept: dict[tuple[bytes, bytes, frozenset[str], frozenset[str]], SegmentCheck] = {}
         """Segments swept so far: the program generator tries a move while fitting targets, again
-        round corners, and the final check sweeps it once more (scripted around-corner: 59
-        sweeps of 33 distinct segments). A sweep depends on nothing else (the world is fixed)."""
+        round corners, and the final check sweeps it once more: many sweeps repeat an earlier
+        one. A sweep depends on nothing else (the world is fixed)."""
 
     def segment(
         self,

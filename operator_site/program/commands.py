@@ -37,9 +37,8 @@ REFINE_STEP_M = 0.002
 MAX_REFINE_STEPS = 200
 REFINE_STALL_STEPS = 10
 """A drag that has not come :data:`REFINE_STALL_FRACTION` of a step closer to the segment's end
-in this many steps is stuck and given up (on every scripted around-corner seed the drag round
-the outside corner jammed within five steps and then rocked on the spot, 2 mm to and fro, for
-the remaining 195 of :data:`MAX_REFINE_STEPS`)."""
+in this many steps is stuck and given up: a drag jammed round an outside corner rocks on the
+spot rather than getting on, and would spend the rest of :data:`MAX_REFINE_STEPS` doing so."""
 REFINE_STALL_FRACTION = 0.1
 REFINE_FORCE_N = 10.0
 """Pull towards the segment's end while refining (N): each step goes its full length."""
@@ -73,13 +72,12 @@ class CommandParams:
     contact_force_per_direction_n: float = 10.0
     """A move in contact may meet this much force per distinct contact normal, plus
     ``force_limit_n`` (N): the impedance presses each contact with about stiffness × d = 5 N, and
-    the work site verifies each by a force along it. Round an outside corner the pivot meets
-    friction and the real block's small turn in the grip on top of that: at 5 N per direction
-    (20 N for wall and table) six of ten scripted runs stopped on the limit; at 10 two of them,
-    re-run, succeeded. Capped at ``max_force_limit_n``."""
+    the work site verifies each by a force along it; twice that, because round an outside corner
+    the pivot meets friction and the real block's small turn in the grip on top of it. Capped at
+    ``max_force_limit_n``."""
     max_force_limit_n: float = 40.0
     """The work site's own limit (``HARD_FORCE_LIMIT_N``), which it refuses any command to
-    exceed: four contact directions would ask 50 N (around-corner seed 45, refused)."""
+    exceed: four contact directions would otherwise ask more."""
     departure_m: float = 0.06
     """After the release the gripper rises this far (clears the 30 mm frame bars)."""
     target_bias_m: float = 0.005
@@ -312,8 +310,7 @@ def clear_outside_corners(
     new face's contact begins, and the robot biases its target into that face from then on
     (§VI-B). The real block in the grip is a millimetre or two off the simulated one, so its
     edge is often still on the corner: the new bias then pushes it back round the corner and
-    it jams there (scripted around-corner: 30 N stops and faces not felt just after the turn,
-    docs/benchmarks.md). Off the face, the block passes the corner clear of both faces."""
+    it jams there. Off the face, the block passes the corner clear of both faces."""
     chain = [start, *targets]
     out: list[PathNode] = []
     i = 1

@@ -60,8 +60,8 @@ def held_towards(f_W: np.ndarray, probe: Probe, names: Iterable[str], hold_n: fl
     """``f_W`` (N, W) less ``hold_n`` along :func:`away_normal` of each named object's nearest
     pair in ``probe``: the pull that keeps a workpiece on the contacts it must keep. Summed in
     sorted name order: a set of names iterates in the order of Python's per-process string
-    hash, and the sum's rounding, amplified over the deformation's sweeps, changed programs
-    between runs (around-corner seed 4: 26 or 27 commands)."""
+    hash, and the sum's rounding, amplified over the deformation's sweeps, would change the
+    program from one run to the next."""
     for name in sorted(names):
         pair = probe.nearest.get(name)
         if pair is not None:

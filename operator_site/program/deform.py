@@ -96,13 +96,10 @@ class DeformParams:
     moves near obstacles are checked at intermediate poses, so nothing is tunnelled through)."""
     max_sweeps: int = 45
     """Sweeps allowed over all levels together. It bounds the cost: a path round an outside
-    corner does not settle, its nodes in contact creep on until ``patience_sweeps`` stops them
-    (before 100 sweeps on the scripted around-corner demonstrations of seeds 0–9: their
-    programs at 100 and 300 sweeps are identical). At 45 their programs' targets were at
-    most 10.6 mm (median 5.7 mm) from those at 100 or 300 sweeps, for 0.46 instead of 0.62 s
-    CPU median (`python -m bench program_sweeps`, docs/benchmarks.md); corner's are the same at
-    any cap from 45 on. A program the check refuses after a capped deformation is made again
-    with more sweeps (``generate.REFUSED_RETRY_MAX_SWEEPS``)."""
+    corner does not settle, its nodes in contact creep on until ``patience_sweeps`` stops them,
+    and the last of that creep changes the program's targets by millimetres. A program the
+    check refuses after a capped deformation is made again with more sweeps
+    (``generate.REFUSED_RETRY_MAX_SWEEPS``)."""
     max_sweeps_coarse: int = 15
     """Sweeps allowed at each level but the finest (they only prepare it)."""
     settle_coarse_fraction: float = 0.2

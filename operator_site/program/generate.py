@@ -18,9 +18,8 @@ from protocol import MotionProgram
 
 REFUSED_RETRY_MAX_SWEEPS = 300
 """A program the check refuses after a deformation stopped unsettled by its sweep cap is made
-once more from a deformation allowed this many sweeps (the cap before 2026-11-25): round an
-outside corner the capped path can stop mid-creep where no refinement of the pivot passes the
-sweep (scripted around-corner seed 57 at 45 and 60 sweeps; its program at 300 passes)."""
+once more from a deformation allowed this many sweeps, because round an outside corner the capped
+path can stop mid-creep where no refinement of the pivot passes the sweep."""
 
 
 class ProgramRefusedError(ValueError):

@@ -51,8 +51,8 @@ def pick_and_place(
         cmd("guarded_grasp", X_WP_start),
         cmd("move", _above(X_WP_start)),
         cmd("move", _above(X_WP_goal)),
-        # Set down by touch, not by position: a plain move onto the table met it with up to
-        # 10.3 N where the model and the work site differ by a fraction of a millimetre.
+        # Set down by touch, not by position: where the model and the work site differ by a
+        # fraction of a millimetre, a plain move onto the table presses on it hard.
         cmd("guarded_move", X_WP_goal, PLACE_SPEED_MPS, PLACE_GUARD_N, (table,)),
         cmd("release", X_WP_goal),
         cmd("move", _above(X_WP_goal)),

@@ -35,24 +35,14 @@ TCP_ACCEL_MPS2 = 0.5
 HARD_FORCE_LIMIT_N = 40.0
 """No external force on the hand may exceed this, whatever a program asks (the arm stops)."""
 FORCE_WINDOW_STEPS = 4
-"""Guards and the admittance look at the mean of this many 1 ms readings: a servo
-setpoint change reads as up to 4.3 N for a single step while accelerating (measured), and a
-stop's deceleration as tens of newtons; neither is a contact. The window delays detection by
-2 ms (tried: a guard on two readings in a row instead overshot more, 10 N at 40 mm/s against
-3.6 N). Its length is even so that it cancels a period-2 chatter exactly: a block held against
-a wall and the table can make the simulated contacts alternate by ±38 N from one step to the
-next, of which a 5-step window let ±7.6 N through (the test of leaving a wall stopped at
-20.6 N > 20 N with 5 steps; `python -m bench control`, 5 → 4 steps on the same machine:
-guarded overshoot 1.60 → 2.00 N, corner 0.14 → 0.11 mm, slide force 2.7–7.6 → 1.5–8.8 N)."""
+"""Guards and the admittance look at the mean of this many 1 ms readings: a servo setpoint
+change while accelerating and a stop's deceleration each read as a one-step spike that is no
+contact, and an even length cancels exactly the period-2 chatter of a block held against a wall
+and the table (figures in docs/tuning.md)."""
 LIMIT_WINDOW_STEPS = 10
-"""The force limit looks at the mean of this many 1 ms readings, one control period: in contact
-the readings chatter by ±25–50 N from one step to the next, not at period 2 alone (a cube
-gripped, on the table and against the frame: the arm's stiff 1 kHz servo against the
-contacts), and the 4-step mean that guards need for their quick stop let ±5–10 N of it
-through. Round the frame's outside corner (scripted around-corner seed 5, replayed) a move
-whose 10 ms means stayed at 7–8 N stopped on its 20 N limit within a few steps. The limit is
-about a sustained force; a free move at 0.1 m/s meeting a 1e4 N/m obstacle reaches it 3 ms
-later than with 4 steps (3 N more)."""
+"""The force limit looks at the mean of this many 1 ms readings, one control period: the limit is
+about a sustained force, and in contact the stiff 1 kHz servo makes the readings chatter from
+step to step at more than period 2, which the guards' shorter window lets through."""
 
 
 @dataclass(frozen=True)
@@ -66,16 +56,10 @@ class Guard:
 
 DEFAULT_SURFACE_STIFFNESS_N_PER_M = 5000.0
 """The work site's contact moves' stiffness along the contact surfaces (N/m); along the normals
-it stays §VI-B's low 1,000 N/m. The paper found an isotropic impedance sufficient; here, at
-1,000 N/m along the surfaces, friction holds the block 2–5 mm behind its path, which round the
-frame's outside corner left its edge on the corner when the next face's bias began (the
-scripted around-corner task: 4 of 20 seeds against 12 of 20 at 5,000 N/m; replays of the
-programs of seeds 0–3, four start phases each: 2 of 16 against 13 of 14, docs/benchmarks.md;
-with the turn made off the new face and the offset carried right, seeds 0–19: 2 of 20 before,
-16 of 20 after). `work-site serve
---surface-stiffness 1000` gives the isotropic impedance back. A 6 cm slide along a wall ends
-0.38 mm short of its goal at 5,000 N/m, 2.16 mm at 1,000 (friction / stiffness; within 0.5 mm
-at every setting while the pads held the cube on single points, `python -m bench control`)."""
+it stays §VI-B's low 1,000 N/m. Stiffer than the paper's isotropic impedance because at 1,000 N/m
+friction holds the block millimetres behind its path, which round the frame's outside corner
+leaves its edge on the corner when the next face's bias begins. `work-site serve
+--surface-stiffness 1000` gives the isotropic impedance back."""
 
 
 @dataclass(frozen=True)
@@ -83,20 +67,18 @@ class Impedance:
     """Translational admittance of a contact move: ``stiffness`` (N/m) and ``damping`` (N·s/m),
     along the contact normals (``compliant_W``) or in every direction; the offset moves at most
     ``max_rate_mps``. Updated at every 1 ms servo step, discrete stability needs
-    ``damping > (stiffness + k_env)·Δt/2`` with k_env the contacts' stiffness (measured: about
-    1.3e5 N/m for a cube pressed into a corner): 66 N·s/m; the default leaves a factor 3."""
+    ``damping > (stiffness + k_env)·Δt/2`` with k_env the contacts' stiffness; the default
+    damping keeps a margin over it for a cube pressed into a corner (docs/tuning.md)."""
 
     stiffness_n_per_m: float = 1000.0
     damping_n_s_per_m: float = 200.0
     max_rate_mps: float = 0.02
     """Twice the contact speed (10 mm/s), so that the offset can back away faster than the path
-    presses on: at 10 mm/s a set-down onto the table peaked at the move's 15 N limit in 3 of 4
-    runs on a loaded machine (the contact falling at another point of the servo period), at
-    20 mm/s in none of 3; slide and corner figures unchanged within 0.1 mm."""
+    presses on and a set-down onto the table stays under its force limit."""
     settled_offset_m: float = 2e-4
     """The move has settled once its offset stays within this of where it was over the last
-    ``settled_ticks`` periods (the force's ±0.5 N ripple while pressed into a corner moves it
-    about ±0.1 mm)."""
+    ``settled_ticks`` periods (above what the force's ripple moves it while pressed into a
+    corner)."""
     settled_ticks: int = 10
     max_settle_s: float = 3.0
     compliant_W: np.ndarray | None = None
@@ -105,16 +87,12 @@ class Impedance:
     ``tangential_stiffness_n_per_m``."""
     tangential_stiffness_n_per_m: float | None = None
     """None: isotropic (§VI-B). Stiffer along the surfaces, friction no longer drags the block
-    behind its path (a 6 cm slide ends 2.0 mm short at 1,000 N/m, 0.36 mm at 5,000), while a
-    contact the model missed still meets a spring, not a rigid arm."""
+    behind its path, while a contact the model missed still meets a spring, not a rigid arm."""
     max_press_n: float = 10.0
     """The spring along the contact normals presses with at most this force (N): stiffness × 2d,
-    twice what it presses with when the model is right. Where the real contact lies further
-    than d past the hand's target (the block turned in the grip, a model off), the hand then
-    yields rather than pressing harder: round the frame's outside corner a cube that had
-    tilted 18° about the line between the fingertips hung 10 mm lower in the grip, the table
-    spring pressed 15 N instead of 5, the table's friction tilted it further, and the move
-    stopped on its 20 N limit (scripted around-corner seed 5, every replay of its program)."""
+    twice what it presses with when the model is right, so that where the real contact lies
+    further than d past the hand's target (the block turned in the grip, a model off) the hand
+    yields rather than pressing on until the move's force limit stops it."""
 
 
 NORMAL_RANK_TOL = 1e-3
@@ -136,8 +114,7 @@ def carried_offset_W(offset_W: np.ndarray, impedance: Impedance) -> np.ndarray:
     ``impedance``, keeps as its offset: the part along its contact normals when it is stiffer
     along the surfaces (isotropic: all of it). The rest becomes part of its path's start, so
     that the hand is not pulled back to where the last target's bias pointed: leaving a
-    contact, that is into the surface it leaves (round the frame's outside corner, into the
-    corner: 21 N at 5,000 N/m on the move off it)."""
+    contact, that is into the surface it leaves."""
     if impedance.compliant_W is None or impedance.tangential_stiffness_n_per_m is None:
         return offset_W
     return impedance.compliant_W @ offset_W
@@ -241,10 +218,10 @@ class TaskController:
         if the arm was stopped. With an impedance, the offset δ advances at every step and
         moves the setpoint through the flange Jacobian ``J``.
 
-        The servo setpoints are interpolated over the period: stepped every 10 ms, the rate
-        setpoint jerked the hand hard enough to read ±160 N on the wrist for one step. The
-        admittance runs at the servo rate: at 100 Hz against three contacts (together about
-        1.3e5 N/m, measured) it fell into a 2-period limit cycle between 0.3 and 10.5 N.
+        The servo setpoints are interpolated over the period, because a rate setpoint stepped
+        every 10 ms jerks the hand into a large one-step wrist force. The admittance runs at the
+        servo rate, because at 100 Hz against stiff contacts it falls into a 2-period limit
+        cycle.
         """
         total = np.zeros(3)
         n = self.steps_per_tick

@@ -31,8 +31,7 @@ JOINT_LIMIT_TOL_RAD = 1e-9
 """A solution this close outside a joint limit is put on the limit (rounding), not refused."""
 ELBOW_LIMIT_TOL_RAD = 3e-7
 """The same for q2 and q3 at the elbow singularity: there q3 = acos(cos q3) with cos q3 ≈ ±1,
-where a rounding error δ of the cosine (~1e-15) becomes √(2δ) ≈ 5e-8 rad of q3, and q2 follows
-(6e-8 rad seen: q2 on its limit, arm stretched, refused against the 1e-9 bound)."""
+where a rounding error δ of the cosine (~1e-15) becomes √(2δ) ≈ 5e-8 rad of q3, and q2 follows."""
 REACH_TOL_M = 1e-9
 """A wrist centre this much beyond reach is still taken as reachable (rounding)."""
 _AXES = ((0, 0, 1), (0, 1, 0), (0, 1, 0), (0, 0, 1), (0, 1, 0), (0, 0, 1))

@@ -2,7 +2,7 @@
 
 pybullet reports the sensor joint's reaction ``wrench_S``: the force the flange exerts on the
 sensor's child link, in the sensor frame S. Held still in free space it carries the weight of
-everything beyond the sensor (measured: 8.348 N for the model's 0.851 kg), so the external
+everything beyond the sensor (``m_hand``, the model's masses of those links), so the external
 force on the hand, in W, is ``−R_WS f_S − m_hand g_W`` (checked by applying known forces in
 tests/test_control_force.py).
 

