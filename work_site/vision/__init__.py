@@ -2,14 +2,18 @@
 
 ``Recognizer(...).recognise(image, camera)`` → list of :class:`Recognition` (model name, pose
 ``X_WO``, score). Lines (:mod:`.lines`) → groups and the model index (:mod:`.index`) →
-Lowe's pose fit (:mod:`.pose`) → verification (:mod:`.recognizer`). Rendered test scenes with
-ground truth: :mod:`.dataset`; scoring: :mod:`.evaluate`; calibration: :mod:`.calibration`.
+hypotheses (:mod:`.hypotheses`) → Lowe's pose fit (:mod:`.pose`) → verification
+(:mod:`.verification`) → selection (:mod:`.pose_sets`), run by :mod:`.recognizer` and tuned by
+:mod:`.params`. Rendered test scenes with ground truth: :mod:`.dataset`; scoring:
+:mod:`.evaluate`; calibration: :mod:`.calibration`.
 """
 
 from work_site.vision.index import GroupParams, IndexParams
 from work_site.vision.lines import LineParams, detect_lines
+from work_site.vision.params import RecognizerParams
 from work_site.vision.pose import PoseFit, fit_pose
-from work_site.vision.recognizer import Recognition, Recognizer, RecognizerParams
+from work_site.vision.pose_sets import Recognition
+from work_site.vision.recognizer import Recognizer
 
 __all__ = [
     "GroupParams",
