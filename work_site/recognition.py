@@ -92,11 +92,11 @@ def _vision_worker(scene_path: str, scale: float, index_views: int | None, conn)
                 if scale != 1.0:
                     seen = camera.scaled(scale)
                     size = (seen.width, seen.height)
-                    found = recognizer.recognise(
+                    found = recognizer.recognize(
                         cv2.resize(image, size, interpolation=cv2.INTER_AREA), seen
                     )
                 else:
-                    found = recognizer.recognise(image, camera)
+                    found = recognizer.recognize(image, camera)
                 objects = tuple((r.model, r.X_WO, float(r.score)) for r in found)
                 error = ""
             except Exception as e:  # one bad frame must not end vision

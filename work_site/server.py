@@ -341,7 +341,7 @@ class WorkSiteServer:
                         pub_camera.put(done.payload)
                         self.stats["frames"] += 1
                         # Vision gets the renderer's pixels, never the wire's (possibly JPEG).
-                        self._recognise(done.seq, done.stamp_s, done.image, elapsed)
+                        self._recognize(done.seq, done.stamp_s, done.image, elapsed)
                     if elapsed >= next_frame_s and not camera.busy:
                         q, fingers = world.robot_joint_positions()
                         poses = world.object_poses()
@@ -399,7 +399,7 @@ class WorkSiteServer:
         )
         return now, ticks
 
-    def _recognise(self, seq: int, stamp_s: float, image, elapsed_s: float) -> None:
+    def _recognize(self, seq: int, stamp_s: float, image, elapsed_s: float) -> None:
         """Hand a new frame to vision if it is idle and its rate allows."""
         vision = self._vision
         if vision is None or elapsed_s < self._next_vision_s:

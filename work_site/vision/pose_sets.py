@@ -15,7 +15,7 @@ from work_site.vision.verification import Surroundings, Verification, verify
 
 
 @dataclass(frozen=True)
-class Recognition:
+class Detection:
     """One object found in an image: model name, pose ``X_WO``, score in [0, 1] and diagnostics."""
 
     model: str
@@ -148,12 +148,12 @@ def select(
     occluders_C,
     params: RecognizerParams,
     surroundings: Surroundings,
-) -> list[Recognition]:
+) -> list[Detection]:
     """Candidates that explain the most image edge length first; a candidate sharing many
     image lines with, or interpenetrating, one already accepted is dropped. Each is
     verified again with the other candidates as occluders, and its outline must show."""
     p = params
-    accepted: list[Recognition] = []
+    accepted: list[Detection] = []
     accepted_parts: list[list[np.ndarray]] = []
     used: set[int] = set()
     per_model: dict[str, int] = {}
@@ -186,7 +186,7 @@ def select(
         if not surroundings.plausible(c.parts_W, accepted_parts, p, environment=False):
             continue
         accepted.append(
-            Recognition(
+            Detection(
                 model=c.model.name,
                 X_WO=c.X_WO,
                 score=v.score,

@@ -52,7 +52,7 @@ from work_site.vision.model import (
     vision_model,
 )
 from work_site.vision.params import ENV_MATCH_TOL_PX, RecognizerParams
-from work_site.vision.pose_sets import Candidate, PoseSet, Recognition, select
+from work_site.vision.pose_sets import Candidate, Detection, PoseSet, select
 from work_site.vision.table import rest_corners
 from work_site.vision.verification import (
     Surroundings,
@@ -187,7 +187,7 @@ class Recognizer:
         return self.surroundings.work_area_xy
 
     # -- the public entry point ------------------------------------------------------------
-    def recognise(self, image: np.ndarray, camera: CameraModel) -> list[Recognition]:
+    def recognize(self, image: np.ndarray, camera: CameraModel) -> list[Detection]:
         """Objects found in ``image`` (grey uint8, camera's size), best score first.
 
         Raises ValueError for an unusable image or camera; an image with nothing recognisable
@@ -361,7 +361,7 @@ class Recognizer:
             if p.max_per_model == 1 and v.score >= p.confident_score:
                 s.confident.add(model.name)
 
-    def _select(self, s: _Search, f: _Frame) -> list[Recognition]:
+    def _select(self, s: _Search, f: _Frame) -> list[Detection]:
         """The candidates found so far, conflicts resolved (see :func:`.pose_sets.select`)."""
         return select(
             s.candidates, f.segs, f.K, f.gx, f.gy, f.occluders_C, self.params, self.surroundings
