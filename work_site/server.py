@@ -47,7 +47,7 @@ from work_site.control.controller import (
     Impedance,
     TaskController,
 )
-from work_site.control.executor import Execution, check_program
+from work_site.control.executor import Execution, program_refusal
 from work_site.recognition import VisionProcess, VisionResult
 from work_site.world import World
 
@@ -522,7 +522,7 @@ class WorkSiteServer:
             if running:
                 reason = f"busy with program {self._execution.program.program_id}"
             else:
-                reason = check_program(program, self._controller)
+                reason = program_refusal(program, self._controller)
             self._remember(pid)
             if reason:
                 self.stats["refused"] += 1
