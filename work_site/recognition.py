@@ -65,8 +65,7 @@ def _vision_worker(scene_path: str, scale: float, index_views: int | None, conn)
     import cv2
 
     from models.scene import load_scene
-    from work_site.vision import IndexParams
-    from work_site.vision.recognizer import Recognizer
+    from work_site.vision import IndexParams, Recognizer
 
     scene = load_scene(scene_path)
     try:
