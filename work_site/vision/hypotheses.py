@@ -225,16 +225,15 @@ def initial_fit(
     params: RecognizerParams,
     prior=None,
 ) -> np.ndarray | None:
-    """Pose fitted to the hypothesis' four correspondences from the initial ``X``, or None
-    if it cannot be right: the lines do not fit, or the object would be far from resting
-    on the table."""
+    """``X_CO`` fitted to the hypothesis' four correspondences (index ``entry``'s model edges,
+    image lines ``segs[g_segs]``) from the initial ``X``, or None if it cannot be right: the
+    lines do not fit, or the object would be far from resting on the table. ``prior``: see
+    :func:`resting_prior`."""
     p = params
-    idx = index
-    edges = model.edges_O[idx.edges[entry]]
+    edges = model.edges_O[index.edges[entry]]
     fit = fit_pose(
-        X, edges, segs[g_segs], K, iterations=p.fit_iterations, tol=p.fit_tol,
-        prior=prior,
-    )  # fmt: skip
+        X, edges, segs[g_segs], K, iterations=p.fit_iterations, tol=p.fit_tol, prior=prior
+    )
     if fit.rms_px > p.init_rms_max_px or fit.X_CO[2, 3] <= 0.05:
         return None
     V_W = transform(X_WC @ fit.X_CO, model.vertices_O)
@@ -250,8 +249,10 @@ def resting_prior(
     table_z: float,
     params: RecognizerParams,
 ):
-    """Residuals (px-equivalents) saying the object rests on a face on the table, or None
-    when the prior is off. Applied softly, so that the lines still decide."""
+    """The fits' soft prior that ``model`` rests on a face on the table: a function of
+    ``X_CO`` giving residuals (px-equivalents) and their Jacobian (see
+    :func:`~work_site.vision.pose.fit_pose`), or None when the prior is off. Applied softly,
+    so that the lines still decide. ``facet_normals_O``: the model's hull facet normals."""
     if not params.table_prior:
         return None
     p = params
