@@ -29,8 +29,8 @@ from work_site.control.controller import TCP_ACCEL_MPS2, Guard, Impedance, TaskC
 from work_site.control.executor import (
     CONTACT_VERIFY_N,
     Execution,
-    check_program,
     default_impedance,
+    program_refusal,
 )
 from work_site.world import World
 
@@ -242,7 +242,7 @@ def corner() -> dict:
     reports: list[tuple] = []
     try:
         program, goal = corner_program(world.object_pose("cube"), world.scene)
-        problem = check_program(program, c)
+        problem = program_refusal(program, c)
         if problem:
             raise RuntimeError(f"corner program refused: {problem}")
         _run(Execution(program, c, lambda *r: reports.append(r)), c)

@@ -5,7 +5,7 @@ the table prior, and image noise, blur and lighting.
 Writes into ``out``: ``vision_objects.csv`` (one row per ground-truth object of the main run),
 ``vision_sweeps.csv`` (one row per sweep point), ``vision_sweeps.png`` and
 ``vision_degradation.png``; returns the JSON summary. Timing is on one core
-(``cv2.setNumThreads(1)``), wall clock per ``recognise`` call, index already built.
+(``cv2.setNumThreads(1)``), wall clock per ``recognize`` call, index already built.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def score(
     errs, times, cpu = [], [], []
     for k, (image, camera, truth) in enumerate(scenes):
         t0, c0 = time.perf_counter(), time.process_time()
-        found = recognizer.recognise(image, camera)
+        found = recognizer.recognize(image, camera)
         times.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
         sc = score_scene([(r.model, r.X_WO) for r in found], truth, models, camera)

@@ -20,8 +20,8 @@ from work_site.control.executor import (
     TARGET_BIAS_M,
     TARGET_BIAS_MAX_M,
     Execution,
-    check_program,
     contact_forces_n,
+    program_refusal,
     target_bias_W,
 )
 
@@ -37,7 +37,7 @@ def site():
 
 def run(program: MotionProgram, controller) -> list[tuple]:
     reports: list[tuple] = []
-    problem = check_program(program, controller)
+    problem = program_refusal(program, controller)
     assert problem == "", problem
     execution = Execution(program, controller, lambda *r: reports.append(r))
     for _ in range(6000):

@@ -13,7 +13,7 @@ from models.scene import load_scene
 from models.transforms import make_pose, rpy_to_R, so3_log
 from protocol import ContactState, MotionCommand, MotionProgram, ProtocolError
 from work_site.control.controller import TaskController
-from work_site.control.executor import Execution, check_program
+from work_site.control.executor import Execution, program_refusal
 from work_site.world import World
 
 CUBE_HALF = 0.025
@@ -65,7 +65,7 @@ def test_pick_carry_and_place_the_cube(site) -> None:
             command("release", placed),
         ),
     )
-    assert check_program(program, controller) == ""
+    assert program_refusal(program, controller) == ""
     reports = []
     execution = Execution(program, controller, lambda *r: reports.append(r))
     # Half-way: after the grasp and the lift the cube is in the air, held.
@@ -133,12 +133,13 @@ def test_each_unsafe_program_is_refused_with_its_reason_before_motion(site) -> N
         # its limit): refused here, not on the way down.
         "outside joint limits": program(cmd("guarded_grasp", near)),
     }
-    assert check_program(program(cmd("move", near)), controller) == ""
+    assert program_refusal(program(cmd("move", near)), controller) == ""
     # NaN never gets this far: the message refuses it (tests/test_protocol_*).
     with pytest.raises(ProtocolError, match="finite"):
         cmd("move", np.full((4, 4), math.nan))
     for reason, bad in cases.items():
-        assert reason in check_program(bad, controller), (reason, check_program(bad, controller))
+        refusal = program_refusal(bad, controller)
+        assert reason in refusal, (reason, refusal)
     np.testing.assert_array_equal(world.q_target, q0)
 
 

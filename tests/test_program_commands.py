@@ -276,7 +276,7 @@ def test_the_work_site_accepts_the_generated_programs(fig12) -> None:
     from models.scene import load_scene
     from operator_site.program import choose_grasp_yaw
     from work_site.control.controller import TaskController
-    from work_site.control.executor import check_program as site_check
+    from work_site.control.executor import program_refusal as site_check
     from work_site.world import World
 
     sim, _ = fig12

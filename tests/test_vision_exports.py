@@ -13,12 +13,12 @@ def test_exported_names_exist_and_are_public() -> None:
 
 
 def test_exports_are_what_the_work_site_server_needs() -> None:
-    assert {"Recognizer", "Recognition", "recognise"} <= set(vision.__all__)
+    assert {"Recognizer", "Detection", "recognize"} <= set(vision.__all__)
 
 
-def test_a_recognition_unpacks_as_model_pose_score() -> None:
+def test_a_detection_unpacks_as_model_pose_score() -> None:
     import numpy as np
 
-    r = vision.Recognition("cube", np.eye(4), 0.9)
+    r = vision.Detection("cube", np.eye(4), 0.9)
     name, X_WO, score = r
     assert name == "cube" and X_WO.shape == (4, 4) and score == 0.9

@@ -8,8 +8,8 @@ import numpy as np
 from models.scene import load_scene
 from models.transforms import make_pose, so3_exp
 from work_site.vision.model import vision_model
-from work_site.vision.recognizer import (
-    PoseSet,
+from work_site.vision.pose_sets import PoseSet
+from work_site.vision.verification import (
     _clip_segments,
     _covered_length,
     _distance_to_polygon,
@@ -135,8 +135,8 @@ def test_pose_set_sees_poses_equal_up_to_symmetry_only() -> None:
 def test_initial_poses_undo_a_known_image_similarity() -> None:
     """A group seen on the optical axis, turned by θ and at half the canonical scale, gives
     the indexed view turned by θ about the axis at twice the view distance; many at once."""
+    from work_site.vision.hypotheses import initial_pose, initial_poses
     from work_site.vision.index import IndexParams
-    from work_site.vision.recognizer import initial_pose, initial_poses
 
     params = IndexParams()
     f = params.canonical_f_px
@@ -163,7 +163,7 @@ def test_initial_poses_undo_a_known_image_similarity() -> None:
 def test_match_segments_pairs_each_image_line_with_its_own_edge() -> None:
     """Parts of edges, shifted less than the tolerance, match their own edge; lines turned
     beyond the angle, shifted beyond the tolerance or mostly off the edge do not."""
-    from work_site.vision.recognizer import match_segments
+    from work_site.vision.verification import match_segments
 
     rng = np.random.default_rng(7)
     model = np.column_stack([rng.uniform(50, 550, (12, 2)), rng.uniform(50, 550, (12, 2))])
@@ -221,12 +221,12 @@ def test_pose_set_adds_many_as_one_by_one() -> None:
 def test_turned_poses_keep_the_centre_and_differ_up_to_symmetry() -> None:
     """The turns tried for a pose fitted to few edges: about the bounding-box centre, none
     equal to the model's own pose or to each other up to its symmetries (a cube has none)."""
-    from work_site.vision.recognizer import _turned_poses
+    from work_site.vision.hypotheses import turned_poses
 
     scene = load_scene()
     for name, expected in (("cube", 0), ("wedge", 11), ("tall_block", 2)):
         m = vision_model(next(o.model for o in scene.movable if o.name == name))
-        T = _turned_poses(m)
+        T = turned_poses(m)
         assert len(T) == expected == 24 // len(m.symmetries) - 1
         c = 0.5 * (m.vertices_O.min(0) + m.vertices_O.max(0))
         for X in T:

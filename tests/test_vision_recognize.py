@@ -48,7 +48,7 @@ def test_recall_and_precision_floors(recognizer, scenes) -> None:
     n_vis = hits = tp = fp = 0
     errors = []
     for image, truth in data:
-        found = recognizer.recognise(image, camera)
+        found = recognizer.recognize(image, camera)
         assert all(0.0 <= r.score <= 1.0 for r in found)
         sc = score_scene([(r.model, r.X_WO) for r in found], truth, models, camera)
         tp += len(sc.matches)
@@ -69,7 +69,7 @@ def test_recall_and_precision_floors(recognizer, scenes) -> None:
 
 def test_an_empty_work_site_gives_nothing(recognizer, scenes) -> None:
     _, blank, camera = scenes
-    assert recognizer.recognise(blank, camera) == []
+    assert recognizer.recognize(blank, camera) == []
 
 
 @pytest.mark.parametrize(
@@ -78,7 +78,7 @@ def test_an_empty_work_site_gives_nothing(recognizer, scenes) -> None:
     ids=["black", "white"],
 )
 def test_featureless_images_give_nothing(recognizer, scenes, image) -> None:
-    assert recognizer.recognise(image, scenes[2]) == []
+    assert recognizer.recognize(image, scenes[2]) == []
 
 
 def test_bad_inputs_raise_clear_errors(recognizer, scenes) -> None:
@@ -86,9 +86,9 @@ def test_bad_inputs_raise_clear_errors(recognizer, scenes) -> None:
 
     camera = scenes[2]
     with pytest.raises(ValueError, match="camera is 640×480"):
-        recognizer.recognise(np.zeros((1, 1), np.uint8), camera)
+        recognizer.recognize(np.zeros((1, 1), np.uint8), camera)
     singular = dataclasses.replace(camera, K=np.zeros((3, 3)))
     with pytest.raises(ValueError, match="singular"):
-        recognizer.recognise(np.zeros((480, 640), np.uint8), singular)
+        recognizer.recognize(np.zeros((480, 640), np.uint8), singular)
     with pytest.raises(ValueError, match="8-bit"):
-        recognizer.recognise(np.zeros((480, 640), np.float64), camera)
+        recognizer.recognize(np.zeros((480, 640), np.float64), camera)

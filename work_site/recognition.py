@@ -65,8 +65,7 @@ def _vision_worker(scene_path: str, scale: float, index_views: int | None, conn)
     import cv2
 
     from models.scene import load_scene
-    from work_site.vision import IndexParams
-    from work_site.vision.recognizer import Recognizer
+    from work_site.vision import IndexParams, Recognizer
 
     scene = load_scene(scene_path)
     try:
@@ -92,11 +91,11 @@ def _vision_worker(scene_path: str, scale: float, index_views: int | None, conn)
                 if scale != 1.0:
                     seen = camera.scaled(scale)
                     size = (seen.width, seen.height)
-                    found = recognizer.recognise(
+                    found = recognizer.recognize(
                         cv2.resize(image, size, interpolation=cv2.INTER_AREA), seen
                     )
                 else:
-                    found = recognizer.recognise(image, camera)
+                    found = recognizer.recognize(image, camera)
                 objects = tuple((r.model, r.X_WO, float(r.score)) for r in found)
                 error = ""
             except Exception as e:  # one bad frame must not end vision

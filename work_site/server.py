@@ -47,8 +47,8 @@ from work_site.control.controller import (
     Impedance,
     TaskController,
 )
-from work_site.control.executor import Execution, check_program
-from work_site.recognition import VisionProcess, VisionResult
+from work_site.control.executor import Execution, program_refusal
+from work_site.recognition import VisionProcess
 from work_site.world import World
 
 log = logging.getLogger("work-site")
@@ -141,10 +141,9 @@ class ServerOptions:
     """Sensor noise added to each pixel (standard deviation, grey levels)."""
     camera_encoding: str = "jpeg"
     """How camera frames travel to operators: ``raw``, ``png`` or ``jpeg`` (protocol/images.py).
-    Vision always works on the uncompressed frame, here. JPEG by default: at quality 80 a frame
-    is 25× smaller than raw, differs from it by less than the sensor's own noise, and reaches
-    an operator 50 ms away in a third of raw's time (docs/benchmarks.md, "Camera frames on the
-    wire")."""
+    Vision always works on the uncompressed frame, here. JPEG by default: far smaller than raw
+    and faster to an operator, and it differs from raw by less than the sensor's own noise
+    (docs/benchmarks.md, "Camera frames on the wire")."""
     camera_quality: int = DEFAULT_JPEG_QUALITY
     """JPEG quality 1..100 (with ``camera_encoding="jpeg"``)."""
     camera_X_WC: tuple | None = None
@@ -267,23 +266,8 @@ class WorkSiteServer:
         ready: threading.Event | None,
     ) -> None:
         opts, site = self.options, self.options.site_id
-        drop = zenoh.CongestionControl.DROP
         token = session.liveliness().declare_token(alive_key(site, "work_site"))
-        pub_state = session.declare_publisher(
-            key(site, "robot_state"), congestion_control=drop, priority=zenoh.Priority.DATA_HIGH
-        )
-        pub_camera = session.declare_publisher(
-            key(site, "camera"), congestion_control=drop, priority=zenoh.Priority.DATA_LOW
-        )
-        pub_heartbeat = session.declare_publisher(key(site, "heartbeat"))
-        self._pub_recognitions = session.declare_publisher(
-            key(site, "recognitions"), priority=zenoh.Priority.DATA
-        )
-        self._next_vision_s = 0.0
-        pub_truth = session.declare_publisher(key(site, "truth"), congestion_control=drop)
-        self._pub_report = session.declare_publisher(
-            key(site, "report"), priority=zenoh.Priority.INTERACTIVE_HIGH
-        )
+        self._declare_publishers(session)
         # Never block inside zenoh's callbacks: samples go to bounded rings read by this loop.
         inbox_program = session.declare_subscriber(
             key(site, "program"), zenoh.handlers.RingChannel(INBOX_CAPACITY)
@@ -296,12 +280,8 @@ class WorkSiteServer:
         tick_s = controller.steps_per_tick * world.time_step_s
         wall_tick_s = tick_s / opts.time_scale
         state_every = max(1, round(1.0 / (tick_s * opts.state_rate_hz)))
-        camera_period_s = 1.0 / self.scene.camera.frame_rate_hz
-        heartbeat_period_s = 1.0 / opts.heartbeat_rate_hz
         ticks, t0 = 0, time.monotonic()
         late_since = (t0, 0)  # wall s and ticks when lateness was last reported
-        next_frame_s = next_heartbeat_s = 0.0
-        seq_state = seq_frame = seq_heartbeat = 0
         log.info(
             "work site %r serving; physics %.0f Hz, state %.0f Hz, camera %.1f Hz",
             site,
@@ -322,54 +302,20 @@ class WorkSiteServer:
                     late_since = self._warn_late(late_since, ticks, tick_s)
                 for _ in range(due):
                     try:
-                        if self._execution is not None and not self._execution.finished:
-                            self._execution.tick()
-                        else:
-                            controller.tick()
+                        self._control_tick()
                         ticks += 1
                         if ticks % state_every == 0:
-                            pub_state.put(encode(self._robot_state(world, seq_state)))
-                            seq_state += 1
-                            self.stats["states"] += 1
+                            self._publish_robot_state(world)
                     except Exception as e:  # a fault of ours: stop safely, keep serving
                         ticks += 1
                         self._fault(e)
                 self._handle_inbox(inbox_program, inbox_stop, world)
                 if camera is not None:
-                    done = camera.poll()
-                    if done is not None:
-                        pub_camera.put(done.payload)
-                        self.stats["frames"] += 1
-                        # Vision gets the renderer's pixels, never the wire's (possibly JPEG).
-                        self._recognise(done.seq, done.stamp_s, done.image, elapsed)
-                    if elapsed >= next_frame_s and not camera.busy:
-                        q, fingers = world.robot_joint_positions()
-                        poses = world.object_poses()
-                        camera.request(RenderRequest(seq_frame, time.time(), poses, q, fingers))
-                        # The simulation's ground truth, for end-to-end evaluation only.
-                        truth = tuple(ObjectPose(name=n, X_WO=X) for n, X in poses.items())
-                        pub_truth.put(
-                            encode(TruthPoses(seq=seq_frame, stamp_s=time.time(), objects=truth))
-                        )
-                        seq_frame += 1
-                        next_frame_s = max(next_frame_s + camera_period_s, elapsed)
+                    self._publish_camera(camera, elapsed)
+                    self._request_frame(camera, world, elapsed)
                 if self._vision is not None:
-                    result = self._vision.poll()
-                    if result is not None:
-                        self._publish_recognitions(result)
-                if elapsed >= next_heartbeat_s:
-                    pub_heartbeat.put(
-                        encode(
-                            Heartbeat(
-                                site_id=site,
-                                role="work_site",
-                                seq=seq_heartbeat,
-                                stamp_s=time.time(),
-                            )
-                        )
-                    )
-                    seq_heartbeat += 1
-                    next_heartbeat_s += heartbeat_period_s
+                    self._publish_recognitions()
+                self._publish_heartbeat(elapsed)
                 sleep_s = t0 + (ticks + 1) * wall_tick_s - time.monotonic()
                 if sleep_s > 0:
                     time.sleep(sleep_s)
@@ -378,6 +324,80 @@ class WorkSiteServer:
             inbox_stop.undeclare()
             token.undeclare()
             log.info("work site %r stopped: %s", site, self.stats)
+
+    def _declare_publishers(self, session: zenoh.Session) -> None:
+        """One publisher per topic, each with its sequence numbers and due times reset."""
+        site = self.options.site_id
+        drop = zenoh.CongestionControl.DROP
+        self._pub_state = session.declare_publisher(
+            key(site, "robot_state"), congestion_control=drop, priority=zenoh.Priority.DATA_HIGH
+        )
+        self._pub_camera = session.declare_publisher(
+            key(site, "camera"), congestion_control=drop, priority=zenoh.Priority.DATA_LOW
+        )
+        self._pub_heartbeat = session.declare_publisher(key(site, "heartbeat"))
+        self._pub_recognitions = session.declare_publisher(
+            key(site, "recognitions"), priority=zenoh.Priority.DATA
+        )
+        self._pub_truth = session.declare_publisher(key(site, "truth"), congestion_control=drop)
+        self._pub_report = session.declare_publisher(
+            key(site, "report"), priority=zenoh.Priority.INTERACTIVE_HIGH
+        )
+        self._seq_state = self._seq_frame = self._seq_heartbeat = 0
+        self._next_frame_s = self._next_heartbeat_s = self._next_vision_s = 0.0
+
+    def _control_tick(self) -> None:
+        """One control period: the running program's, or the controller's holding."""
+        if self._execution is not None and not self._execution.finished:
+            self._execution.tick()
+        else:
+            self._controller.tick()
+
+    def _publish_robot_state(self, world: World) -> None:
+        self._pub_state.put(encode(self._robot_state(world, self._seq_state)))
+        self._seq_state += 1
+        self.stats["states"] += 1
+
+    def _publish_camera(self, camera: CameraProcess, elapsed_s: float) -> None:
+        """Publish the frame the camera finished, if any, and hand it to vision."""
+        done = camera.poll()
+        if done is None:
+            return
+        self._pub_camera.put(done.payload)
+        self.stats["frames"] += 1
+        # Vision gets the renderer's pixels, never the wire's (possibly JPEG).
+        self._recognize(done.seq, done.stamp_s, done.image, elapsed_s)
+
+    def _request_frame(self, camera: CameraProcess, world: World, elapsed_s: float) -> None:
+        """Ask the camera for the next frame when one is due and it is idle, and publish the
+        ground truth it will show."""
+        if elapsed_s < self._next_frame_s or camera.busy:
+            return
+        q, fingers = world.robot_joint_positions()
+        poses = world.object_poses()
+        camera.request(RenderRequest(self._seq_frame, time.time(), poses, q, fingers))
+        self._publish_truth(self._seq_frame, poses)
+        self._seq_frame += 1
+        period_s = 1.0 / self.scene.camera.frame_rate_hz
+        self._next_frame_s = max(self._next_frame_s + period_s, elapsed_s)
+
+    def _publish_truth(self, seq: int, poses: dict[str, np.ndarray]) -> None:
+        """The simulation's ground truth, for end-to-end evaluation only."""
+        truth = tuple(ObjectPose(name=n, X_WO=X) for n, X in poses.items())
+        self._pub_truth.put(encode(TruthPoses(seq=seq, stamp_s=time.time(), objects=truth)))
+
+    def _publish_heartbeat(self, elapsed_s: float) -> None:
+        if elapsed_s < self._next_heartbeat_s:
+            return
+        beat = Heartbeat(
+            site_id=self.options.site_id,
+            role="work_site",
+            seq=self._seq_heartbeat,
+            stamp_s=time.time(),
+        )
+        self._pub_heartbeat.put(encode(beat))
+        self._seq_heartbeat += 1
+        self._next_heartbeat_s += 1.0 / self.options.heartbeat_rate_hz
 
     def _warn_late(self, since: tuple[float, int], ticks: int, tick_s: float) -> tuple[float, int]:
         """Warn (at most every :data:`LATE_WARNING_PERIOD_S`, the first time that long after the
@@ -399,7 +419,7 @@ class WorkSiteServer:
         )
         return now, ticks
 
-    def _recognise(self, seq: int, stamp_s: float, image, elapsed_s: float) -> None:
+    def _recognize(self, seq: int, stamp_s: float, image, elapsed_s: float) -> None:
         """Hand a new frame to vision if it is idle and its rate allows."""
         vision = self._vision
         if vision is None or elapsed_s < self._next_vision_s:
@@ -407,7 +427,11 @@ class WorkSiteServer:
         if vision.request(seq, stamp_s, image):
             self._next_vision_s = elapsed_s + 1.0 / self.options.vision_rate_hz
 
-    def _publish_recognitions(self, result: VisionResult) -> None:
+    def _publish_recognitions(self) -> None:
+        """Publish what vision found in the last frame it finished, if any."""
+        result = self._vision.poll()
+        if result is None:
+            return
         if result.error:
             log.warning("vision failed on frame %d: %s", result.seq, result.error)
         if result.note:
@@ -522,7 +546,7 @@ class WorkSiteServer:
             if running:
                 reason = f"busy with program {self._execution.program.program_id}"
             else:
-                reason = check_program(program, self._controller)
+                reason = program_refusal(program, self._controller)
             self._remember(pid)
             if reason:
                 self.stats["refused"] += 1

@@ -77,7 +77,7 @@ def contact_forces_n(force_W: np.ndarray, normals_W: np.ndarray) -> np.ndarray:
     return nnls(N.T, np.asarray(force_W, dtype=np.float64))[0]
 
 
-def check_program(program: MotionProgram, controller: TaskController) -> str:
+def program_refusal(program: MotionProgram, controller: TaskController) -> str:
     """Why ``program`` must not run ("" if it may): a contact move with nothing held, targets
     outside the workspace or unreachable, speeds or force limits beyond the work site's.
     Checked whole, before any motion."""

@@ -140,7 +140,7 @@ def recognize_main(args: argparse.Namespace) -> int:
             models = [load_object(u) for u in urdfs if u.resolve() not in fixed]
         recognizer = Recognizer(models, scene=scene, cache_dir=args.cache_dir)
         t0 = time.perf_counter()
-        found = recognizer.recognise(image, camera)
+        found = recognizer.recognize(image, camera)
         elapsed = time.perf_counter() - t0
     except (ModelError, ValueError) as e:
         print(f"work-site recognize: {e}", file=sys.stderr)

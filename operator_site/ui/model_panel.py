@@ -1,0 +1,148 @@
+"""The page's model panel: the recognitions, accepted one by one or all at once (or the scene
+file's layout instead), and blocks taken out of the model."""
+
+from __future__ import annotations
+
+import threading
+
+import viser
+
+from models.scene import Scene
+from operator_site.link import WorkSiteLink
+from operator_site.model_editor import WorkSiteModel
+from operator_site.task import TaskSession
+
+MODEL_HELP = (
+    "Blocks the work site's camera recognised are outlined on its image (orange: not in the "
+    "model yet, green: in it). Accept them to build the model the robot will work in; "
+    "**remove mode**: click a block in the 3D view to take it out."
+)
+ACCEPT_SCORE = 0.5
+"""Recognitions scoring at least this are accepted by "accept the recognised blocks"."""
+
+
+class ModelPanel:
+    """The model panel of :class:`~operator_site.ui.page.OperatorPage`."""
+
+    server: viser.ViserServer
+    scene: Scene
+    link: WorkSiteLink
+    model: WorkSiteModel
+    session: TaskSession
+    _lock: threading.Lock
+
+    def _build_model_panel(self, gui: viser.GuiApi) -> None:
+        """The panel's widgets, in the folder ``gui`` has open, and their callbacks."""
+        gui.add_markdown(MODEL_HELP)
+        self.recognitions_md = gui.add_markdown("no recognitions yet")
+        self._rec_folder = gui.add_folder("recognised, not in the model: click to add")
+        self._rec_buttons: dict[str, object] = {}
+        self.accept_button = gui.add_button("accept the recognised blocks")
+        self.scene_layout_button = gui.add_button("use the scene file's layout (no vision)")
+        self.remove_mode = gui.add_checkbox("remove mode", False)
+        self.model_md = gui.add_markdown("")
+        self.accept_button.on_click(lambda _: self.on_accept_recognitions())
+        self.scene_layout_button.on_click(lambda _: self.on_use_scene_layout())
+
+    def _model_changed(self, corrections=()) -> None:
+        """The model's objects changed: a new task session over it (the workpiece is let go)."""
+        self.session = TaskSession(self.model.scene(), self.session.params)
+        self.dragger.visible = False
+        self._show_fingers(None)
+        self._show_path(None, None)
+        self._show_model()
+        lines = [f"model: {len(self.model.poses)} blocks ({', '.join(sorted(self.model.poses))})"]
+        lines += [
+            f"{c.name}: moved {c.moved_mm:.1f} mm, turned {c.turned_deg:.1f}° ({c.why})"
+            for c in corrections
+            if c.moved_mm >= 0.05 or c.turned_deg >= 0.05
+        ]
+        self.model_md.content = "  \n".join(lines)
+        self._recognitions_shown = None  # the list says what is in the model: redraw it
+
+    def on_accept_recognitions(self, min_score: float = ACCEPT_SCORE) -> int:
+        """Accept every recognition scoring at least ``min_score`` into the model, then make
+        the model consistent; the number accepted."""
+        recs = self.link.recognitions
+        if recs is None or not recs.objects:
+            self.model_md.content = (
+                "Nothing recognised yet: wait for the camera, or use the scene file's layout."
+            )
+            return 0
+        with self._lock:
+            accepted = 0
+            for r in recs.objects:
+                if r.score >= min_score and r.model in {o.name for o in self.scene.movable}:
+                    self.model.accept(r.model, r.X_WO, r.score)
+                    accepted += 1
+            try:
+                corrections = self.model.make_consistent(self.session.params)
+            except ValueError as e:
+                self.model_md.content = f"⚠ {e}"
+                return accepted
+            self._model_changed(corrections)
+        return accepted
+
+    def on_accept_one(self, name: str) -> bool:
+        """Accept the latest recognition of ``name`` into the model (made consistent); False
+        if vision has no such object now."""
+        recs = self.link.recognitions
+        found = [r for r in (recs.objects if recs else ()) if r.model == name]
+        if not found:
+            self.model_md.content = f"{name} is not among the latest recognitions"
+            return False
+        with self._lock:
+            self.model.accept(name, found[0].X_WO, found[0].score)
+            try:
+                corrections = self.model.make_consistent(self.session.params)
+            except ValueError as e:
+                self.model.remove(name)
+                self.model_md.content = f"⚠ {name} not added: {e}"
+                return False
+            self._model_changed(corrections)
+        self._show_recognitions()
+        return True
+
+    def on_use_scene_layout(self) -> None:
+        """The model from the scene file's layout: every block where the file puts it."""
+        with self._lock:
+            for obj in self.scene.movable:
+                self.model.accept(obj.name, obj.X_WO)
+            self._model_changed()
+
+    def on_remove(self, name: str) -> None:
+        """Take ``name`` out of the model."""
+        with self._lock:
+            if name in self.model.poses:
+                self.model.remove(name)
+                self._model_changed()
+
+    def _show_recognitions(self) -> None:
+        recs = self.link.recognitions
+        if recs is None or recs.seq == self._recognitions_shown:
+            return
+        self._recognitions_shown = recs.seq
+        if not recs.objects:
+            self.recognitions_md.content = f"frame {recs.seq}: nothing recognised"
+            return
+        lines = [f"frame {recs.seq}, {recs.elapsed_s * 1e3:.0f} ms:"]
+        for r in sorted(recs.objects, key=lambda r: -r.score):
+            state = "in the model" if r.model in self.model.poses else "not accepted"
+            lines.append(f"- {r.model}: score {r.score:.2f} ({state})")
+        self.recognitions_md.content = "\n".join(lines)
+        self._show_add_buttons(
+            {r.model: r.score for r in recs.objects if r.model not in self.model.poses}
+        )
+
+    def _show_add_buttons(self, scores: dict[str, float]) -> None:
+        """One "add" button per recognised block not in the model."""
+        for name in [n for n in self._rec_buttons if n not in scores]:
+            self._rec_buttons.pop(name).remove()
+        known = {o.name for o in self.scene.movable}
+        with self._rec_folder:
+            for name, score in scores.items():
+                if name in self._rec_buttons or name not in known:
+                    continue
+                button = self.server.gui.add_button(f"add {name} ({score:.2f})")
+                button.on_click(lambda _, n=name: self.on_accept_one(n))
+                self._rec_buttons[name] = button

@@ -1,0 +1,57 @@
+"""The page's status panel, execution log and camera placeholder: text and images made from
+the link's state, free of viser."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from operator_site.link import LinkStatus
+
+LOG_LINES = 8
+
+
+def waiting_image(width: int, height: int, text: str) -> np.ndarray:
+    """A dark grey placeholder with ``text`` centred, (h, w, 3) uint8."""
+    img = np.full((height, width, 3), 40, dtype=np.uint8)
+    scale = width / 640
+    (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 2)
+    cv2.putText(
+        img,
+        text,
+        ((width - tw) // 2, (height + th) // 2),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        scale,
+        (200, 200, 200),
+        2,
+        cv2.LINE_AA,
+    )
+    return img
+
+
+def status_markdown(site_id: str, status: LinkStatus) -> str:
+    """The status panel's text for the link state ``status``."""
+    lines = [f"**work site: {status.label}** (`{site_id}`)"]
+    if status.work_site_alive:
+        lines.append(
+            f"robot state {status.state_rate_hz:.0f} Hz · camera {status.frame_rate_hz:.1f} Hz"
+        )
+    if status.last_frame_age_s is not None:
+        lines.append(f"last camera frame {status.last_frame_age_s:.1f} s ago")
+    if status.rejected:
+        lines.append(f"⚠ {status.rejected} invalid messages rejected")
+    if status.reports:
+        r = status.reports[-1]
+        lines.append(f"last report: program `{r.program_id}` {r.status}: {r.message}")
+    return "  \n".join(lines)
+
+
+def log_markdown(reports) -> str:
+    """The execution log: the last :data:`LOG_LINES` reports, newest last."""
+    if not reports:
+        return "no program sent yet"
+    lines = []
+    for r in reports[-LOG_LINES:]:
+        where = "program" if r.command_index < 0 else f"command {r.command_index}"
+        lines.append(f"`{r.program_id}` {where}: **{r.status}** {r.message}")
+    return "  \n".join(lines)

@@ -1,0 +1,216 @@
+"""The page's task panel: the workpiece picked and dragged on its spring, captures, undo and
+reset, the task saved to and loaded from a file."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import viser
+
+from models.scene import Scene
+from models.transforms import make_pose, quat_wxyz_to_R
+from operator_site.model_editor import WorkSiteModel
+from operator_site.task import TaskSession
+from operator_site.ui.scene_view import set_pose
+from operator_site.ui.taskfile import TaskFile, load_task, save_task
+
+NO_WORKPIECE = "(none)"
+TASK_HELP = (
+    "Pick a block (click it, or choose it below), then drag the arrows and rings around it: "
+    "the block follows on a spring and bumps, slides and settles against what it meets. "
+    "**Capture mode**: click the frame or the table to keep the block touching it. "
+    "**Undo** takes the last drag back."
+)
+DEFAULT_TASK_FILE = "task.json"
+GESTURE_GAP_S = 0.5
+"""A dragger update after a pause this long begins a new drag (what "undo" takes back)."""
+
+
+def _reason(error: Exception) -> str:
+    """An exception's message (a KeyError's without the quotes its str() adds)."""
+    return str(error.args[0]) if error.args else type(error).__name__
+
+
+class TaskPanel:
+    """The task panel of :class:`~operator_site.ui.page.OperatorPage`."""
+
+    scene: Scene
+    model: WorkSiteModel
+    session: TaskSession
+    message: str
+    _lock: threading.Lock
+    _last_drag_s: float
+
+    def _build_task_panel(self, gui: viser.GuiApi) -> None:
+        """The panel's widgets, in the folder ``gui`` has open, and their callbacks."""
+        gui.add_markdown(TASK_HELP)
+        self.workpiece_dropdown = gui.add_dropdown("workpiece", self._workpiece_options())
+        self.capture_mode = gui.add_checkbox("capture mode", False)
+        self.undo_button = gui.add_button("undo the last drag")
+        self.reset_button = gui.add_button("put the block back")
+        self.task_md = gui.add_markdown("")
+        self.task_file = gui.add_text("task file", DEFAULT_TASK_FILE)
+        self.save_button = gui.add_button("save the task")
+        self.load_button = gui.add_button("load a task")
+        self.workpiece_dropdown.on_update(lambda _: self.on_select(self.workpiece_dropdown.value))
+        self.undo_button.on_click(lambda _: self.on_undo())
+        self.reset_button.on_click(lambda _: self.on_reset())
+        self.save_button.on_click(lambda _: self.on_save(self.task_file.value))
+        self.load_button.on_click(lambda _: self.on_load(self.task_file.value))
+
+    def _workpiece_options(self) -> tuple[str, ...]:
+        return (NO_WORKPIECE, *[o.name for o in self.scene.movable if o.name in self.model.poses])
+
+    def on_select(self, name: str) -> None:
+        """Make ``name`` the workpiece (or none) and put the dragger on it."""
+        with self._lock:
+            if name == self.session.workpiece:
+                return  # the dropdown echoing our own selection back
+            if name == NO_WORKPIECE:
+                self.dragger.visible = False
+                self._show_fingers(None)
+                self.message = ""
+                return
+            try:
+                self.session.select(name)
+            except (KeyError, ValueError) as e:
+                self.message = _reason(e)
+                return
+            X = self.session.X_WO[name]
+            set_pose(self.dragger, X)
+            self.dragger.visible = True
+            self._show_fingers(name)
+            self._show_path(None, None)
+            self.message = f"dragging **{name}**, held as the gripper will hold it"
+        if self.workpiece_dropdown.value != name:
+            self.workpiece_dropdown.value = name
+
+    def on_click_object(self, name: str) -> None:
+        """A click on an object: removes it in remove mode, toggles capture in capture mode,
+        else picks a movable block."""
+        if self.remove_mode.value:
+            if not self.scene.object(name).fixed:
+                self.on_remove(name)
+            return
+        if self.capture_mode.value and self.session.sim is not None:
+            with self._lock:
+                try:
+                    now = self.session.toggle_capture(name)
+                    self.message = f"{name}: {'captured' if now else 'released'}"
+                except ValueError as e:
+                    self.message = str(e)
+            return
+        if not self.scene.object(name).fixed:
+            self.on_select(name)
+
+    def on_drag(self) -> None:
+        """The dragger moved: it is the spring's new target."""
+        X_WD = make_pose(
+            quat_wxyz_to_R(np.asarray(self.dragger.wxyz)), np.asarray(self.dragger.position)
+        )
+        now = time.monotonic()
+        with self._lock:
+            if self.session.sim is not None:
+                if now - self._last_drag_s > GESTURE_GAP_S:
+                    self.session.mark()  # a new drag begins: undo comes back here
+                self._last_drag_s = now
+                self.session.set_target(X_WD)
+
+    def on_undo(self) -> None:
+        """Take the last drag back: the block, its captures and its path as they were before."""
+        with self._lock:
+            X = self.session.undo()
+            if X is None:
+                self.message = "nothing to undo"
+            else:
+                set_pose(self.dragger, self.session.sim.state.X_WD)
+                set_pose(self.object_frames[self.session.workpiece], X)
+                self._show_path(None, None)
+                self.message = "the last drag was undone"
+            self.task_md.content = self.message
+
+    def on_reset(self) -> None:
+        """Put the workpiece back where it was picked up, dragger too."""
+        with self._lock:
+            self.session.reset()
+            self._show_path(None, None)
+            if self.session.workpiece is not None:
+                X = self.session.X_WO[self.session.workpiece]
+                set_pose(self.dragger, X)
+                set_pose(self.object_frames[self.session.workpiece], X)
+
+    def on_save(self, path: str) -> None:
+        """Save the model, the workpiece and its dragged path to ``path``."""
+        with self._lock:
+            sim = self.session.sim
+            task = TaskFile(
+                scene=self.scene.name,
+                model={n: X.copy() for n, X in self.model.poses.items()},
+                workpiece=self.session.workpiece,
+                path=[r.X_WO for r in sim.history] if sim else [],
+                captured=sorted(self.session.captured),
+            )
+            if sim is not None and self.session.start_X_WO is not None:
+                task.model[sim.world.workpiece] = self.session.start_X_WO.copy()
+        try:
+            save_task(path, task)
+        except OSError as e:
+            self.task_md.content = f"⚠ could not save to `{path}`: {e.strerror}"
+            return
+        self.task_md.content = f"saved to `{Path(path).resolve()}` ({len(task.path)} steps)"
+
+    def on_load(self, path: str) -> None:
+        """Load a task file: its model, its workpiece, and its path dragged again."""
+        try:
+            task = load_task(path)
+            if task.scene != self.scene.name:
+                raise ValueError(f"{path}: made for scene {task.scene!r}, not {self.scene.name!r}")
+        except ValueError as e:
+            self.task_md.content = f"⚠ {e}"
+            return
+        with self._lock:
+            try:
+                model = WorkSiteModel(self.scene, task.model)
+            except (KeyError, ValueError) as e:
+                self.task_md.content = f"⚠ {path}: {_reason(e)}"
+                return
+            self.model = model
+            self._model_changed()
+        if task.workpiece is not None:
+            self.on_select(task.workpiece)
+            with self._lock:
+                for name in task.captured:
+                    self.session.toggle_capture(name)
+                self.session.replay(task.path)
+                X = self.session.X_WO[task.workpiece]
+                set_pose(self.dragger, X)
+                set_pose(self.object_frames[task.workpiece], X)
+        # As the message, so that the live task text (rewritten every step) keeps it.
+        self.message = f"loaded `{path}` ({len(task.path)} steps replayed)"
+        self.task_md.content = self.message
+
+    def step_task(self) -> None:
+        """One simulator step of the workpiece, shown on the page."""
+        with self._lock:
+            result = self.session.step()
+            captured = sorted(self.session.captured)
+        if result is None:
+            return
+        set_pose(self.object_frames[self.session.workpiece], result.X_WO)
+        points = [c.points_W for c in result.contacts]
+        self.contact_points.points = np.vstack(points) if points else np.zeros((0, 3))
+        self.contact_points.visible = bool(points)
+        touching = ", ".join(sorted(c.object for c in result.contacts)) or "nothing"
+        self.task_md.content = "  \n".join(
+            filter(
+                None,
+                [
+                    self.message,
+                    f"touching: {touching}",
+                    f"captured: {', '.join(captured)}" if captured else "",
+                ],
+            )
+        )

@@ -1,0 +1,202 @@
+"""Sets of poses: those already tested (to test each pose once), and the selection of the
+candidates that explain the image into the accepted set of detections, resolving conflicts
+between candidates that share image lines or interpenetrate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from work_site.vision.model import VisionModel, planes_in
+from work_site.vision.params import RecognizerParams
+from work_site.vision.verification import Surroundings, Verification, verify
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One object found in an image: model name, pose ``X_WO``, score in [0, 1] and diagnostics."""
+
+    model: str
+    X_WO: np.ndarray
+    score: float
+    rms_px: float = 0.0
+    length_fraction: float = 0.0
+    gradient_fraction: float = 0.0
+    matched_segments: tuple[int, ...] = field(default=(), repr=False)
+
+    def __iter__(self):
+        """Unpacks as ``(model, X_WO, score)``, the triple the work-site server publishes."""
+        return iter((self.model, self.X_WO, self.score))
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """A pose that passed its own test, waiting for the selection."""
+
+    model: VisionModel
+    X_CO: np.ndarray
+    X_WO: np.ndarray
+    rms_px: float
+    verification: Verification
+    parts_W: list[tuple[np.ndarray, np.ndarray]]
+    part_px: np.ndarray | None = None  # grown around a smaller object found in the image:
+    # that object's outline (k, 2) px, a convex polygon
+
+    @property
+    def grown(self) -> bool:
+        """Made by growing a smaller object found in the image into a bigger model."""
+        return self.part_px is not None
+
+
+class PoseSet:
+    """Poses already tested, per model, to skip equal ones: equal means translations within
+    ``same_pose_m`` and rotations within ``same_pose_rad`` up to one of the model's
+    symmetries. Kept as growing arrays, so a look-up is a few array operations."""
+
+    def __init__(self, same_pose_m: float, same_pose_rad: float) -> None:
+        self.same_pose_m = same_pose_m
+        self.cos_min = 1 + 2 * np.cos(same_pose_rad)  # trace of a rotation by that angle
+        self._X: dict[str, np.ndarray] = {}  # (capacity, 4, 4) per model name
+        self._n: dict[str, int] = {}
+
+    def add(self, model: VisionModel, X_CO: np.ndarray) -> None:
+        """Record a tested pose ``X_CO`` of ``model``."""
+        n = self._n.get(model.name, 0)
+        X = self._X.get(model.name)
+        if X is None or n == len(X):
+            grown = np.empty((max(16, 2 * n), 4, 4))
+            if X is not None:
+                grown[:n] = X[:n]
+            self._X[model.name] = X = grown
+        X[n] = X_CO
+        self._n[model.name] = n + 1
+
+    def add_new(self, model: VisionModel, X_CO: np.ndarray) -> np.ndarray:
+        """Poses (k, 4, 4) in turn: each is recorded unless equal to one recorded before it
+        (earlier in ``X_CO`` included), as :meth:`seen` then :meth:`add` one by one would
+        do; returns (k,) bool, True for those recorded."""
+        k = len(X_CO)
+        new = np.zeros(k, dtype=bool)
+        if k == 0:
+            return new
+        n = self._n.get(model.name, 0)
+        R = X_CO[:, :3, :3]
+        RS = R[:, None] @ model.symmetries[None]  # (k, s, 3, 3)
+        old = np.zeros(k, dtype=bool)
+        if n:
+            X = self._X[model.name][:n]
+            d = X_CO[:, None, :3, 3] - X[None, :, :3, 3]
+            near = np.einsum("kni,kni->kn", d, d) <= self.same_pose_m**2  # (k, n)
+            ki, ni = np.nonzero(near)
+            if len(ki):
+                tr = np.einsum("mij,msij->ms", X[ni, :3, :3], RS[ki])
+                old[ki[np.any(tr > self.cos_min, axis=1)]] = True
+        d = X_CO[:, None, :3, 3] - X_CO[None, :, :3, 3]
+        close = np.einsum("abi,abi->ab", d, d) <= self.same_pose_m**2  # (k, k)
+        ai, bi = np.nonzero(np.tril(close, -1))  # b recorded before a
+        if len(ai):
+            tr = np.einsum("mij,msij->ms", R[bi], RS[ai])
+            eq = np.any(tr > self.cos_min, axis=1)
+            ai, bi = ai[eq], bi[eq]
+        if len(ai) == 0:
+            new = ~old  # no two of them equal (the usual case): no order to follow
+        else:
+            same = np.zeros((k, k), dtype=bool)
+            same[ai, bi] = True
+            for a in range(k):
+                new[a] = not old[a] and not (same[a, :a] & new[:a]).any()
+        self._add_all(model, X_CO[new])
+        return new
+
+    def _add_all(self, model: VisionModel, X_CO: np.ndarray) -> None:
+        """Record poses (k, 4, 4) of ``model``, as :meth:`add` on each in turn."""
+        k = len(X_CO)
+        n = self._n.get(model.name, 0)
+        X = self._X.get(model.name)
+        if X is None or n + k > len(X):
+            grown = np.empty((max(16, 2 * (n + k)), 4, 4))
+            if X is not None:
+                grown[:n] = X[:n]
+            self._X[model.name] = X = grown
+        X[n : n + k] = X_CO
+        self._n[model.name] = n + k
+
+    def seen(self, model: VisionModel, X_CO: np.ndarray) -> bool:
+        """Whether a pose of ``model`` equal to ``X_CO`` up to its symmetries was recorded."""
+        n = self._n.get(model.name, 0)
+        if n == 0:
+            return False
+        X = self._X[model.name][:n]
+        d = X[:, :3, 3] - X_CO[:3, 3]
+        near = np.einsum("ki,ki->k", d, d) <= self.same_pose_m**2
+        if not near.any():
+            return False
+        # trace(R_tᵀ·R·S) for every near tested R_t and symmetry S
+        RS = X_CO[:3, :3] @ model.symmetries  # (s, 3, 3)
+        tr = np.einsum("kij,sij->ks", X[near, :3, :3], RS)
+        return bool(np.any(tr > self.cos_min))
+
+
+def select(
+    candidates: list[Candidate],
+    segs: np.ndarray,
+    K: np.ndarray,
+    gx: np.ndarray,
+    gy: np.ndarray,
+    occluders_C,
+    params: RecognizerParams,
+    surroundings: Surroundings,
+) -> list[Detection]:
+    """Candidates that explain the most image edge length first; a candidate sharing many
+    image lines with, or interpenetrating, one already accepted is dropped. Each is
+    verified again with the other candidates as occluders, and its outline must show."""
+    p = params
+    accepted: list[Detection] = []
+    accepted_parts: list[list[np.ndarray]] = []
+    used: set[int] = set()
+    per_model: dict[str, int] = {}
+    order = sorted(candidates, key=lambda c: -c.verification.covered_px)
+    # Each candidate's parts as occluders and its matched lines, once for all the others
+    planes = [[planes_in(o.X_CO, P) for P in o.model.planes_O] for o in order]
+    lines = [set(o.verification.matched) for o in order]
+    for i, c in enumerate(order):
+        rec = c.verification
+        if p.max_per_model is not None and per_model.get(c.model.name, 0) >= p.max_per_model:
+            continue
+        shared = len(used.intersection(rec.matched))
+        if shared > p.max_shared_fraction * max(len(rec.matched), 1):
+            continue
+        mine = lines[i]
+        others = [
+            P for j in range(len(order)) if j != i and mine.isdisjoint(lines[j]) for P in planes[j]
+        ]
+        v = verify(c.model, c.X_CO, K, segs, gx, gy, occluders_C + others, p, part_px=c.part_px)
+        # A bigger model grown around a smaller object found in the image must show its
+        # outline clearly: a phantom part over empty table is the usual false object.
+        sil_min = p.grown_min_silhouette_fraction if c.grown else p.min_silhouette_fraction
+        if (
+            v.silhouette_fraction < sil_min
+            or v.score < p.min_score
+            or v.length_fraction < p.min_length_fraction
+            or v.extra_fraction < p.grown_min_extra_fraction
+        ):
+            continue
+        if not surroundings.plausible(c.parts_W, accepted_parts, p, environment=False):
+            continue
+        accepted.append(
+            Detection(
+                model=c.model.name,
+                X_WO=c.X_WO,
+                score=v.score,
+                rms_px=c.rms_px,
+                length_fraction=v.length_fraction,
+                gradient_fraction=v.gradient_fraction,
+                matched_segments=tuple(rec.matched),
+            )
+        )
+        accepted_parts.append(c.parts_W)
+        used.update(rec.matched)
+        per_model[c.model.name] = per_model.get(c.model.name, 0) + 1
+    return sorted(accepted, key=lambda r: -r.score)
