@@ -72,7 +72,7 @@ class CameraModel:
     frame_rate_hz: float
 
     def to_json(self) -> dict:
-        """The camera JSON of DESIGN.md (plus ``frame_rate_hz``)."""
+        """The camera JSON of docs/design.md (plus ``frame_rate_hz``)."""
         return {
             "width": self.width,
             "height": self.height,
@@ -266,7 +266,7 @@ def _pose(value, where: str) -> np.ndarray:
 
 
 def load_camera(path: Path | str) -> CameraModel:
-    """Read a camera JSON (DESIGN.md format) and check it is usable."""
+    """Read a camera JSON (docs/design.md format) and check it is usable."""
     path = Path(path).resolve()
     data = _read_json(path, "camera")
     for key in ("width", "height", "K", "dist", "X_WC"):

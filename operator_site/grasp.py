@@ -1,4 +1,4 @@
-"""The gripper's fingers as part of the moving body (DESIGN.md, "Grasp and program frames").
+"""The gripper's fingers as part of the moving body (docs/design.md, "Grasp and program frames").
 
 When the operator drags a block, the fingers that will hold it move with it: the simulator and
 the program check treat them as convex parts of the workpiece, so a task never drives a finger
@@ -39,7 +39,7 @@ def finger_parts_O(robot: RobotModel, X_GP: np.ndarray, opening_m: float) -> lis
 
 BAR_CLEARANCE_M = 0.032
 """Fingertips at least this high above the table pass over the frame's 30 mm bars, so a block
-held that way can be pushed against a bar (DESIGN.md: grip high enough to clear them)."""
+held that way can be pushed against a bar (docs/design.md: grip high enough to clear them)."""
 MIN_GRIP_STRIP_M = 0.015
 """A grip shorter than this down the block's sides is not trusted to carry the block; lower
 blocks are held at mid-height."""

@@ -23,7 +23,9 @@ from models.scene import DEFAULT_SCENE, Scene, load_camera, load_object, load_sc
 
 def add_recognize_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("image", type=Path, help="8-bit grey (or colour) image file, e.g. PNG")
-    parser.add_argument("--camera", type=Path, required=True, help="camera JSON (DESIGN.md format)")
+    parser.add_argument(
+        "--camera", type=Path, required=True, help="camera JSON (docs/design.md format)"
+    )
     parser.add_argument(
         "--models",
         type=Path,
