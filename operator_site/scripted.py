@@ -71,6 +71,19 @@ def _yaw(R: np.ndarray) -> float:
     return math.atan2(R[1, 0], R[0, 0])
 
 
+def _squared_with_frame(X_WO: np.ndarray, bbox_O: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The block's rotation turned about z to the nearest quarter turn (square with the frame),
+    and the half-extents (m) along W's axes of its bounding box so turned."""
+    yaw = _yaw(X_WO[:3, :3])
+    R = rpy_to_R(np.array([0.0, 0.0, round(yaw / (math.pi / 2)) * (math.pi / 2)]))
+    R = R @ rpy_to_R(np.array([0.0, 0.0, -yaw])) @ X_WO[:3, :3]
+    lo, hi = bbox_O
+    V = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
+    return R, np.abs(V @ R.T).max(axis=0)
+
+
 def corner_waypoints(
     X_WO: np.ndarray, bbox_O: np.ndarray, corner: int, opening_W: Box2
 ) -> tuple[list[np.ndarray], np.ndarray]:
@@ -82,15 +95,7 @@ def corner_waypoints(
     (x0, x1), (y0, y1) = opening_W
     cx, sx = (x0, 1.0) if corner in (0, 3) else (x1, -1.0)
     cy, sy = (y0, 1.0) if corner in (0, 1) else (y1, -1.0)
-    # Square with the frame: the yaw nearest the block's own among quarter turns.
-    yaw = _yaw(X_WO[:3, :3])
-    R = rpy_to_R(np.array([0.0, 0.0, round(yaw / (math.pi / 2)) * (math.pi / 2)]))
-    R = R @ rpy_to_R(np.array([0.0, 0.0, -yaw])) @ X_WO[:3, :3]
-    lo, hi = bbox_O
-    V = np.array(
-        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-    )
-    half = np.abs(V @ R.T).max(axis=0)
+    R, half = _squared_with_frame(X_WO, bbox_O)
     z = X_WO[2, 3]
     goal = make_pose(R, (cx + sx * half[0], cy + sy * half[1], z))
     up = X_WO.copy()
@@ -127,14 +132,7 @@ def around_corner_waypoints(
     (ox0, _), (oy0, oy1) = outer_W
     sy = -1.0 if corner == 0 else 1.0  # the side of the frame the block starts on
     face_y = oy0 if corner == 0 else oy1
-    yaw = _yaw(X_WO[:3, :3])
-    R = rpy_to_R(np.array([0.0, 0.0, round(yaw / (math.pi / 2)) * (math.pi / 2)]))
-    R = R @ rpy_to_R(np.array([0.0, 0.0, -yaw])) @ X_WO[:3, :3]
-    lo, hi = bbox_O
-    V = np.array(
-        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-    )
-    half = np.abs(V @ R.T).max(axis=0)
+    R, half = _squared_with_frame(X_WO, bbox_O)
     z = X_WO[2, 3]
     along_y = face_y + sy * half[1]  # centre line when touching the y face
     start_x = ox0 + 0.06
