@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 
 CHROMIUM := /usr/bin/chromium
 
-.PHONY: demo test lint bench install clean browser
+.PHONY: demo test test-fast lint bench install clean browser
 
 BENCH_STAMP := $(VENV)/.installed-bench
 
@@ -40,6 +40,11 @@ browser:
 test: $(STAMP) browser
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest
+
+# The unit tier: no processes, no network, no browser, nothing that takes seconds.
+test-fast: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(PY) -m pytest -q -m "not integration and not browser and not slow"
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -122,3 +122,14 @@ def one_move_program(
         contacts=(),
     )
     return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=(command,))
+
+
+PROCESS_FIXTURES = frozenset({"work_site", "link_factory", "certs"})
+"""Fixtures that start OS processes or network namespaces: a test using one is an integration
+test whether or not its module says so (``make test-fast`` leaves them out)."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if PROCESS_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.integration)

@@ -16,6 +16,8 @@ from operator_site.link import WorkSiteLink
 from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, make_config
 from tests.conftest import REPO, free_port, wait_until
 
+pytestmark = pytest.mark.integration  # starts the CLIs as processes
+
 
 def run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
     return subprocess.run(

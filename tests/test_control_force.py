@@ -25,6 +25,8 @@ from work_site.control.executor import (
     target_bias_W,
 )
 
+pytestmark = pytest.mark.slow  # seconds of simulated physics each
+
 TABLE = ContactState(object="table", normals_W=np.array([[0.0, 0.0, 1.0]]))
 
 

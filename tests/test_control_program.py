@@ -44,6 +44,7 @@ def site():
 TOP_GRASP = make_pose(rpy_to_R(np.array([math.pi, 0.0, math.pi])))
 
 
+@pytest.mark.slow
 def test_pick_carry_and_place_the_cube(site) -> None:
     world, controller = site
     X_cube = world.object_pose("cube")
@@ -84,6 +85,7 @@ def test_pick_carry_and_place_the_cube(site) -> None:
     assert final[2, 3] == pytest.approx(CUBE_HALF, abs=1e-3)  # back on the table
 
 
+@pytest.mark.slow
 def test_grasping_air_fails_with_a_reason(site) -> None:
     _, controller = site
     empty = make_pose(p_AB=(0.45, 0.0, CUBE_HALF))  # inside the frame: nothing there
@@ -188,6 +190,7 @@ def test_a_work_site_falling_behind_its_time_scale_says_so(caplog) -> None:
     assert "asked 4.00×" in record.getMessage()
 
 
+@pytest.mark.slow
 def test_the_pads_hold_the_cube_on_an_area_against_torques(site) -> None:
     """Rubber pads, not a hinge: each pad presses on the four corners of its overlap with the
     cube, and the held cube neither turns about the grip axis nor tips across it under

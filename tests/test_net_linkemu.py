@@ -78,6 +78,7 @@ def test_bad_parameters_are_refused() -> None:
         LinkParams(delay_s=-1.0)
 
 
+@pytest.mark.integration
 def test_help_explains_the_options() -> None:
     out = subprocess.run(
         [sys.executable, str(REPO / "deploy" / "linkemu.py"), "--help"],

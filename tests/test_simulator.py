@@ -300,6 +300,7 @@ def test_manifold_crossing_edges_is_their_crossing_point() -> None:
     np.testing.assert_allclose(n, [0, 0, -1], atol=1e-12)
 
 
+@pytest.mark.integration
 def test_benchmark_command_runs_and_reports_the_issue_keys(tmp_path) -> None:
     result = subprocess.run(
         [sys.executable, "-m", "bench", "sim", "--quick", "--out", str(tmp_path)],

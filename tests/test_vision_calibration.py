@@ -57,6 +57,7 @@ def test_camera_pose_from_the_frame(scene) -> None:
     assert np.rad2deg(np.linalg.norm(so3_log(R))) < 0.3
 
 
+@pytest.mark.slow
 def test_calibrate_command_writes_a_loadable_camera(tmp_path, capsys) -> None:
     out = tmp_path / "camera.json"
     assert main(["calibrate", "--out", str(out), "--views", "8"]) == 0

@@ -68,6 +68,7 @@ def test_a_camera_with_singular_K_is_refused(tmp_path, cache_dir, capsys, K):
     assert "K must be" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_an_all_black_image_gives_no_objects(tmp_path, camera_json, cache_dir, capsys):
     black = tmp_path / "black.png"
     cv2.imwrite(str(black), np.zeros((480, 640), np.uint8))
@@ -82,6 +83,7 @@ def _render_dataset(argv: list[str]) -> int:
     return vision_dataset.main(parser.parse_args(argv))
 
 
+@pytest.mark.slow
 def test_render_a_scene_then_recognise_it(tmp_path, cache_dir, capsys):
     out = tmp_path / "data"
     assert _render_dataset(["--n", "1", "--seed", "5", "--out", str(out)]) == 0

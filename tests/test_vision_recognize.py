@@ -42,6 +42,7 @@ def scenes():
         renderer.close()
 
 
+@pytest.mark.slow
 def test_recall_and_precision_floors(recognizer, scenes) -> None:
     data, _, camera = scenes
     models = {m.name: m for m in recognizer.models}
