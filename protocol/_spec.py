@@ -148,47 +148,54 @@ UINT8 = np.dtype("u1")
 
 
 def check_pose(X: np.ndarray) -> str | None:
-    """Error text if ``X`` (4, 4) is not a rigid transform, else ``None``."""
-    row_err = float(np.max(np.abs(X[3] - (0.0, 0.0, 0.0, 1.0))))
-    if row_err > HOMOGENEOUS_ROW_TOL:
-        return (
-            f"last row must be [0, 0, 0, 1] (within {HOMOGENEOUS_ROW_TOL:g}), got {X[3].tolist()}"
-        )
-    R = X[:3, :3]
-    R_max = float(np.max(np.abs(R)))
+    """Error text if the finite ``X`` (4, 4) is not a rigid transform, else ``None``."""
+    (r00, r01, r02, _), (r10, r11, r12, _), (r20, r21, r22, _), last = X.tolist()
+    if max(abs(last[0]), abs(last[1]), abs(last[2]), abs(last[3] - 1.0)) > HOMOGENEOUS_ROW_TOL:
+        return f"last row must be [0, 0, 0, 1] (within {HOMOGENEOUS_ROW_TOL:g}), got {last}"
+    R_max = max(map(abs, (r00, r01, r02, r10, r11, r12, r20, r21, r22)))
     if R_max > 1.0 + ROTATION_ORTHONORMAL_TOL:  # also keeps RᵀR from overflowing
         return f"rotation block is not orthonormal: max |R_ij| = {R_max:.3g} > 1"
-    orth_err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    orth_err = max(  # the entries of RᵀR − I (symmetric: six of them)
+        abs(r00 * r00 + r10 * r10 + r20 * r20 - 1.0),
+        abs(r01 * r01 + r11 * r11 + r21 * r21 - 1.0),
+        abs(r02 * r02 + r12 * r12 + r22 * r22 - 1.0),
+        abs(r00 * r01 + r10 * r11 + r20 * r21),
+        abs(r00 * r02 + r10 * r12 + r20 * r22),
+        abs(r01 * r02 + r11 * r12 + r21 * r22),
+    )
     if orth_err > ROTATION_ORTHONORMAL_TOL:
         return (
             f"rotation block is not orthonormal: max |RᵀR − I| = {orth_err:.3g} "
             f"> {ROTATION_ORTHONORMAL_TOL:g}"
         )
-    det = float(np.linalg.det(R))
+    det = (
+        r00 * (r11 * r22 - r12 * r21)
+        - r01 * (r10 * r22 - r12 * r20)
+        + r02 * (r10 * r21 - r11 * r20)
+    )
     if det <= 0.0:
         return f"rotation block has determinant {det:.6g}, expected +1 (a reflection)"
     return None
 
 
 def check_unit_rows(n: np.ndarray) -> str | None:
-    """Error text if some row of ``n`` (k, 3) is not a unit vector, else ``None``."""
-    big = np.max(np.abs(n), axis=1) > 1.0 + UNIT_NORMAL_TOL  # also keeps the norm from overflowing
-    if big.any():
-        i = int(np.argmax(big))
-        return f"row {i} is not a unit vector (an entry exceeds 1 in magnitude)"
-    err = np.abs(np.linalg.norm(n, axis=1) - 1.0)
-    if err.size and float(np.max(err)) > UNIT_NORMAL_TOL:
-        i = int(np.argmax(err))
-        return f"row {i} is not a unit vector (| |n| − 1 | = {err[i]:.3g} > {UNIT_NORMAL_TOL:g})"
+    """Error text if some row of the finite ``n`` (k, 3) is not a unit vector, else ``None``."""
+    for i, row in enumerate(n.tolist()):
+        if max(map(abs, row)) > 1.0 + UNIT_NORMAL_TOL:  # also keeps the norm from overflowing
+            return f"row {i} is not a unit vector (an entry exceeds 1 in magnitude)"
+        err = abs(math.hypot(*row) - 1.0)
+        if err > UNIT_NORMAL_TOL:
+            return f"row {i} is not a unit vector (| |n| − 1 | = {err:.3g} > {UNIT_NORMAL_TOL:g})"
     return None
 
 
 def check_camera_matrix(K: np.ndarray) -> str | None:
     """Error text if ``K`` (3, 3) is not ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``, fx, fy > 0."""
-    if K[1, 0] != 0.0 or K[2, 0] != 0.0 or K[2, 1] != 0.0 or K[2, 2] != 1.0:
+    (fx, _, _), (k10, fy, _), (k20, k21, k22) = K.tolist()
+    if k10 != 0.0 or k20 != 0.0 or k21 != 0.0 or k22 != 1.0:
         return f"expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}"
-    if not (K[0, 0] > 0.0 and K[1, 1] > 0.0):
-        return f"focal lengths fx, fy must be > 0, got {K[0, 0]!r}, {K[1, 1]!r}"
+    if not (fx > 0.0 and fy > 0.0):
+        return f"focal lengths fx, fy must be > 0, got {fx!r}, {fy!r}"
     return None
 
 
