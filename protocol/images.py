@@ -11,13 +11,15 @@ must be complete, and the decoded pixels must have that shape. Anything else rai
 from __future__ import annotations
 
 import struct
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
 
 from .errors import ProtocolError
 
-IMAGE_ENCODINGS = ("raw", "png", "jpeg")
+ImageEncoding = Literal["raw", "png", "jpeg"]
+IMAGE_ENCODINGS: tuple[str, ...] = get_args(ImageEncoding)
 """What ``CameraFrame.encoding`` may be."""
 
 DEFAULT_JPEG_QUALITY = 80
