@@ -170,8 +170,8 @@ class ContactState(Record):
 SAME_CONTACT_DIRECTION_RAD = 0.3490658503988659  # 20°
 """Normals of one object closer than this are one contact direction, at both sites: a face
 reports one normal per point, and a wrist force cannot tell two normals apart inside the
-friction cone (μ = 0.5, the blocks' friction: 26.6°). End to end, normals 7.5° apart each asked
-for 1 N of contact force and one of them got 0 N."""
+friction cone (μ = 0.5, the blocks' friction: 26.6°), so asking each of two such normals for
+its own contact force can leave one of them without any."""
 
 
 def contact_directions(contacts: tuple[ContactState, ...]) -> list[tuple[str, np.ndarray]]:
