@@ -1,7 +1,7 @@
 """The wire protocol shared by both sites: messages, the msgpack codec, key expressions and the
 zenoh session configuration. See ``protocol/README.md`` for frames, units and the wire format."""
 
-from ._spec import HOMOGENEOUS_ROW_TOL, ROTATION_ORTHONORMAL_TOL, UNIT_NORMAL_TOL
+from ._schema import HOMOGENEOUS_ROW_TOL, ROTATION_ORTHONORMAL_TOL, UNIT_NORMAL_TOL
 from .codec import MAX_PAYLOAD_BYTES, decode, encode
 from .errors import ProtocolError
 from .images import IMAGE_ENCODINGS, decode_image, encode_image, parse_image_encoding

@@ -6,31 +6,33 @@ field name to its value: ints, floats and strs as themselves; arrays as ``[shape
 schema); nested records as maps; tuples of records as lists of maps.
 
 ``decode`` trusts nothing: for any input it returns a valid message or raises
-:class:`ProtocolError` saying what was wrong and where.
+:class:`ProtocolError` saying what was wrong and where. msgspec decodes a payload into structs
+derived from the messages' annotations and checks, in one C call, everything those express;
+:func:`~protocol._schema.array_problem` checks the arrays. A refused payload is unpacked once
+more, by msgpack with tight limits, only to say what was wrong.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Mapping
-from typing import Any, TypeVar, overload
+import operator
+from typing import Annotated, Any, Literal, TypeVar, overload
 
 import msgpack
+import msgspec
 import numpy as np
 
-from ._fast import decoder as fast_decoder
-from ._fast import fast_decode, fast_encode
-from ._spec import (
-    ArrayField,
-    Checker,
-    Field,
-    ImageField,
-    NestedField,
-    Record,
-    TupleField,
-    check_field,
-    checker,
+from ._schema import (
+    ARRAY,
+    IMAGE,
+    RECORDS,
+    Array,
+    FieldInfo,
+    array_problem,
+    explain_at,
+    path_of,
+    plan_of,
     short_repr,
     type_name,
 )
@@ -43,8 +45,8 @@ MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 
 _ENVELOPE_KEYS = frozenset(("t", "v", "b"))
 
-# Limits handed to msgpack so that a small payload cannot make it allocate a lot. They are looser
-# than the schema's own limits so that near misses get the schema's clearer error message.
+# Limits for unpacking a refused payload to explain it, so that a small payload cannot make
+# msgpack allocate a lot; looser than the schema's, so that near misses get its clearer words.
 _UNPACK_LIMITS = {
     "max_bin_len": MAX_PAYLOAD_BYTES,
     "max_str_len": 4 * 4096,  # bytes: 4096 characters of up to 4 UTF-8 bytes each
@@ -54,64 +56,140 @@ _UNPACK_LIMITS = {
 }
 
 
-def _refuse_ext(code: int, data: bytes) -> Any:
-    raise ValueError(f"msgpack extension type {code} is not allowed")
+# ------------------------------------------------------------------------------- wire types
+
+
+def _axis_type(lo: int, hi: int) -> Any:
+    return Literal[lo] if lo == hi else Annotated[int, msgspec.Meta(ge=lo, le=hi)]
+
+
+def _wire_type(field: FieldInfo) -> Any:
+    """The msgspec type of ``field``'s wire value."""
+    if field.array is not None:
+        shape = tuple[tuple(_axis_type(lo, hi) for lo, hi in field.array.ranges)]  # type: ignore[misc]
+        return tuple[shape, bytes]
+    if field.kind == RECORDS:
+        assert field.item is not None
+        items = list[_body_type(field.item)]  # type: ignore[misc]
+        return Annotated[items, field.meta]
+    return field.hint
+
+
+class _Wire:
+    """How one record class travels: its body struct and the conversion back to the record."""
+
+    def __init__(self, cls: type) -> None:
+        plan = plan_of(cls)
+        self.cls = cls
+        self.body = msgspec.defstruct(
+            f"{cls.__name__}Wire",
+            [(f.name, _wire_type(f)) for f in plan.fields],
+            forbid_unknown_fields=True,
+        )
+        self.arrays = tuple((f.name, f.array) for f in plan.fields if f.kind == ARRAY)
+        self.images = tuple(f.name for f in plan.fields if f.kind == IMAGE)
+        self.records = tuple(  # their bodies were made with this one's
+            (f.name, _WIRE[_body_type(f.item)]) for f in plan.fields if f.kind == RECORDS
+        )
+        self.simple = not (self.arrays or self.images or self.records)
+
+    def record(self, wire: Any) -> Any:
+        """The record of a decoded body struct; raises :class:`_RefusedError` for a bad array."""
+        values = msgspec.structs.asdict(wire)  # in field order
+        if not self.simple:
+            self._convert(values)
+        obj = object.__new__(self.cls)
+        object.__setattr__(obj, "__dict__", values)  # frozen: set, not assigned
+        return obj
+
+    def _convert(self, values: dict[str, Any]) -> None:
+        """Arrays, images and nested records of a body, from their wire form, in place."""
+        for name, spec in self.arrays:
+            try:
+                values[name] = _array_from_wire(spec, *values[name])
+            except _RefusedError as e:
+                raise e.at(f".{name}") from None
+        for name in self.images:
+            (height, width), data = values[name]
+            try:
+                image = decode_image(data, values["encoding"], (height, width))
+            except ProtocolError as e:
+                raise _RefusedError(str(e)).at(f".{name}") from None
+            image.setflags(write=False)
+            values[name] = image
+        for name, items_wire in self.records:
+            convert = items_wire.record
+            items: list[Any] = []
+            try:
+                for item in values[name]:
+                    items.append(convert(item))
+            except _RefusedError as e:
+                raise e.at(f".{name}[{len(items)}]") from None
+            values[name] = tuple(items)
+
+
+class _RefusedError(Exception):
+    """An array refused while converting a decoded body; ``path`` grows on the way out."""
+
+    def __init__(self, text: str) -> None:
+        self.text = text
+        self.path: list[str] = []
+
+    def at(self, step: str) -> _RefusedError:
+        self.path.append(step)
+        return self
+
+
+def _array_from_wire(spec: Array, shape: tuple[int, ...], data: bytes) -> np.ndarray:
+    expected = math.prod(shape) * spec.dtype.itemsize
+    if len(data) != expected:
+        raise _RefusedError(
+            f"array data is {len(data)} bytes, expected {expected} for shape "
+            f"{tuple(shape)} of {spec.dtype.itemsize}-byte elements"
+        )
+    arr = np.frombuffer(data, spec.dtype)  # read-only: a view of bytes
+    if len(shape) != 1:
+        arr = arr.reshape(shape)
+    if (text := array_problem(spec, arr)) is not None:
+        raise _RefusedError(text)
+    return arr
+
+
+_WIRE: dict[type, _Wire] = {}
+"""Each body struct's :class:`_Wire`."""
+
+
+@functools.cache
+def _body_type(cls: type) -> type:
+    wire = _Wire(cls)
+    _WIRE[wire.body] = wire
+    return wire.body
+
+
+@functools.cache
+def _envelope_type(cls: type) -> type:
+    return msgspec.defstruct(
+        f"{cls.__name__}Envelope",
+        [("v", Literal[SCHEMA_VERSION]), ("b", _body_type(cls))],
+        tag_field="t",
+        tag=cls.TYPE,
+        forbid_unknown_fields=True,
+    )
 
 
 # ------------------------------------------------------------------------------------ encode
 
 
-def _array_to_wire(arr: np.ndarray, field: ArrayField) -> list[Any]:
-    data = np.ascontiguousarray(arr, dtype=field.dtype).tobytes()
-    return [list(arr.shape), data]
+def _array_to_wire(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):  # a message's: little-endian, C order (see Array)
+        return [list(obj.shape), obj.tobytes()]
+    raise TypeError(f"cannot encode {type_name(obj)}")
 
 
-_SCALAR, _ARRAY, _IMAGE, _NESTED, _TUPLE = range(5)
+_ENCODER = msgspec.msgpack.Encoder(enc_hook=_array_to_wire)
 
-
-@functools.cache
-def _plan(cls: type) -> tuple[tuple[str, Field, int, Checker], ...]:
-    """``(name, field, kind, checker)`` of each field of record class ``cls``, worked out once:
-    the codec runs on the command path, where a chain of isinstance tests per field showed."""
-    kinds = (
-        (ImageField, _IMAGE),
-        (ArrayField, _ARRAY),
-        (NestedField, _NESTED),
-        (TupleField, _TUPLE),
-    )
-    return tuple(
-        (name, field, next((k for t, k in kinds if isinstance(field, t)), _SCALAR), checker(field))
-        for name, field in cls._SPEC.items()
-    )
-
-
-def _to_wire(record: Record) -> dict[str, Any]:
-    body: dict[str, Any] = {}
-    for name, field, kind, _ in _plan(type(record)):
-        value = getattr(record, name)
-        if kind == _SCALAR:
-            body[name] = value
-        elif kind == _ARRAY:
-            body[name] = _array_to_wire(value, field)
-        elif kind == _IMAGE:
-            encoding = getattr(record, field.encoding_field)
-            quality = getattr(record, field.quality_field)
-            body[name] = [list(value.shape), encode_image(value, encoding, quality)]
-        elif kind == _NESTED:
-            body[name] = _to_wire(value)
-        else:
-            body[name] = [_to_wire(item) for item in value]
-    return body
-
-
-def _reference_encode(msg: Message) -> bytes:
-    """``encode`` in Python, field by field (images, and the reference for the fast path)."""
-    cls = type(msg)
-    if not isinstance(msg, Message) or MESSAGE_TYPES.get(cls.TYPE) is not cls:
-        raise ProtocolError(f"encode: expected a protocol message, got {type_name(msg)}")
-    return msgpack.packb(
-        {"t": cls.TYPE, "v": SCHEMA_VERSION, "b": _to_wire(msg)}, use_bin_type=True
-    )
+_IMAGES: dict[type, tuple[str, ...]] = {}
+"""The image fields of each message class encoded so far."""
 
 
 def encode(msg: Message) -> bytes:
@@ -120,11 +198,20 @@ def encode(msg: Message) -> bytes:
     Raises :class:`ProtocolError` if ``msg`` is not a protocol message or the payload would
     exceed :data:`MAX_PAYLOAD_BYTES`.
     """
-    payload = fast_encode(msg)
-    if payload is None:
-        payload = _reference_encode(msg)
+    cls = type(msg)
+    images = _IMAGES.get(cls)
+    if images is None:
+        if MESSAGE_TYPES.get(getattr(cls, "TYPE", None)) is not cls:  # type: ignore[arg-type]
+            raise ProtocolError(f"encode: expected a protocol message, got {type_name(msg)}")
+        images = _IMAGES[cls] = _WIRE[_body_type(cls)].images
+    body: Any = msg  # a dataclass: msgspec writes its fields in order
+    if images:
+        body = {name: getattr(msg, name) for name in plan_of(cls).names}
+        for name in images:
+            image = body[name]
+            body[name] = [list(image.shape), encode_image(image, msg.encoding, msg.quality)]  # type: ignore[attr-defined]
+    payload = _ENCODER.encode({"t": cls.TYPE, "v": SCHEMA_VERSION, "b": body})
     if len(payload) > MAX_PAYLOAD_BYTES:
-        cls = type(msg)
         raise ProtocolError(
             f"{cls.__name__}: encoded payload is {len(payload)} bytes, "
             f"more than MAX_PAYLOAD_BYTES = {MAX_PAYLOAD_BYTES}"
@@ -135,88 +222,9 @@ def encode(msg: Message) -> bytes:
 # ------------------------------------------------------------------------------------ decode
 
 
-def _wire_shape_and_data(field: ArrayField, value: Any, where: str) -> tuple[list[int], Any]:
-    if not isinstance(value, list) or len(value) != 2:
-        raise ProtocolError(f"{where}: expected array as [shape, data], got {type_name(value)}")
-    shape, data = value
-    if not isinstance(shape, list) or not all(
-        type(n) is int and n >= 0
-        for n in shape  # exact int: bool is not an int
-    ):
-        raise ProtocolError(
-            f"{where}: array shape must be a list of non-negative ints, got {short_repr(shape)}"
-        )
-    if not field.shape_ok(tuple(shape)):
-        raise ProtocolError(f"{where}: expected shape {field.shape_text()}, got {tuple(shape)}")
-    if not isinstance(data, bytes):
-        raise ProtocolError(f"{where}: array data must be bytes, got {type_name(data)}")
-    return shape, data
-
-
-def _image_from_wire(field: ImageField, value: Any, encoding: str, where: str) -> np.ndarray:
-    shape, data = _wire_shape_and_data(field, value, where)
-    try:
-        return decode_image(data, encoding, (shape[0], shape[1]))
-    except ProtocolError as e:
-        raise ProtocolError(f"{where}: {e}") from None
-
-
-def _array_from_wire(field: ArrayField, value: Any, where: str) -> np.ndarray:
-    shape, data = _wire_shape_and_data(field, value, where)
-    expected_len = math.prod(shape) * field.dtype.itemsize
-    if len(data) != expected_len:
-        raise ProtocolError(
-            f"{where}: array data is {len(data)} bytes, expected {expected_len} for shape "
-            f"{tuple(shape)} of {field.dtype.itemsize}-byte elements"
-        )
-    return np.frombuffer(data, dtype=field.dtype).reshape(shape)
-
-
-def _record_from_wire(cls: type, body: Any, where: str) -> Any:
-    if not isinstance(body, dict):
-        raise ProtocolError(f"{where}: expected a map, got {type_name(body)}")
-    spec: Mapping[str, Field] = cls._SPEC
-    if body.keys() != spec.keys():
-        missing = [name for name in spec if name not in body]
-        if missing:
-            raise ProtocolError(f"{where}: missing field(s) {missing}")
-        extra = [key for key in body if key not in spec]
-        raise ProtocolError(f"{where}: unknown field(s) {short_repr(extra)}")
-    values: dict[str, Any] = {}
-    for name, field, kind, check in _plan(cls):
-        value = body[name]
-        field_where = f"{where}.{name}"
-        if kind == _SCALAR:
-            pass
-        elif kind == _IMAGE:
-            encoding_spec = spec[field.encoding_field]
-            encoding = check_field(
-                encoding_spec, body[field.encoding_field], f"{where}.{field.encoding_field}"
-            )
-            value = _image_from_wire(field, value, encoding, field_where)
-        elif kind == _ARRAY:
-            value = _array_from_wire(field, value, field_where)
-        elif kind == _NESTED:
-            value = _record_from_wire(field.cls, value, field_where)
-        else:
-            if not isinstance(value, list):
-                raise ProtocolError(f"{field_where}: expected a list, got {type_name(value)}")
-            if len(value) > field.max_len:  # before decoding the items
-                raise ProtocolError(
-                    f"{field_where}: must have {field.min_len}..{field.max_len} items, "
-                    f"got {len(value)}"
-                )
-            value = [
-                _record_from_wire(field.cls, item, f"{field_where}[{i}]")
-                for i, item in enumerate(value)
-            ]
-        values[name] = check(field, value, field_where, True)
-    return cls._from_validated(values)
-
-
-def _expected_types(expected: type | tuple[type, ...] | None) -> tuple[type, ...] | None:
+def _expected_types(expected: type | tuple[type, ...] | None) -> tuple[type, ...]:
     if expected is None:
-        return None
+        return tuple(MESSAGE_TYPES.values())
     types = expected if isinstance(expected, tuple) else (expected,)
     for t in types:
         if not (isinstance(t, type) and MESSAGE_TYPES.get(getattr(t, "TYPE", None)) is t):
@@ -224,15 +232,16 @@ def _expected_types(expected: type | tuple[type, ...] | None) -> tuple[type, ...
     return types
 
 
-_FAST_DECODERS: dict[Any, Any] = {}
-"""The fast path's decoder (or ``None``) for each ``expected`` argument seen."""
+_DECODERS: dict[Any, tuple[msgspec.msgpack.Decoder, tuple[type, ...]]] = {}
+"""The decoder (and the types it takes) for each ``expected`` argument seen."""
 
 
-def _fast_decoder(expected: type | tuple[type, ...] | None) -> Any:
+def _decoder(expected: type | tuple[type, ...] | None) -> tuple[Any, tuple[type, ...]]:
     types = _expected_types(expected)  # raises TypeError for a bad ``expected``
-    fast = fast_decoder(tuple(MESSAGE_TYPES.values()) if types is None else types)
-    _FAST_DECODERS[expected] = fast
-    return fast
+    union = functools.reduce(operator.or_, map(_envelope_type, types))
+    entry = (msgspec.msgpack.Decoder(union), types)
+    _DECODERS[expected] = entry
+    return entry
 
 
 M = TypeVar("M", bound=Message)
@@ -252,63 +261,72 @@ def decode(payload: bytes, expected: type | tuple[type, ...] | None = None) -> A
     only if ``expected`` itself is not a message class or tuple of them (a programming error).
     """
     try:
-        fast = _FAST_DECODERS[expected]
+        decoder, types = _DECODERS[expected]
     except (KeyError, TypeError):  # not seen yet, or not hashable
-        fast = _fast_decoder(expected)
-    # The common case first, touching little: the command path runs it cold after each wake-up.
-    if fast is not None and type(payload) is bytes and len(payload) <= MAX_PAYLOAD_BYTES:
-        msg = fast_decode(fast, payload)
-        if msg is not None:
-            return msg
-    return _reference_decode(payload, _expected_types(expected))
+        decoder, types = _decoder(expected)
+    if type(payload) is not bytes or len(payload) > MAX_PAYLOAD_BYTES:
+        if not isinstance(payload, bytes | bytearray | memoryview):
+            raise ProtocolError(f"payload: expected bytes, got {type_name(payload)}")
+        size = memoryview(payload).nbytes
+        if size > MAX_PAYLOAD_BYTES:
+            raise ProtocolError(
+                f"payload: {size} bytes is more than MAX_PAYLOAD_BYTES = {MAX_PAYLOAD_BYTES}"
+            )
+    try:
+        body = decoder.decode(payload).b
+    except Exception as exc:  # msgspec's ValidationError, DecodeError, UnicodeDecodeError
+        raise _refusal(payload, exc, types) from None
+    wire = _WIRE[type(body)]
+    try:
+        return wire.record(body)
+    except _RefusedError as e:
+        raise ProtocolError(f"{wire.cls.__name__}{''.join(reversed(e.path))}: {e.text}") from None
 
 
-def _reference_decode(payload: bytes, types: tuple[type, ...] | None) -> Message:
-    """``decode`` in Python, field by field: what was wrong and where, for any payload."""
-    if not isinstance(payload, bytes | bytearray | memoryview):
-        raise ProtocolError(f"payload: expected bytes, got {type_name(payload)}")
-    size = memoryview(payload).nbytes
-    if size > MAX_PAYLOAD_BYTES:
-        raise ProtocolError(
-            f"payload: {size} bytes is more than MAX_PAYLOAD_BYTES = {MAX_PAYLOAD_BYTES}"
-        )
+def _refuse_ext(code: int, data: bytes) -> Any:
+    raise ValueError(f"msgpack extension type {code} is not allowed")
+
+
+def _refusal(payload: Any, exc: Exception, types: tuple[type, ...]) -> ProtocolError:
+    """The ProtocolError saying why msgspec refused ``payload`` (with ``exc``)."""
     try:
         envelope = msgpack.unpackb(
             payload, raw=False, strict_map_key=True, ext_hook=_refuse_ext, **_UNPACK_LIMITS
         )
-    except Exception as exc:  # msgpack raises several types for truncated or garbage input
-        raise ProtocolError(f"payload: not a valid msgpack document ({exc})") from None
+    except Exception as e:  # msgpack raises several types for truncated or garbage input
+        return ProtocolError(f"payload: not a valid msgpack document ({e})")
+    if not isinstance(exc, msgspec.ValidationError):
+        return ProtocolError(f"payload: not a valid msgpack document ({exc})")
     try:
-        return _decode_envelope(envelope, types)
-    except ProtocolError:
-        raise
-    except Exception as exc:  # a backstop: a bug here must still not leak another type
-        raise ProtocolError(
-            f"payload: internal error while decoding ({type(exc).__name__}: {exc})"
-        ) from exc
+        return _explain_envelope(envelope, exc, types)
+    except Exception as e:  # a backstop: explaining must not raise another type
+        return ProtocolError(f"payload: refused ({exc}; {type(e).__name__} explaining it)")
 
 
-def _decode_envelope(envelope: Any, types: tuple[type, ...] | None) -> Message:
+def _explain_envelope(envelope: Any, exc: Exception, types: tuple[type, ...]) -> ProtocolError:
     if not isinstance(envelope, dict):
-        raise ProtocolError(f"envelope: expected a map, got {type_name(envelope)}")
+        return ProtocolError(f"envelope: expected a map, got {type_name(envelope)}")
     if envelope.keys() != _ENVELOPE_KEYS:
         missing = sorted(_ENVELOPE_KEYS - envelope.keys())
         extra = [k for k in envelope if k not in _ENVELOPE_KEYS]
-        raise ProtocolError(
+        return ProtocolError(
             f"envelope: expected keys ['b', 't', 'v'], missing {missing}, "
             f"unknown {short_repr(extra)}"
         )
     version = envelope["v"]
     if type(version) is not int or version != SCHEMA_VERSION:
-        raise ProtocolError(
+        return ProtocolError(
             f"envelope.v: unsupported schema version {short_repr(version)}, "
             f"this side speaks {SCHEMA_VERSION}"
         )
     tag = envelope["t"]
     cls = MESSAGE_TYPES.get(tag) if isinstance(tag, str) else None
     if cls is None:
-        raise ProtocolError(f"envelope.t: unknown message type {short_repr(tag)}")
-    if types is not None and cls not in types:
+        return ProtocolError(f"envelope.t: unknown message type {short_repr(tag)}")
+    if cls not in types:
         names = ", ".join(t.__name__ for t in types)
-        raise ProtocolError(f"envelope.t: expected {names}, got {cls.__name__}")
-    return _record_from_wire(cls, envelope["b"], cls.__name__)
+        return ProtocolError(f"envelope.t: expected {names}, got {cls.__name__}")
+    text, steps = path_of(exc)
+    if steps[:1] != ["b"]:
+        return ProtocolError(f"envelope: {text}")
+    return explain_at(cls, envelope["b"], steps[1:], text, cls.__name__)

@@ -11,23 +11,24 @@ must be complete, and the decoded pixels must have that shape. Anything else rai
 from __future__ import annotations
 
 import struct
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
 
 from .errors import ProtocolError
 
-IMAGE_ENCODINGS = ("raw", "png", "jpeg")
+ImageEncoding = Literal["raw", "png", "jpeg"]
+IMAGE_ENCODINGS: tuple[str, ...] = get_args(ImageEncoding)
 """What ``CameraFrame.encoding`` may be."""
 
 DEFAULT_JPEG_QUALITY = 80
-"""JPEG quality (1..100) when none is given: a 640×480 frame of the work site is 12 kB (raw:
-308 kB; quality 90: 23 kB), its mean error 0.93 grey levels, below the camera's own noise
-(σ = 1); over 50 ms + 1 % loss its frames arrive in 77 ms against 162 ms at quality 90 and
-249 ms raw (docs/benchmarks.md, "Camera frames on the wire")."""
+"""JPEG quality (1..100) when none is given: its error stays below the camera's own noise, at a
+fraction of a raw frame's size and time on the link (docs/benchmarks.md, "Camera frames on the
+wire")."""
 
 PNG_COMPRESSION = 1
-"""zlib level for PNG: level 1 is 4 % larger than 3 and 1.5× faster to encode (6 ms at 640×480)."""
+"""zlib level for PNG: a little larger than the default level's output, and faster to encode."""
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"

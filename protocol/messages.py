@@ -1,36 +1,33 @@
 """All wire messages: frozen dataclasses, validated on construction, each with a type tag.
 
 Frames and units follow ``protocol/README.md`` (Drake monogram notation, SI). Poses ``X_AB`` are
-(4, 4) float64 rigid transforms; every array is stored read-only. Each class's ``_SPEC`` table is
-the single declaration of its fields' types, shapes and bounds, used by both the constructor and
-the decoder. Constructors raise :class:`~protocol.errors.ProtocolError` for any invalid field.
+(4, 4) float64 rigid transforms; every array is stored read-only. Each field's annotation is the
+single declaration of its type, shape and bounds (``protocol/_schema.py``), used by both the
+constructor and the decoder. Constructors raise :class:`~protocol.errors.ProtocolError` for any
+invalid field.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Annotated, ClassVar, Literal, get_args
 
 import numpy as np
+from msgspec import Meta
 
-from ._spec import (
-    FLOAT64,
-    UINT8,
-    ArrayField,
-    Field,
-    FloatField,
-    ImageField,
-    IntField,
+from ._schema import (
+    FINITE,
+    NON_NEGATIVE,
+    Array,
+    Image,
     Record,
-    StrField,
-    TupleField,
+    anchored,
     check_camera_matrix,
     check_pose,
     check_unit_rows,
-    install_validating_init,
 )
-from .images import DEFAULT_JPEG_QUALITY, IMAGE_ENCODINGS
+from .images import DEFAULT_JPEG_QUALITY, ImageEncoding
 
 SCHEMA_VERSION = 3
 """Version of the wire schema; bump on any incompatible change to a message.
@@ -57,8 +54,10 @@ NAME_PATTERN = r"[A-Za-z0-9_.-]+"
 SITE_ID_PATTERN = r"[A-Za-z0-9_-]+"
 """Site ids: a single zenoh key-expression chunk, so no dots."""
 
-MOTION_KINDS = ("guarded_grasp", "move", "guarded_move", "contact_move", "release", "open_gripper")
-REPORT_STATUSES = (
+MotionKind = Literal[
+    "guarded_grasp", "move", "guarded_move", "contact_move", "release", "open_gripper"
+]
+ReportStatus = Literal[
     "accepted",
     "started",
     "done",
@@ -66,15 +65,22 @@ REPORT_STATUSES = (
     "failed",
     "refused",
     "stopped",
-)
-ROLES = ("work_site", "operator_site")
+]
+Role = Literal["work_site", "operator_site"]
+MOTION_KINDS: tuple[str, ...] = get_args(MotionKind)
+REPORT_STATUSES: tuple[str, ...] = get_args(ReportStatus)
+ROLES: tuple[str, ...] = get_args(Role)
 
-_SEQ = IntField(0, 2**63)
-_STAMP = FloatField(lo=0.0)
-_NAME = StrField(MAX_NAME_LEN, pattern=NAME_PATTERN)
-_TEXT = StrField(MAX_TEXT_LEN)
-_POSE = ArrayField(((4, 4), (4, 4)), FLOAT64, check_pose)
-_WRENCH = ArrayField(((6, 6),), FLOAT64)
+# Field types: each says what the wire and the constructors accept (msgspec's constraints, and
+# Array's shape, dtype and check for arrays).
+Seq = Annotated[int, Meta(ge=0, le=2**63 - 1)]
+Real = Annotated[float, FINITE]
+NonNegative = Annotated[float, NON_NEGATIVE]
+Name = Annotated[str, Meta(max_length=MAX_NAME_LEN, pattern=anchored(NAME_PATTERN))]
+SiteId = Annotated[str, Meta(max_length=MAX_NAME_LEN, pattern=anchored(SITE_ID_PATTERN))]
+Text = Annotated[str, Meta(max_length=MAX_TEXT_LEN)]
+Pose = Annotated[np.ndarray, Array((4, 4), check=check_pose)]
+Wrench = Annotated[np.ndarray, Array((6,))]
 
 
 class Message(Record):
@@ -100,25 +106,14 @@ class CameraFrame(Message):
     """
 
     TYPE: ClassVar[str] = "camera_frame"
-    _SPEC: ClassVar[Mapping[str, Field]] = {
-        "seq": _SEQ,
-        "stamp_s": _STAMP,
-        "X_WC": _POSE,
-        "K": ArrayField(((3, 3), (3, 3)), FLOAT64, check_camera_matrix),
-        "dist": ArrayField(((5, 5),), FLOAT64),
-        "image": ImageField(((1, MAX_IMAGE_SIDE), (1, MAX_IMAGE_SIDE)), UINT8),
-        "encoding": StrField(16, choices=IMAGE_ENCODINGS),
-        "quality": IntField(1, 101),
-    }
-
-    seq: int
-    stamp_s: float
-    X_WC: np.ndarray
-    K: np.ndarray
-    dist: np.ndarray
-    image: np.ndarray
-    encoding: str = "raw"
-    quality: int = DEFAULT_JPEG_QUALITY
+    seq: Seq
+    stamp_s: NonNegative
+    X_WC: Pose
+    K: Annotated[np.ndarray, Array((3, 3), check=check_camera_matrix)]
+    dist: Annotated[np.ndarray, Array((5,))]
+    image: Annotated[np.ndarray, Image(((1, MAX_IMAGE_SIDE), (1, MAX_IMAGE_SIDE)))]
+    encoding: ImageEncoding = "raw"
+    quality: Annotated[int, Meta(ge=1, le=100)] = DEFAULT_JPEG_QUALITY
 
 
 # ---------------------------------------------------------------------------- recognitions
@@ -128,15 +123,9 @@ class CameraFrame(Message):
 class Recognition(Record):
     """One recognised object (nested in :class:`Recognitions`): model name, pose, score."""
 
-    _SPEC: ClassVar[Mapping[str, Field]] = {
-        "model": _NAME,
-        "X_WO": _POSE,
-        "score": FloatField(),
-    }
-
-    model: str
-    X_WO: np.ndarray
-    score: float
+    model: Name
+    X_WO: Pose
+    score: Real
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,17 +133,10 @@ class Recognitions(Message):
     """What vision found in camera frame ``seq``, and how long it took (``elapsed_s``)."""
 
     TYPE: ClassVar[str] = "recognitions"
-    _SPEC: ClassVar[Mapping[str, Field]] = {
-        "seq": _SEQ,
-        "stamp_s": _STAMP,
-        "elapsed_s": FloatField(lo=0.0),
-        "objects": TupleField(Recognition, 0, MAX_RECOGNITIONS),
-    }
-
-    seq: int
-    stamp_s: float
-    elapsed_s: float
-    objects: tuple[Recognition, ...]
+    seq: Seq
+    stamp_s: NonNegative
+    elapsed_s: NonNegative
+    objects: Annotated[tuple[Recognition, ...], Meta(max_length=MAX_RECOGNITIONS)]
 
 
 # ------------------------------------------------------------------------------ robot state
@@ -166,21 +148,12 @@ class RobotState(Message):
     wrist wrench ``wrench_S`` (6,) ``[fx, fy, fz, tx, ty, tz]`` (N, N·m) in the sensor frame S."""
 
     TYPE: ClassVar[str] = "robot_state"
-    _SPEC: ClassVar[Mapping[str, Field]] = {
-        "seq": _SEQ,
-        "stamp_s": _STAMP,
-        "q": ArrayField(((6, 6),), FLOAT64),
-        "X_WF": _POSE,
-        "gripper_opening_m": FloatField(lo=0.0),
-        "wrench_S": _WRENCH,
-    }
-
-    seq: int
-    stamp_s: float
-    q: np.ndarray
-    X_WF: np.ndarray
-    gripper_opening_m: float
-    wrench_S: np.ndarray
+    seq: Seq
+    stamp_s: NonNegative
+    q: Annotated[np.ndarray, Array((6,))]
+    X_WF: Pose
+    gripper_opening_m: NonNegative
+    wrench_S: Wrench
 
 
 # ---------------------------------------------------------------------------------- program
@@ -190,20 +163,15 @@ class RobotState(Message):
 class ContactState(Record):
     """Contact of the workpiece with ``object``: unit contact normals ``normals_W`` (k, 3) in W."""
 
-    _SPEC: ClassVar[Mapping[str, Field]] = {
-        "object": _NAME,
-        "normals_W": ArrayField(((1, MAX_CONTACT_NORMALS), (3, 3)), FLOAT64, check_unit_rows),
-    }
-
-    object: str
-    normals_W: np.ndarray
+    object: Name
+    normals_W: Annotated[np.ndarray, Array(((1, MAX_CONTACT_NORMALS), 3), check=check_unit_rows)]
 
 
 SAME_CONTACT_DIRECTION_RAD = 0.3490658503988659  # 20°
 """Normals of one object closer than this are one contact direction, at both sites: a face
 reports one normal per point, and a wrist force cannot tell two normals apart inside the
-friction cone (μ = 0.5, the blocks' friction: 26.6°). End to end, normals 7.5° apart each asked
-for 1 N of contact force and one of them got 0 N."""
+friction cone (μ = 0.5, the blocks' friction: 26.6°), so asking each of two such normals for
+its own contact force can leave one of them without any."""
 
 
 def contact_directions(contacts: tuple[ContactState, ...]) -> list[tuple[str, np.ndarray]]:
@@ -245,19 +213,11 @@ class MotionCommand(Record):
     the contact state expected at the target (≤ 16).
     """
 
-    _SPEC: ClassVar[Mapping[str, Field]] = {
-        "kind": StrField(32, choices=MOTION_KINDS),
-        "X_WP": _POSE,
-        "speed_mps": FloatField(lo=0.0),
-        "force_limit_n": FloatField(lo=0.0),
-        "contacts": TupleField(ContactState, 0, MAX_CONTACTS),
-    }
-
-    kind: str
-    X_WP: np.ndarray
-    speed_mps: float
-    force_limit_n: float
-    contacts: tuple[ContactState, ...]
+    kind: MotionKind
+    X_WP: Pose
+    speed_mps: NonNegative
+    force_limit_n: NonNegative
+    contacts: Annotated[tuple[ContactState, ...], Meta(max_length=MAX_CONTACTS)]
 
 
 @dataclass(frozen=True, eq=False)
@@ -265,15 +225,9 @@ class MotionProgram(Message):
     """A robot program: the grasp ``X_GP`` (workpiece in gripper frame) and 1..1000 commands."""
 
     TYPE: ClassVar[str] = "motion_program"
-    _SPEC: ClassVar[Mapping[str, Field]] = {
-        "program_id": _NAME,
-        "X_GP": _POSE,
-        "commands": TupleField(MotionCommand, 1, MAX_COMMANDS),
-    }
-
-    program_id: str
-    X_GP: np.ndarray
-    commands: tuple[MotionCommand, ...]
+    program_id: Name
+    X_GP: Pose
+    commands: Annotated[tuple[MotionCommand, ...], Meta(min_length=1, max_length=MAX_COMMANDS)]
 
 
 @dataclass(frozen=True, eq=False)
@@ -287,23 +241,13 @@ class ExecutionReport(Message):
     """
 
     TYPE: ClassVar[str] = "execution_report"
-    _SPEC: ClassVar[Mapping[str, Field]] = {
-        "program_id": _NAME,
-        "command_index": IntField(-1, MAX_COMMANDS),
-        "status": StrField(32, choices=REPORT_STATUSES),
-        "wrench_S": _WRENCH,
-        "message": _TEXT,
-        "stamp_s": _STAMP,
-        "seq": _SEQ,
-    }
-
-    program_id: str
-    command_index: int
-    status: str
-    wrench_S: np.ndarray
-    message: str
-    stamp_s: float
-    seq: int = 0
+    program_id: Name
+    command_index: Annotated[int, Meta(ge=-1, le=MAX_COMMANDS - 1)]
+    status: ReportStatus
+    wrench_S: Wrench
+    message: Text
+    stamp_s: NonNegative
+    seq: Seq = 0
 
 
 # ------------------------------------------------------------------------------------ control
@@ -314,13 +258,8 @@ class Stop(Message):
     """Stop the robot now, with a free-text ``reason``."""
 
     TYPE: ClassVar[str] = "stop"
-    _SPEC: ClassVar[Mapping[str, Field]] = {
-        "reason": _TEXT,
-        "stamp_s": _STAMP,
-    }
-
-    reason: str
-    stamp_s: float
+    reason: Text
+    stamp_s: NonNegative
 
 
 @dataclass(frozen=True, eq=False)
@@ -328,27 +267,18 @@ class Heartbeat(Message):
     """Periodic liveness message from a site; ``role`` is one of :data:`ROLES`."""
 
     TYPE: ClassVar[str] = "heartbeat"
-    _SPEC: ClassVar[Mapping[str, Field]] = {
-        "site_id": StrField(MAX_NAME_LEN, pattern=SITE_ID_PATTERN),
-        "role": StrField(32, choices=ROLES),
-        "seq": _SEQ,
-        "stamp_s": _STAMP,
-    }
-
-    site_id: str
-    role: str
-    seq: int
-    stamp_s: float
+    site_id: SiteId
+    role: Role
+    seq: Seq
+    stamp_s: NonNegative
 
 
 @dataclass(frozen=True, eq=False)
 class ObjectPose(Record):
     """One object's name and pose ``X_WO`` (nested in :class:`TruthPoses`)."""
 
-    _SPEC: ClassVar[Mapping[str, Field]] = {"name": _NAME, "X_WO": _POSE}
-
-    name: str
-    X_WO: np.ndarray
+    name: Name
+    X_WO: Pose
 
 
 @dataclass(frozen=True, eq=False)
@@ -357,15 +287,9 @@ class TruthPoses(Message):
     evaluating the system end to end (a real work site has none to publish)."""
 
     TYPE: ClassVar[str] = "truth_poses"
-    _SPEC: ClassVar[Mapping[str, Field]] = {
-        "seq": _SEQ,
-        "stamp_s": _STAMP,
-        "objects": TupleField(ObjectPose, 0, MAX_RECOGNITIONS),
-    }
-
-    seq: int
-    stamp_s: float
-    objects: tuple[ObjectPose, ...]
+    seq: Seq
+    stamp_s: NonNegative
+    objects: Annotated[tuple[ObjectPose, ...], Meta(max_length=MAX_RECOGNITIONS)]
 
 
 MESSAGE_TYPES: Mapping[str, type[Message]] = {
@@ -382,7 +306,3 @@ MESSAGE_TYPES: Mapping[str, type[Message]] = {
     )
 }
 """Top-level message classes by type tag."""
-
-for _cls in (*MESSAGE_TYPES.values(), Recognition, ContactState, MotionCommand, ObjectPose):
-    install_validating_init(_cls)
-del _cls

@@ -30,7 +30,7 @@ PRIORITY_RANGES = ("0-5", "6-7")
 """zenoh priorities carried by each link of a split: 0-5 (real_time … data_high, data: stops,
 programs, reports, robot state, recognitions, heartbeats, liveliness) and 6-7 (data_low,
 background: camera frames). zenoh sends a priority that no link of a transport covers on the
-nearest one, so a peer with a single link still gets everything (measured, zenoh 1.10)."""
+nearest one, so a peer with a single link still gets everything."""
 SPLIT_PROTOCOLS = ("tcp", "tls")
 """Link protocols whose endpoint can be split into two ports."""
 

@@ -21,7 +21,8 @@ from protocol import (
     RobotState,
     Stop,
 )
-from protocol._spec import SMALL_ARRAY_SIZE, _all_finite
+from protocol._schema import SMALL_ARRAY_SIZE
+from protocol._schema import all_finite as _all_finite
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 
