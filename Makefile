@@ -41,10 +41,11 @@ test: $(STAMP) browser
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest
 
-# The unit tier: no processes, no network, no browser, nothing that takes seconds.
+# The unit tier: no processes, no network, no browser, nothing that takes seconds, and a tenth
+# of each large property test's examples (tests/conftest.py: examples).
 test-fast: $(STAMP)
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -q -m "not integration and not browser and not slow"
+	TELEROBOT_TESTS=fast $(PY) -m pytest -q -m "not integration and not browser and not slow"
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

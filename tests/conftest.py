@@ -21,6 +21,15 @@ from protocol.session import free_port_pair
 
 REPO = Path(__file__).resolve().parents[1]
 
+FAST_TIER = os.environ.get("TELEROBOT_TESTS") == "fast"
+"""``make test-fast`` sets ``TELEROBOT_TESTS=fast``: property tests then draw a tenth of their
+examples (:func:`examples`), for a quick look; ``make test`` draws them all."""
+
+
+def examples(n: int) -> int:
+    """The number of hypothesis examples for a property test that draws ``n`` in the full run."""
+    return max(20, n // 10) if FAST_TIER else n
+
 
 def free_port() -> int:
     """A TCP port on 127.0.0.1 that nothing listens on right now, nor on the next one (a work

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from models.robot import HOME_Q, PUMA_URDF, load_robot
 from models.scene import load_scene
 from models.transforms import make_pose, rpy_to_R
+from tests.conftest import examples
 from work_site.control.kinematics import (
     arm_geometry,
     geometric_jacobian_W,
@@ -45,7 +46,7 @@ def test_geometry_is_read_from_the_model() -> None:
     np.testing.assert_allclose(GEOMETRY.X_FG[:3, 3], [0, 0, 0.115], atol=1e-12)
 
 
-@settings(max_examples=500, deadline=None)
+@settings(max_examples=examples(500), deadline=None)
 @given(q=joint_vectors)
 def test_every_solution_reproduces_the_pose_and_q_is_among_them(q: np.ndarray) -> None:
     X = ROBOT.flange_pose_W(q)
@@ -65,7 +66,7 @@ def test_every_solution_reproduces_the_pose_and_q_is_among_them(q: np.ndarray) -
         assert min((angle_diff(s, q) / tol).max() for s in solutions) < 1.0
 
 
-@settings(max_examples=500, deadline=None)
+@settings(max_examples=examples(500), deadline=None)
 @given(q=joint_vectors)
 def test_nearest_solution_to_q_is_q(q: np.ndarray) -> None:
     result = ik_nearest(ROBOT.flange_pose_W(q), q, ROBOT)

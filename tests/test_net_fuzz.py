@@ -32,7 +32,7 @@ from protocol import (
     decode,
     encode,
 )
-from tests.conftest import one_move_program
+from tests.conftest import examples, one_move_program
 from work_site.control.controller import TaskController
 from work_site.server import ServerOptions, WorkSiteServer
 from work_site.world import World
@@ -41,7 +41,7 @@ EXAMPLES_PER_STRATEGY = 2600
 """Four strategies × 2,600 = 10,400 payloads, each into the decoder and both inboxes."""
 
 FUZZ = settings(
-    max_examples=EXAMPLES_PER_STRATEGY,
+    max_examples=examples(EXAMPLES_PER_STRATEGY),
     deadline=None,
     derandomize=True,  # the same payloads every run: a failure is reproducible
     database=None,

@@ -39,8 +39,11 @@ from protocol import (
     decode,
     encode,
 )
+from tests.conftest import examples
 
-MANY = settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+MANY = settings(
+    max_examples=examples(1000), deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
 
 # ------------------------------------------------------------------------------- strategies
 

@@ -21,6 +21,7 @@ from protocol import (
     encode,
     parse_image_encoding,
 )
+from tests.conftest import examples
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -206,7 +207,7 @@ _PAYLOADS = {e: encode(frame(_SMALL, e, 50)) for e in IMAGE_ENCODINGS}
 
 
 @settings(
-    max_examples=1500,
+    max_examples=examples(1500),
     deadline=None,
     derandomize=True,
     database=None,

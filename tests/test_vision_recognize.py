@@ -14,6 +14,8 @@ from work_site.vision.recognizer import Recognizer
 
 N_SCENES = 6
 
+pytestmark = pytest.mark.slow  # renders its scenes and builds the index: seconds
+
 
 @pytest.fixture(scope="module")
 def recognizer(tmp_path_factory) -> Recognizer:
@@ -42,7 +44,6 @@ def scenes():
         renderer.close()
 
 
-@pytest.mark.slow
 def test_recall_and_precision_floors(recognizer, scenes) -> None:
     data, _, camera = scenes
     models = {m.name: m for m in recognizer.models}
