@@ -1,10 +1,10 @@
 """The work site's grey camera: renders the pybullet world as the camera model sees it.
 
-Rendering takes ≈ 90 ms at 640×480 with pybullet's software renderer, far longer than a 1 ms
-physics step, so :class:`CameraProcess` renders in a separate process holding a mirror of the
-world; the physics loop only sends poses and collects finished images, and never waits. The
-child also encodes the :class:`~protocol.messages.CameraFrame` for the wire (PNG takes ≈ 8 ms,
-JPEG ≈ 0.3 ms): the physics loop only publishes bytes.
+pybullet's software renderer takes tens of milliseconds a frame, many 1 ms physics steps, so
+:class:`CameraProcess` renders in a separate process holding a mirror of the world; the physics
+loop only sends poses and collects finished images, and never waits. The child also encodes the
+:class:`~protocol.messages.CameraFrame` for the wire (PNG takes milliseconds too): the physics
+loop only publishes bytes.
 """
 
 from __future__ import annotations
