@@ -24,6 +24,7 @@ from models.scene import CameraModel, load_scene
 from models.transforms import invert_pose
 from protocol import CameraFrame, encode
 from protocol.images import DEFAULT_JPEG_QUALITY
+from work_site.child import stop_child
 
 CAMERA_NEAR_M = 0.05
 CAMERA_FAR_M = 5.0
@@ -231,12 +232,4 @@ class CameraProcess:
 
     def close(self) -> None:
         """Stop the renderer process."""
-        try:
-            self._conn.send(None)
-        except (BrokenPipeError, OSError):
-            pass
-        self._proc.join(timeout=5)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(timeout=5)
-        self._conn.close()
+        stop_child(self._proc, self._conn, ask=True, grace_s=5.0)

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from work_site.child import stop_child
+
 log = logging.getLogger("work-site")
 
 
@@ -158,14 +160,6 @@ class VisionProcess:
         return None
 
     def close(self) -> None:
-        """Stop the vision process (at once: nothing it computes needs saving)."""
-        if self.ready and not self.busy:
-            try:
-                self._conn.send(None)
-            except (BrokenPipeError, OSError):
-                pass
-            self._proc.join(timeout=1)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(timeout=5)
-        self._conn.close()
+        """Stop the vision process (at once: nothing it computes needs saving; a busy child
+        would not read the sign to exit)."""
+        stop_child(self._proc, self._conn, ask=self.ready and not self.busy, grace_s=1.0)
