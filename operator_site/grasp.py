@@ -309,14 +309,19 @@ def _faces_words(d_O: np.ndarray) -> str:
 def pressed_contacts(path: Sequence[StepResult]) -> list[PressedContact]:
     """The contacts a demonstrated path presses: every captured contact along it and the whole
     contact state at its end (the task's goal), as :func:`path_from_history` marks them
-    required."""
-    out: list[PressedContact] = []
-    for k, step in enumerate(path):
-        last = k == len(path) - 1
-        for c in step.contacts:
-            if last or c.captured:
-                out.append(PressedContact(c.object, np.asarray(c.normals_W), step.X_WO))
-    return out
+    required; the captured ones along the way at most :data:`MAX_PATH_POSES_CHECKED`, spread
+    evenly."""
+    along = [
+        PressedContact(c.object, np.asarray(c.normals_W), step.X_WO)
+        for step in path[:-1]
+        for c in step.contacts
+        if c.captured
+    ]
+    goal = [
+        PressedContact(c.object, np.asarray(c.normals_W), path[-1].X_WO)
+        for c in (path[-1].contacts if path else ())
+    ]
+    return _spread(along, MAX_PATH_POSES_CHECKED) + goal
 
 
 def _spread(poses: Sequence[np.ndarray], n_max: int) -> list[np.ndarray]:
@@ -338,19 +343,13 @@ def grasp_problem(
 ) -> str:
     """Why ``grasp`` cannot do the task ("" if it can): the open fingers meet something on the
     way down to it, a finger is between the workpiece and a surface the task presses, or the
-    fingers run into something along ``path_X_WO`` (fcl, the simulator's geometry)."""
+    fingers run into something along ``path_X_WO`` (fcl, the simulator's geometry), in that
+    order: a finger pressed into a wall is said to be between, the more useful reason."""
     start = X_WO[name]
     if open_finger_clearance_m(robot, scene, name, X_WO, grasp.X_GP) <= 0.0:
         return f"{grasp.faces}: the open fingers would hit a neighbour on the way down"
     fingers = tuple(finger_parts_O(robot, grasp.X_GP, grasp.opening_m))
     world = SimWorld(scene, name, X_WO, attached_O=fingers)
-    for X in _spread([start, *path_X_WO], MAX_PATH_POSES_CHECKED):
-        lo, hi = world.workpiece_box(X, PRESSED_FINGER_CLEARANCE_M)
-        near = world.candidates(lo, hi)
-        for pair in world.distances(X, near) if len(near) else []:
-            if pair.wp_part >= world.n_own_parts and pair.distance_m <= 0.0:
-                other = world.obstacle_object[pair.obstacle]
-                return f"{grasp.faces}: a finger would run into the {other} on the way"
     for contact in pressed:
         d_W = contact.X_WO[:3, :3] @ (invert_pose(grasp.X_GP)[:3, :3] @ [0.0, 1.0, 0.0])
         if np.max(np.abs(np.asarray(contact.normals_W) @ d_W)) <= PAD_FACING_SIN:
@@ -362,6 +361,13 @@ def grasp_problem(
             < PRESSED_FINGER_CLEARANCE_M
         ):
             return f"{grasp.faces}: a finger would be between the {name} and the {contact.object}"
+    for X in _spread([start, *path_X_WO], MAX_PATH_POSES_CHECKED):
+        lo, hi = world.workpiece_box(X, PRESSED_FINGER_CLEARANCE_M)
+        near = world.candidates(lo, hi)
+        for pair in world.distances(X, near) if len(near) else []:
+            if pair.wp_part >= world.n_own_parts and pair.distance_m <= 0.0:
+                other = world.obstacle_object[pair.obstacle]
+                return f"{grasp.faces}: a finger would run into the {other} on the way"
     return ""
 
 
