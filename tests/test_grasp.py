@@ -130,3 +130,58 @@ def test_select_takes_a_chosen_grasp() -> None:
     assert session.opening_m == grasp.opening_m
     session.select("wedge")  # by default, today's grasp
     np.testing.assert_array_equal(session.X_GP, clear_top_grasp(ROBOT, SCENE, "wedge", X_WO)[0])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("name", "yaw_deg"), [("plank", 0.0), ("wedge", 180.0), ("l_block", 180.0), ("hex_prism", 90.0)]
+)
+def test_each_new_block_pushed_against_a_wall_runs_end_to_end(name, yaw_deg) -> None:
+    """Inside the frame, dragged along the table against the bar at +x (the wedge by its back,
+    the L by its low end, the prism by a flat): the grasp chosen for the path, the program
+    generated and found feasible, then run by the work site's executor in pybullet, which
+    verifies the wall's contact by force; the block ends where the program put it."""
+    from operator_site.program import check_feasibility, choose_grasp_yaw, generate_program
+    from work_site.control.controller import TaskController
+    from work_site.control.executor import Execution, program_refusal
+    from work_site.world import World
+
+    session = TaskSession(SCENE)
+    R = rpy_to_R(np.array([0.0, 0.0, np.deg2rad(yaw_deg)]))
+    session.X_WO[name] = make_pose(R, (0.45, 0.0, session.X_WO[name][2, 3]))
+    session.select(name)
+    target = session.X_WO[name].copy()
+    target[:3, 3] += (0.08, 0.0, -0.005)
+    session.set_target(target)
+    for _ in range(300):
+        session.step()
+    assert session.choose_grasp_for_path().grasp is not None
+    X_GP = choose_grasp_yaw(session.start_X_WO, session.X_GP)
+    program = generate_program(
+        name,
+        SCENE,
+        name,
+        session.path_history(),
+        X_GP,
+        attached_O=session.fingers_O,
+        X_WO=session.X_WO,
+    ).program
+    assert check_feasibility(SCENE, name, program, session.fingers_O, session.X_WO).ok
+    world = World(SCENE)
+    try:
+        world.set_object_pose(name, session.start_X_WO)
+        controller = TaskController(world, ROBOT)
+        assert program_refusal(program, controller) == ""
+        reports = []
+        execution = Execution(program, controller, lambda *r: reports.append(r))
+        for _ in range(8000):
+            execution.tick()
+            if execution.finished:
+                break
+        assert reports[-1][2:] == ("done", "program complete"), reports[-1]
+        verified = [r[3] for r in reports if r[2] == "contact_verified"]
+        assert verified and "frame" in verified[-1]
+        goal = program.commands[-2].X_WP
+        np.testing.assert_allclose(world.object_pose(name)[:3, 3], goal[:3, 3], atol=2e-3)
+    finally:
+        world.close()
