@@ -14,11 +14,13 @@ import numpy as np
 from models.robot import load_robot
 from models.scene import Scene
 from operator_site.grasp import (
+    MIN_GRIP_AREA_M2,
     Grasp,
     GraspChoice,
     choose_grasp,
     clear_top_grasp,
     finger_parts_O,
+    grip_area_m2,
     pressed_contacts,
 )
 from operator_site.simulator import SimParams, Simulator, StepResult
@@ -56,7 +58,8 @@ class TaskSession:
         """Make movable object ``name`` the workpiece, held by the gripper's fingers in
         ``grasp``, by default a grasp from above, high enough to clear the frame's bars where
         the block is tall enough, on the pair of faces whose open fingers clear the other
-        blocks (the fingers move with it); its last pose stays in the model."""
+        blocks, or where the chooser puts it if that would hold too little of the block (the
+        fingers move with it); its last pose stays in the model."""
         obj = self.scene.object(name)
         if obj.fixed:
             raise ValueError(f"{name!r} is part of the fixed environment and cannot be moved")
@@ -64,7 +67,11 @@ class TaskSession:
             self.X_WO[self.sim.world.workpiece] = self.sim.X_WO
         if grasp is None:
             self.X_GP, self.opening_m = clear_top_grasp(self.robot, self.scene, name, self.X_WO)
-        else:
+            if grip_area_m2(self.robot, self.scene, name, self.X_GP) < MIN_GRIP_AREA_M2:
+                # Today's grasp would hold too little (the wedge's narrowing ends): the chooser
+                # slides it to where the block is thick.
+                grasp = choose_grasp(self.robot, self.scene, name, self.X_WO).grasp
+        if grasp is not None:
             self.X_GP, self.opening_m = np.array(grasp.X_GP, dtype=np.float64), grasp.opening_m
         self.fingers_O = tuple(finger_parts_O(self.robot, self.X_GP, self.opening_m))
         self.sim = Simulator(

@@ -128,8 +128,10 @@ def test_select_takes_a_chosen_grasp() -> None:
     session.select("wedge", grasp=grasp)
     np.testing.assert_array_equal(session.X_GP, grasp.X_GP)
     assert session.opening_m == grasp.opening_m
-    session.select("wedge")  # by default, today's grasp
-    np.testing.assert_array_equal(session.X_GP, clear_top_grasp(ROBOT, SCENE, "wedge", X_WO)[0])
+    session.select("cube")  # by default, today's grasp
+    np.testing.assert_array_equal(session.X_GP, clear_top_grasp(ROBOT, SCENE, "cube", X_WO)[0])
+    session.select("wedge")  # … unless it would hold too little: then the chooser's
+    np.testing.assert_array_equal(session.X_GP, grasp.X_GP)
 
 
 @pytest.mark.slow
