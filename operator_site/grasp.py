@@ -156,12 +156,14 @@ _DIRECTION_TOL = 1e-6
 @dataclass(frozen=True)
 class Grasp:
     """A grasp: ``X_GP`` (the workpiece in the gripper frame), the finger opening (m) that holds
-    it, the pair of faces in words, and the pad area on material (m²)."""
+    it, the pair of faces in words, the pad area on material (m²) and the fingertips' height
+    above the block's bottom (m; clear of the bars from :data:`BAR_CLEARANCE_M`)."""
 
     X_GP: np.ndarray
     opening_m: float
     faces: str
     grip_area_m2: float
+    tip_height_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -270,7 +272,7 @@ def grasp_candidates(robot: RobotModel, scene: Scene, name: str, X_WO: np.ndarra
                 X_OG = np.eye(4)
                 X_OG[:3, :3] = np.column_stack([np.cross(d_O, -up_O), d_O, -up_O])
                 X_OG[:3, 3] = 0.5 * (s_lo + s_hi) * d_O + u * e_u + (z_tip + tip_below_tcp) * up_O
-                out.append(Grasp(invert_pose(X_OG), opening, faces, area))
+                out.append(Grasp(invert_pose(X_OG), opening, faces, area, z_tip - bottom))
     return out
 
 
@@ -391,27 +393,35 @@ def choose_grasp(
     """The grasp for moving block ``name`` from ``X_WO[name]`` along ``path_X_WO`` (its poses,
     the goal last) pressing ``pressed``: today's :func:`clear_top_grasp` when it can do the
     task (:func:`grasp_problem`), else, among :func:`grasp_candidates`, the first that can,
-    preferring pads side-on to every pressed normal, then the most pad area, then the nearest
-    the block's centre. No grasp: the reason for each pair of faces."""
+    preferring pads side-on to every pressed normal, then fingers clear of the bars, then the
+    most pad area, then the nearest the block's centre. No grasp: the reason for each pair of
+    faces."""
     X_GP, opening = clear_top_grasp(robot, scene, name, X_WO)
     faces = _faces_words(invert_pose(X_GP)[:3, :3] @ [0.0, 1.0, 0.0])
-    default = Grasp(X_GP, opening, faces, grip_area_m2(robot, scene, name, X_GP))
+    up_O = X_WO[name][:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    V = np.vstack([p.vertices_O for p in scene.object(name).model.parts])
+    tip_O = invert_pose(X_GP)[:3, 3] @ up_O - _finger_box_G(robot)[1]
+    area = grip_area_m2(robot, scene, name, X_GP)
+    default = Grasp(X_GP, opening, faces, area, float(tip_O - (V @ up_O).min()))
     if default.grip_area_m2 >= MIN_GRIP_AREA_M2 and not grasp_problem(
         robot, scene, name, X_WO, default, path_X_WO, pressed
     ):
         return GraspChoice(default)
     candidates = grasp_candidates(robot, scene, name, X_WO[name])
-    candidates.sort(key=lambda g: (not _side_on(g, pressed), -round(g.grip_area_m2, 6)))
+    candidates.sort(
+        key=lambda g: (
+            not _side_on(g, pressed),
+            g.tip_height_m < BAR_CLEARANCE_M - _DIRECTION_TOL,
+            -round(g.grip_area_m2, 6),
+        )
+    )
     rejected: dict[str, str] = {}
     for grasp in candidates:
         problem = grasp_problem(robot, scene, name, X_WO, grasp, path_X_WO, pressed)
         if not problem:
             return GraspChoice(grasp)
         rejected.setdefault(grasp.faces, problem)
-    model = scene.object(name).model
-    up_O = X_WO[name][:3, :3].T @ np.array([0.0, 0.0, 1.0])
-    V = np.vstack([p.vertices_O for p in model.parts])
-    for d_O in _closing_directions_O(model, up_O):
+    for d_O in _closing_directions_O(scene.object(name).model, up_O):
         faces = _faces_words(d_O)
         width = float(np.ptp(V @ d_O))
         if faces not in rejected:
