@@ -177,3 +177,45 @@ def test_a_grasp_with_a_finger_between_the_block_and_the_wall_is_refused() -> No
     result = check_feasibility(SCENE, "plank", program, session.fingers_O, session.X_WO)
     assert not result.ok and result.check == "grasp"
     assert "a finger would be between the plank and the frame" in result.reason
+
+
+@pytest.mark.parametrize(("task", "seed"), [("corner", 0), ("corner", 1), ("around-corner", 4)])
+def test_the_scripted_tasks_programs_are_feasible(task, seed) -> None:
+    """No false refusals: the programs the end-to-end runs send (and the robot does)."""
+    from operator_site.scripted import generated_program, layout_demonstration
+
+    session = layout_demonstration(task, seed).session
+    program = generated_program(session, f"{task}-{seed}")  # checks feasibility itself
+    result = check_feasibility(
+        session.scene, session.workpiece, program, session.fingers_O, session.X_WO
+    )
+    assert result.ok, result.reason
+
+
+def test_the_generator_refuses_a_task_the_robot_cannot_do() -> None:
+    """The plank pushed side-first against a bar, held as selected: the page's "make program"
+    gets the reason (a ValueError, as for the sweep's refusals)."""
+    from operator_site.program import ProgramInfeasibleError, ProgramRefusedError
+
+    session = TaskSession(SCENE)
+    R = rpy_to_R(np.array([0.0, 0.0, 0.5 * np.pi]))
+    session.X_WO["plank"] = make_pose(R, (0.45, 0.0, 0.0125))
+    session.select("plank")
+    target = session.X_WO["plank"].copy()
+    target[:3, 3] = (0.53, 0.0, 0.0075)
+    session.set_target(target)
+    for _ in range(300):
+        session.step()
+    assert session.choose_grasp_for_path().grasp is None
+    with pytest.raises(ProgramInfeasibleError, match="between the plank and the frame") as info:
+        generate_program(
+            "side",
+            SCENE,
+            "plank",
+            session.path_history(),
+            choose_grasp_yaw(session.start_X_WO, session.X_GP),
+            attached_O=session.fingers_O,
+            X_WO=session.X_WO,
+        )
+    assert isinstance(info.value, ProgramRefusedError) and isinstance(info.value, ValueError)
+    assert info.value.feasibility.check == "grasp" and info.value.check.segment == 0

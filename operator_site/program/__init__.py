@@ -19,7 +19,12 @@ from operator_site.program.commands import (
 )
 from operator_site.program.deform import Deformer, DeformParams, DeformResult
 from operator_site.program.feasibility import Feasibility, check_feasibility
-from operator_site.program.generate import Generated, ProgramRefusedError, generate_program
+from operator_site.program.generate import (
+    Generated,
+    ProgramInfeasibleError,
+    ProgramRefusedError,
+    generate_program,
+)
 from operator_site.program.path import (
     NodeContact,
     PathNode,
@@ -40,6 +45,7 @@ __all__ = [
     "Generated",
     "NodeContact",
     "PathNode",
+    "ProgramInfeasibleError",
     "ProgramRefusedError",
     "Sweeper",
     "WorkpiecePath",
