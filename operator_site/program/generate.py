@@ -88,8 +88,7 @@ def generate_program(
         say(0.85, "checking every move for collisions")
         check = sweeper.program(program)
         if check.ok:
-            if feasible:
-                say(0.95, "checking that the robot can do it")
+            if feasible:  # quick (tens of ms): no progress stage of its own
                 verdict = check_feasibility(scene, workpiece, program, attached_O, X_WO)
                 if not verdict.ok:
                     raise ProgramInfeasibleError(verdict, check)
