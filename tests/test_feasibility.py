@@ -219,3 +219,11 @@ def test_the_generator_refuses_a_task_the_robot_cannot_do() -> None:
         )
     assert isinstance(info.value, ProgramRefusedError) and isinstance(info.value, ValueError)
     assert info.value.feasibility.check == "grasp" and info.value.check.segment == 0
+
+
+def test_a_grasp_from_below_is_refused() -> None:
+    X_WO = SCENE.object("cube").X_WO
+    program = pick_and_place("below", X_WO, X_WO, np.eye(4))  # the gripper's z up
+    result = check_feasibility(SCENE, "cube", program)
+    assert not result.ok and result.check == "grasp" and result.command == 0
+    assert "does not hold the cube from above" in result.reason

@@ -7,9 +7,10 @@ Three questions, each answered with the work site's own rules:
   contact by the wrist force along its normal (``work_site/control/executor.py``), so a contact
   that no motion presses into (a face the block only touches, moves away from or slides past
   with no bias into it) reads 0 N there and fails the program half done;
-- the program's grasp must exist: the faces it holds no wider apart than the gripper opens,
-  enough of the pads on the block, no finger on the way down or along the path into anything,
-  none between the workpiece and a surface it presses (:func:`operator_site.grasp.grasp_problem`);
+- the program's grasp must exist: from above, the faces it holds no wider apart than the
+  gripper opens, enough of the pads on the block, no finger on the way down or along the path
+  into anything, none between the workpiece and a surface it presses
+  (:func:`operator_site.grasp.grasp_problem`);
 - every gripper pose the program's motions aim at must be in the work site's workspace box and
   reachable within the joint limits, by the same closed-form IK the work site's acceptance check
   uses (:mod:`models.kinematics`), followed command after command from the arm's home.
@@ -60,6 +61,9 @@ GUARD_OVERTRAVEL_M = 0.01
 WORKSPACE_MIN_W = np.array([0.10, -0.45, 0.02])
 """Lowest corner of the box every TCP target must lie in (m)."""
 WORKSPACE_MAX_W = np.array([0.75, 0.45, 0.50])
+FROM_ABOVE_COS = float(np.cos(np.pi / 4))
+"""A grasp comes from above when the gripper's z is within 45° of straight down: the work site
+descends onto it vertically, and the finger model here measures pads on vertical faces."""
 _UP_W = np.array([0.0, 0.0, 1.0])
 _CARRYING = ("guarded_grasp", "move", "guarded_move", "contact_move")
 
@@ -177,13 +181,23 @@ def grasp_feasibility(
     program: MotionProgram,
     X_WO: dict[str, np.ndarray] | None = None,
 ) -> Feasibility:
-    """Refuse a program whose grasp cannot exist: the faces it holds wider apart than the
-    gripper opens, too little of the pads on the block, or a finger in the way on the way down,
-    along the program's targets or between the workpiece and a surface a command presses."""
+    """Refuse a program whose grasp cannot exist: not from above, the faces it holds wider apart
+    than the gripper opens, too little of the pads on the block, or a finger in the way on the
+    way down, along the program's targets or between the workpiece and a surface a command
+    presses."""
     commands = program.commands
     if not commands or commands[0].kind != "guarded_grasp":
         return Feasibility(False, "the program must start with a guarded grasp", 0, "grasp")
     X_GP = np.asarray(program.X_GP, dtype=np.float64)
+    z_G_W = (np.asarray(commands[0].X_WP) @ invert_pose(X_GP))[:3, 2]
+    if float(z_G_W @ -_UP_W) < FROM_ABOVE_COS:
+        return Feasibility(
+            False,
+            f"the grasp does not hold the {workpiece} from above (the gripper would point "
+            f"{np.round(z_G_W, 2).tolist()}): the robot comes down onto every grasp from above",
+            0,
+            "grasp",
+        )
     model = scene.object(workpiece).model
     d_O = invert_pose(X_GP)[:3, 1]
     V = np.vstack([p.vertices_O for p in model.parts])
