@@ -13,7 +13,16 @@ import numpy as np
 
 from models.robot import load_robot
 from models.scene import Scene
-from operator_site.grasp import clear_top_grasp, finger_parts_O
+from operator_site.grasp import (
+    MIN_GRIP_AREA_M2,
+    Grasp,
+    GraspChoice,
+    choose_grasp,
+    clear_top_grasp,
+    finger_parts_O,
+    grip_area_m2,
+    pressed_contacts,
+)
 from operator_site.simulator import SimParams, Simulator, StepResult
 from operator_site.simulator.stepper import SimState
 
@@ -45,17 +54,25 @@ class TaskSession:
     def captured(self) -> set[str]:
         return set(self.sim.state.capturable) if self.sim else set()
 
-    def select(self, name: str) -> None:
-        """Make movable object ``name`` the workpiece, held by the gripper's fingers in a grasp
-        from above, high enough to clear the frame's bars where the block is tall enough, on
-        the pair of faces whose open fingers clear the other blocks (the fingers move with
-        it); its last pose stays in the model."""
+    def select(self, name: str, grasp: Grasp | None = None) -> None:
+        """Make movable object ``name`` the workpiece, held by the gripper's fingers in
+        ``grasp``, by default a grasp from above, high enough to clear the frame's bars where
+        the block is tall enough, on the pair of faces whose open fingers clear the other
+        blocks, or where the chooser puts it if that would hold too little of the block (the
+        fingers move with it); its last pose stays in the model."""
         obj = self.scene.object(name)
         if obj.fixed:
             raise ValueError(f"{name!r} is part of the fixed environment and cannot be moved")
         if self.sim is not None:
             self.X_WO[self.sim.world.workpiece] = self.sim.X_WO
-        self.X_GP, self.opening_m = clear_top_grasp(self.robot, self.scene, name, self.X_WO)
+        if grasp is None:
+            self.X_GP, self.opening_m = clear_top_grasp(self.robot, self.scene, name, self.X_WO)
+            if grip_area_m2(self.robot, self.scene, name, self.X_GP) < MIN_GRIP_AREA_M2:
+                # Today's grasp would hold too little (the wedge's narrowing ends): the chooser
+                # slides it to where the block is thick.
+                grasp = choose_grasp(self.robot, self.scene, name, self.X_WO).grasp
+        if grasp is not None:
+            self.X_GP, self.opening_m = np.array(grasp.X_GP, dtype=np.float64), grasp.opening_m
         self.fingers_O = tuple(finger_parts_O(self.robot, self.X_GP, self.opening_m))
         self.sim = Simulator(
             self.scene, name, self.params, X_WO=self.X_WO, attached_O=self.fingers_O
@@ -76,6 +93,37 @@ class TaskSession:
             min_distance_m=math.inf,
             speed_limited=False,
         )
+
+    def choose_grasp_for_path(self) -> GraspChoice:
+        """Choose the grasp again for the path demonstrated so far (:func:`choose_grasp`: no
+        finger between the workpiece and a surface it presses, none run into anything on the
+        way) and hold the workpiece so from now on; the path and captures are kept. When no
+        grasp can do it, nothing changes and the choice says why."""
+        if self.sim is None or self.start_X_WO is None:
+            raise ValueError("select a workpiece first")
+        name = self.sim.world.workpiece
+        path = self.path_history()
+        start_X_WO = self.X_WO | {name: self.start_X_WO}
+        choice = choose_grasp(
+            self.robot,
+            self.scene,
+            name,
+            start_X_WO,
+            [step.X_WO for step in path],
+            pressed_contacts(path),
+        )
+        if choice.grasp is None:
+            return choice
+        self.X_GP, self.opening_m = choice.grasp.X_GP.copy(), choice.grasp.opening_m
+        self.fingers_O = tuple(finger_parts_O(self.robot, self.X_GP, self.opening_m))
+        # The new fingers ride with the workpiece from its start pose; the state (pose,
+        # captures, path) carries over, so what was demonstrated stays the task.
+        state = self.sim.state
+        self.sim = Simulator(
+            self.scene, name, self.params, X_WO=start_X_WO, attached_O=self.fingers_O
+        )
+        self.sim.state = state
+        return choice
 
     def path_history(self) -> list[StepResult]:
         """The start state and every step since: the simulator's history records the pose

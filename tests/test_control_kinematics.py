@@ -71,7 +71,12 @@ def test_every_solution_reproduces_the_pose_and_q_is_among_them(q: np.ndarray) -
 def test_nearest_solution_to_q_is_q(q: np.ndarray) -> None:
     result = ik_nearest(ROBOT.flange_pose_W(q), q, ROBOT)
     assert result.ok, result.reason
-    tol = 1e-5 if {"wrist", "shoulder"} & set(result.singular.split("+")) else POSE_TOL
+    singular = set(result.singular.split("+"))
+    tol = 1e-5 if {"wrist", "shoulder"} & singular else POSE_TOL
+    if "elbow" in singular:
+        # q3 = acos(cos q3) near ±1 turns the cosine's rounding into √(2δ) ≈ 5e-8 rad
+        # (ELBOW_LIMIT_TOL_RAD's reason), ~1e-8 m at the flange: hypothesis found q3 = 0.
+        tol = max(tol, 1e-7)
     np.testing.assert_allclose(ROBOT.flange_pose_W(result.q), ROBOT.flange_pose_W(q), atol=tol)
     if not result.singular:
         np.testing.assert_allclose(result.q, q, atol=1e-7)

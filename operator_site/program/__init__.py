@@ -4,7 +4,9 @@
 :class:`WorkpiecePath` with its required contacts marked (:mod:`.path`), the path is deformed
 after Quinlan (:mod:`.deform`, moving each node with the contact step of :mod:`.contact_step`),
 fitted with few spatially-linear moves (:mod:`.commands`) and swept against the model before
-sending (:mod:`.check`). :func:`pick_and_place` is the straight program without deformation.
+sending (:mod:`.check`); :func:`check_feasibility` asks whether the robot can do it at all
+(:mod:`.feasibility`: its grasp, its reach, contacts it can verify by force).
+:func:`pick_and_place` is the straight program without deformation.
 """
 
 from operator_site.program.check import CheckResult, Sweeper, check_program
@@ -16,7 +18,13 @@ from operator_site.program.commands import (
     target_bias,
 )
 from operator_site.program.deform import Deformer, DeformParams, DeformResult
-from operator_site.program.generate import Generated, ProgramRefusedError, generate_program
+from operator_site.program.feasibility import Feasibility, check_feasibility
+from operator_site.program.generate import (
+    Generated,
+    ProgramInfeasibleError,
+    ProgramRefusedError,
+    generate_program,
+)
 from operator_site.program.path import (
     NodeContact,
     PathNode,
@@ -33,13 +41,16 @@ __all__ = [
     "DeformParams",
     "DeformResult",
     "Deformer",
+    "Feasibility",
     "Generated",
     "NodeContact",
     "PathNode",
+    "ProgramInfeasibleError",
     "ProgramRefusedError",
     "Sweeper",
     "WorkpiecePath",
     "build_program",
+    "check_feasibility",
     "check_program",
     "choose_grasp_yaw",
     "fit_targets",

@@ -12,6 +12,7 @@ from models.scene import Scene
 from operator_site.program.check import CheckResult, Sweeper
 from operator_site.program.commands import CommandParams, build_program
 from operator_site.program.deform import Deformer, DeformParams, DeformResult
+from operator_site.program.feasibility import Feasibility, check_feasibility
 from operator_site.program.path import WorkpiecePath, path_from_history
 from operator_site.simulator import SimParams, StepResult
 from protocol import MotionProgram
@@ -28,6 +29,17 @@ class ProgramRefusedError(ValueError):
     def __init__(self, check: CheckResult) -> None:
         super().__init__(f"program refused: {check.reason}")
         self.check = check
+
+
+class ProgramInfeasibleError(ProgramRefusedError):
+    """The program passed the sweep, but the robot cannot do it (:mod:`.feasibility`):
+    ``feasibility`` says why and at which command; ``check`` carries the same reason."""
+
+    def __init__(self, feasibility: Feasibility, check: CheckResult) -> None:
+        super().__init__(
+            replace(check, ok=False, reason=feasibility.reason, segment=feasibility.command)
+        )
+        self.feasibility = feasibility
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,10 +64,14 @@ def generate_program(
     command_params: CommandParams | None = None,
     X_WO: dict[str, np.ndarray] | None = None,
     progress: Callable[[float, str], None] | None = None,
+    feasible: bool = True,
 ) -> Generated:
     """The motion program for the task in ``history``; raises :class:`ProgramRefusedError` if its
-    sweep finds a collision or a lost contact. ``X_WO`` overrides the scene's object poses, as
-    for the simulator (pass the task session's ``X_WO``: the poses the simulation used).
+    sweep finds a collision or a lost contact, and with ``feasible``
+    :class:`ProgramInfeasibleError` if the robot cannot do it (:func:`check_feasibility`: its
+    grasp, its reach, a contact it could not verify). ``X_WO`` overrides the scene's object
+    poses, as for the simulator (pass the task session's ``X_WO``: the poses the simulation
+    used).
     ``progress(fraction, stage)`` is called as each stage begins (fraction of the work done)."""
     say = progress or (lambda _fraction, _stage: None)
     say(0.05, "reading the path")
@@ -72,6 +88,10 @@ def generate_program(
         say(0.85, "checking every move for collisions")
         check = sweeper.program(program)
         if check.ok:
+            if feasible:  # quick (tens of ms): no progress stage of its own
+                verdict = check_feasibility(scene, workpiece, program, attached_O, X_WO)
+                if not verdict.ok:
+                    raise ProgramInfeasibleError(verdict, check)
             return Generated(program, raw, deformed, check)
         if deformed.settled or deform_params.max_sweeps >= REFUSED_RETRY_MAX_SWEEPS:
             raise ProgramRefusedError(check)

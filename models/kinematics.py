@@ -1,0 +1,260 @@
+"""Closed-form kinematics of the Puma-type arm (§III-A): all IK solutions, the nearest one, and
+the flange Jacobian.
+
+The arm (models/robots/puma.urdf): joint 1 about z at the base; joints 2 and 3 about y, an upper
+arm of length a and a forearm of length b pointing up (+z) at q = 0; a spherical wrist (z, y, z
+axes meeting at the wrist centre); the flange a distance f beyond it. The lengths are read from
+the model, and a model that is not of this shape is refused. Frames: B robot base, F flange,
+G gripper TCP; ``X_BF`` is the flange in the base frame.
+
+Shared by both sites: the work site moves the arm with it, and the operator site checks a
+program's reach with the same solutions before sending it.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.robot import FLANGE_LINK, TCP_LINK, RobotModel
+from models.transforms import invert_pose
+
+STRUCTURE_TOL_M = 1e-9
+"""Offsets the closed form assumes to be zero must be below this (m)."""
+SINGULAR_WRIST_RAD = 1e-6
+"""|sin q5| below this: joints 4 and 6 turn about one axis (wrist singularity)."""
+SINGULAR_SHOULDER_M = 1e-6
+"""Wrist centre this close to the joint-1 axis: q1 is undetermined (shoulder singularity)."""
+SINGULAR_ELBOW = 1e-9
+"""|cos q3| within this of 1: the arm is fully stretched or folded (elbow singularity)."""
+JOINT_LIMIT_TOL_RAD = 1e-9
+"""A solution this close outside a joint limit is put on the limit (rounding), not refused."""
+ELBOW_LIMIT_TOL_RAD = 3e-7
+"""The same for q2 and q3 at the elbow singularity: there q3 = acos(cos q3) with cos q3 ≈ ±1,
+where a rounding error δ of the cosine (~1e-15) becomes √(2δ) ≈ 5e-8 rad of q3, and q2 follows."""
+REACH_TOL_M = 1e-9
+"""A wrist centre this much beyond reach is still taken as reachable (rounding)."""
+_AXES = ((0, 0, 1), (0, 1, 0), (0, 1, 0), (0, 0, 1), (0, 1, 0), (0, 0, 1))
+
+
+@dataclass(frozen=True)
+class ArmGeometry:
+    """The lengths of the closed form (m), read from a robot model."""
+
+    shoulder_height_m: float
+    upper_arm_m: float
+    forearm_m: float
+    wrist_to_flange_m: float
+    X_FG: np.ndarray
+    """The gripper TCP in the flange frame (fixed)."""
+
+
+def arm_geometry(robot: RobotModel) -> ArmGeometry:
+    """Read the lengths from ``robot``; ValueError if it is not a zero-offset Puma-type arm."""
+    if len(robot.arm_joints) != 6:
+        raise ValueError(f"{robot.source}: expected 6 arm joints, got {len(robot.arm_joints)}")
+    offsets = []
+    for name, axis in zip(robot.arm_joints, _AXES, strict=True):
+        j = robot.joint(name)
+        if not np.allclose(j.axis, axis, atol=STRUCTURE_TOL_M):
+            raise ValueError(f"{robot.source}: {name} axis {j.axis.tolist()} is not {axis}")
+        if (
+            np.max(np.abs(j.X_PJ[:3, :3] - np.eye(3))) > STRUCTURE_TOL_M
+            or np.max(np.abs(j.X_PJ[:2, 3])) > STRUCTURE_TOL_M
+        ):
+            raise ValueError(
+                f"{robot.source}: {name} has a rotated or sideways origin; the "
+                "closed form needs offsets along z only"
+            )
+        offsets.append(float(j.X_PJ[2, 3]))
+    if abs(offsets[0]) > STRUCTURE_TOL_M or max(abs(offsets[4]), abs(offsets[5])) > STRUCTURE_TOL_M:
+        raise ValueError(f"{robot.source}: joints 1, 5 and 6 must sit where their parents end")
+    q0 = np.zeros(6)
+    poses = robot.link_poses_W(q0)
+    X_W6 = poses[robot.joint(robot.arm_joints[5]).child]
+    X_WF = poses[FLANGE_LINK]
+    X_6F = invert_pose(X_W6) @ X_WF
+    if (
+        np.max(np.abs(X_6F[:3, :3] - np.eye(3))) > STRUCTURE_TOL_M
+        or np.max(np.abs(X_6F[:2, 3])) > STRUCTURE_TOL_M
+    ):
+        raise ValueError(f"{robot.source}: the flange must lie on joint 6's axis, unrotated")
+    return ArmGeometry(
+        shoulder_height_m=offsets[1],
+        upper_arm_m=offsets[2],
+        forearm_m=offsets[3],
+        wrist_to_flange_m=float(X_6F[2, 3]),
+        X_FG=invert_pose(X_WF) @ poses[TCP_LINK],
+    )
+
+
+@dataclass(frozen=True)
+class IkResult:
+    """The chosen joint angles (6,) rad, whether they reach the target, and why not."""
+
+    q: np.ndarray | None
+    ok: bool
+    reason: str = ""
+    singular: str = ""
+    """The singularities the target sits on ("elbow", "shoulder", "wrist", joined by "+"); q is
+    still valid there."""
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+def _Ry(t: float) -> np.ndarray:
+    c, s = math.cos(t), math.sin(t)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _Rz(t: float) -> np.ndarray:
+    c, s = math.cos(t), math.sin(t)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def ik_flange(
+    X_BF: np.ndarray,
+    robot: RobotModel,
+    q_hint: np.ndarray | None = None,
+    geometry: ArmGeometry | None = None,
+) -> tuple[list[np.ndarray], str]:
+    """All joint solutions for flange pose ``X_BF`` and the singularities met.
+
+    Each solution is (6,) rad in (−π, π], joint limits not applied; singularities are "" or
+    names joined by "+". ``q_hint`` fills the joints a singularity leaves free (q1 at the
+    shoulder, q4 at the wrist). An empty list: the wrist centre is out of reach."""
+    g = geometry or arm_geometry(robot)
+    hint = np.zeros(6) if q_hint is None else np.asarray(q_hint, dtype=np.float64)
+    R = X_BF[:3, :3]
+    p_wrist = X_BF[:3, 3] - g.wrist_to_flange_m * R[:, 2]
+    x, y = p_wrist[0], p_wrist[1]
+    h = p_wrist[2] - g.shoulder_height_m
+    rho = math.hypot(x, y)
+    a, b = g.upper_arm_m, g.forearm_m
+    cos3 = (rho * rho + h * h - a * a - b * b) / (2 * a * b)
+    if abs(cos3) > 1 + REACH_TOL_M / (a * b):
+        return [], ""
+    cos3 = max(-1.0, min(1.0, cos3))
+    singular: set[str] = set()
+    if rho < SINGULAR_SHOULDER_M:
+        singular.add("shoulder")
+        # Any q1 will do; keeping the current one costs at most SINGULAR_SHOULDER_M of position.
+        q1_options = [(float(hint[0]), 0.0)]
+    else:
+        q1 = math.atan2(y, x)
+        q1_options = [(q1, rho), (_wrap(q1 + math.pi), -rho)]
+    if 1 - abs(cos3) < SINGULAR_ELBOW:
+        singular.add("elbow")
+    solutions = []
+    for (q1, r), sign3 in itertools.product(q1_options, (1.0, -1.0)):
+        q3 = sign3 * math.acos(cos3)
+        q2 = math.atan2(r, h) - math.atan2(b * math.sin(q3), a + b * math.cos(q3))
+        R_36 = (_Rz(q1) @ _Ry(q2 + q3)).T @ R  # the wrist's rotation: Rz(q4) Ry(q5) Rz(q6)
+        s5 = math.hypot(R_36[0, 2], R_36[1, 2])
+        if s5 < SINGULAR_WRIST_RAD:
+            # Keep q4 where it is and solve Ry(q5) Rz(q6) = Rz(−q4) R_36 for the rest: the pose
+            # error is at most sin(q5)·|Δq4| < SINGULAR_WRIST_RAD·π, and q4 does not spin.
+            singular.add("wrist")
+            q4 = float(hint[3])
+            M = _Rz(-q4) @ R_36
+            q5 = math.atan2(M[0, 2], M[2, 2])
+            q6 = math.atan2(M[1, 0], M[1, 1])
+            wrists = [(q4, q5, q6)]
+        else:
+            q4 = math.atan2(R_36[1, 2], R_36[0, 2])
+            q5 = math.atan2(s5, R_36[2, 2])
+            q6 = math.atan2(R_36[2, 1], -R_36[2, 0])
+            wrists = [(q4, q5, q6), (q4 + math.pi, -q5, q6 + math.pi)]
+        for q4, q5, q6 in wrists:
+            solutions.append(np.array([_wrap(v) for v in (q1, q2, q3, q4, q5, q6)]))
+    return solutions, "+".join(sorted(singular))
+
+
+def ik_nearest(
+    X_WF: np.ndarray,
+    q_current: np.ndarray,
+    robot: RobotModel,
+    X_WB: np.ndarray | None = None,
+    geometry: ArmGeometry | None = None,
+    weights: np.ndarray | None = None,
+) -> IkResult:
+    """The solution within joint limits nearest ``q_current`` (weighted, each joint taken the
+    short way round where its limits allow), or the reason there is none."""
+    g = geometry or arm_geometry(robot)
+    X_BF = X_WF if X_WB is None else invert_pose(X_WB) @ X_WF
+    q_current = np.asarray(q_current, dtype=np.float64)
+    solutions, singular = ik_flange(X_BF, robot, q_current, g)
+    if not solutions:
+        p_wrist = X_BF[:3, 3] - g.wrist_to_flange_m * X_BF[:3, 2]
+        d = float(np.linalg.norm(p_wrist - [0.0, 0.0, g.shoulder_height_m]))
+        return IkResult(
+            None,
+            False,
+            f"unreachable: wrist centre {d:.3f} m from the shoulder, "
+            f"reach {g.upper_arm_m + g.forearm_m:.3f} m",
+        )
+    limit_tol = np.full(6, JOINT_LIMIT_TOL_RAD)
+    if "elbow" in singular.split("+"):
+        limit_tol[1:3] = ELBOW_LIMIT_TOL_RAD
+    lo, hi = robot.q_lower - limit_tol, robot.q_upper + limit_tol
+    w = np.ones(6) if weights is None else np.asarray(weights, dtype=np.float64)
+    best, best_cost, violations = None, math.inf, []
+    for q in solutions:
+        # Each joint may also be reached one turn away, if that is inside its limits.
+        q = q.copy()
+        for i in range(6):
+            for candidate in (q[i] - 2 * math.pi, q[i], q[i] + 2 * math.pi):
+                if lo[i] <= candidate <= hi[i] and (
+                    not lo[i] <= q[i] <= hi[i]
+                    or abs(candidate - q_current[i]) < abs(q[i] - q_current[i])
+                ):
+                    q[i] = candidate
+        outside = [
+            f"{robot.arm_joints[i]} {q[i]:+.3f} not in [{lo[i]:+.2f}, {hi[i]:+.2f}]"
+            for i in range(6)
+            if not lo[i] <= q[i] <= hi[i]
+        ]
+        if outside:
+            violations.append(outside[0])
+            continue
+        q = np.clip(q, robot.q_lower, robot.q_upper)
+        cost = float(np.sum(w * (q - q_current) ** 2))
+        if cost < best_cost:
+            best, best_cost = q, cost
+    if best is None:
+        return IkResult(None, False, f"outside joint limits ({violations[0]})", singular)
+    return IkResult(best, True, "", singular)
+
+
+def ik_tcp(
+    X_WG: np.ndarray,
+    q_current: np.ndarray,
+    robot: RobotModel,
+    X_WB: np.ndarray | None = None,
+    geometry: ArmGeometry | None = None,
+) -> IkResult:
+    """:func:`ik_nearest` for a gripper TCP target ``X_WG``."""
+    g = geometry or arm_geometry(robot)
+    return ik_nearest(X_WG @ invert_pose(g.X_FG), q_current, robot, X_WB, g)
+
+
+def geometric_jacobian_W(
+    q: np.ndarray, robot: RobotModel, X_WB: np.ndarray | None = None
+) -> np.ndarray:
+    """(6, 6) Jacobian of the flange origin: rows 0–2 linear velocity (m/s), 3–5 angular
+    velocity (rad/s), both in W, per joint rate (rad/s)."""
+    poses = robot.link_poses_W(q, 0.0, X_WB)
+    p_F = poses[FLANGE_LINK][:3, 3]
+    J = np.zeros((6, 6))
+    for i, name in enumerate(robot.arm_joints):
+        joint = robot.joint(name)
+        X_WJ = poses[joint.child]  # the child link frame is the joint frame at q
+        z = X_WJ[:3, :3] @ joint.axis
+        J[:3, i] = np.cross(z, p_F - X_WJ[:3, 3])
+        J[3:, i] = z
+    return J

@@ -1,0 +1,331 @@
+"""Can the robot do this program at all? Checked at the operator site before sending, with the
+reason in plain words (the sweep of :mod:`.check` asks only whether it collides).
+
+Three questions, each answered with the work site's own rules:
+
+- every contact the program expects must be one the robot can verify: the work site verifies a
+  contact by the wrist force along its normal (``work_site/control/executor.py``), so a contact
+  that no motion presses into (a face the block only touches, moves away from or slides past
+  with no bias into it) reads 0 N there and fails the program half done;
+- the program's grasp must exist: from above, the faces it holds no wider apart than the
+  gripper opens, enough of the pads on the block, no finger on the way down or along the path
+  into anything, none between the workpiece and a surface it presses
+  (:func:`operator_site.grasp.grasp_problem`);
+- every gripper pose the program's motions aim at must be in the work site's workspace box and
+  reachable within the joint limits, by the same closed-form IK the work site's acceptance check
+  uses (:mod:`models.kinematics`), followed command after command from the arm's home.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import nnls
+
+from models.geometry import ConvexPart
+from models.kinematics import arm_geometry, ik_tcp
+from models.robot import RobotModel, load_robot
+from models.scene import Scene
+from models.transforms import invert_pose
+from operator_site.grasp import (
+    GRASP_CLEARANCE_M,
+    MIN_GRIP_AREA_M2,
+    Grasp,
+    PressedContact,
+    grasp_problem,
+    grip_area_m2,
+)
+from operator_site.program.commands import CommandParams
+from operator_site.simulator.world import SimWorld
+from protocol import MotionCommand, MotionProgram
+from protocol.messages import contact_directions, target_bias
+
+# The work site's rules, as its executor and controller state them (tests/test_feasibility.py
+# checks that these equal theirs: the operator site may not import work_site).
+CONTACT_VERIFY_N = 1.0
+"""Force along a contact's normal that verifies it (N)."""
+NORMAL_STIFFNESS_N_PER_M = 1000.0
+"""The contact moves' impedance stiffness along the contact normals (N/m)."""
+TARGET_BIAS_M = CommandParams.target_bias_m
+"""d of §VI-B: how far past each contact a contact move aims (m)."""
+TARGET_BIAS_MAX_M = 2 * TARGET_BIAS_M
+"""Bound on the bias's length (m)."""
+GRASP_APPROACH_M = 0.06
+"""A grasp approaches from this far above the grasp pose (m)."""
+GRASP_LIFT_M = 0.005
+"""After closing, the block is lifted this far (m)."""
+GUARD_OVERTRAVEL_M = 0.01
+"""A guarded move aims this far past its target (m)."""
+WORKSPACE_MIN_W = np.array([0.10, -0.45, 0.02])
+"""Lowest corner of the box every TCP target must lie in (m)."""
+WORKSPACE_MAX_W = np.array([0.75, 0.45, 0.50])
+FROM_ABOVE_COS = float(np.cos(np.pi / 4))
+"""A grasp comes from above when the gripper's z is within 45° of straight down: the work site
+descends onto it vertically, and the finger model here measures pads on vertical faces."""
+_UP_W = np.array([0.0, 0.0, 1.0])
+_CARRYING = ("guarded_grasp", "move", "guarded_move", "contact_move")
+
+
+@dataclass(frozen=True)
+class Feasibility:
+    """Whether the robot can do a program: ``ok``; when not, the ``reason`` in plain words,
+    the index of the ``command`` it concerns and which ``check`` refused it ("contact",
+    "grasp" or "reach")."""
+
+    ok: bool
+    reason: str = ""
+    command: int | None = None
+    check: str = ""
+
+
+def _where(k: int, cmd: MotionCommand) -> str:
+    return f"command {k} ({cmd.kind})"
+
+
+def _gaps_m(world: SimWorld, X_WP: np.ndarray, names: set[str]) -> dict[str, float]:
+    """Distance (m, ≥ 0) from the workpiece at ``X_WP`` to each named object. The block's own
+    parts only: a finger passing over a bar is near it, but it is the block that is pressed."""
+    out: dict[str, float] = {}
+    for name in names:
+        parts = np.flatnonzero(np.array(world.obstacle_object) == name)
+        pairs = world.distances(X_WP, parts) if len(parts) else []
+        own = (p.distance_m for p in pairs if p.wp_part < world.n_own_parts)
+        out[name] = max(0.0, min(own, default=np.inf))
+    return out
+
+
+def predicted_contact_forces_n(
+    program: MotionProgram, k: int, gaps_m: dict[str, float]
+) -> list[tuple[str, np.ndarray, float]]:
+    """The force (N) the work site would read along each contact direction of command ``k``
+    when it verifies it, as (object, unit normal, force) in :func:`contact_directions` order.
+
+    A contact move's impedance aims past the target by the bias Δp of §VI-B: each contact is
+    pressed by stiffness × (how far Δp reaches into it − its gap in the model); a guarded move
+    stops on the force against its motion, at its force limit. The wrist force is split over
+    the contact normals by non-negative least squares, as the work site does."""
+    cmd = program.commands[k]
+    directions = contact_directions(cmd.contacts)
+    N = np.array([n for _, n in directions]).reshape(-1, 3)
+    if cmd.kind == "contact_move":
+        dp = target_bias(N, TARGET_BIAS_M, TARGET_BIAS_MAX_M)
+        depth = np.array([-(n @ dp) - gaps_m.get(name, 0.0) for name, n in directions])
+        force_W = NORMAL_STIFFNESS_N_PER_M * np.maximum(depth, 0.0) @ N
+    else:  # guarded_move: the force that stops it is against its motion
+        here = program.commands[k - 1].X_WP if k > 0 else cmd.X_WP
+        direction = np.asarray(cmd.X_WP)[:3, 3] - np.asarray(here)[:3, 3]
+        if np.linalg.norm(direction) > 0.0:
+            against = -direction / np.linalg.norm(direction)
+        else:
+            against = N.sum(axis=0)
+            against /= np.linalg.norm(against)
+        force_W = cmd.force_limit_n * against
+    f = nnls(N.T, force_W)[0]
+    return [(name, n, float(fi)) for (name, n), fi in zip(directions, f, strict=True)]
+
+
+def contact_feasibility(
+    scene: Scene,
+    workpiece: str,
+    program: MotionProgram,
+    attached_O: tuple[ConvexPart, ...] = (),
+    X_WO: dict[str, np.ndarray] | None = None,
+) -> Feasibility:
+    """Refuse a program with a contact the work site would verify (a contact move's or a
+    guarded move's) but that its motion does not press with :data:`CONTACT_VERIFY_N`."""
+    poses = {o.name: o.X_WO for o in scene.objects} | (X_WO or {})
+    world = SimWorld(scene, workpiece, poses, attached_O)
+    for k, cmd in enumerate(program.commands):
+        if cmd.kind not in ("contact_move", "guarded_move") or not cmd.contacts:
+            continue
+        gaps = _gaps_m(world, np.asarray(cmd.X_WP), {c.object for c in cmd.contacts})
+        for name, n, force_n in predicted_contact_forces_n(program, k, gaps):
+            if force_n >= CONTACT_VERIFY_N:
+                continue
+            how = (
+                "the move stops on the force against its motion"
+                if cmd.kind == "guarded_move"
+                else f"the block is {gaps[name] * 1e3:.1f} mm from it in the model"
+                if gaps[name] > 0.0
+                else "the move's bias does not push into it"
+            )
+            return Feasibility(
+                False,
+                f"{_where(k, cmd)}: the contact with the {name} (normal "
+                f"{np.round(n, 2).tolist()}) cannot be verified: the robot would press it with "
+                f"{force_n:.1f} N, the work site needs {CONTACT_VERIFY_N:.1f} N ({how}). "
+                f"The {workpiece} must be pressed against the {name}, or that contact removed "
+                "from the goal.",
+                k,
+                "contact",
+            )
+    return Feasibility(True)
+
+
+def _carried(program: MotionProgram) -> list[int]:
+    """Indices of the commands from the grasp up to the release (the workpiece is held)."""
+    out = []
+    for k, cmd in enumerate(program.commands):
+        if cmd.kind not in _CARRYING:
+            break
+        out.append(k)
+    return out
+
+
+def grasp_feasibility(
+    robot: RobotModel,
+    scene: Scene,
+    workpiece: str,
+    program: MotionProgram,
+    X_WO: dict[str, np.ndarray] | None = None,
+) -> Feasibility:
+    """Refuse a program whose grasp cannot exist: not from above, the faces it holds wider apart
+    than the gripper opens, too little of the pads on the block, or a finger in the way on the
+    way down, along the program's targets or between the workpiece and a surface a command
+    presses."""
+    commands = program.commands
+    if not commands or commands[0].kind != "guarded_grasp":
+        return Feasibility(False, "the program must start with a guarded grasp", 0, "grasp")
+    X_GP = np.asarray(program.X_GP, dtype=np.float64)
+    z_G_W = (np.asarray(commands[0].X_WP) @ invert_pose(X_GP))[:3, 2]
+    if float(z_G_W @ -_UP_W) < FROM_ABOVE_COS:
+        return Feasibility(
+            False,
+            f"the grasp does not hold the {workpiece} from above (the gripper would point "
+            f"{np.round(z_G_W, 2).tolist()}): the robot comes down onto every grasp from above",
+            0,
+            "grasp",
+        )
+    model = scene.object(workpiece).model
+    d_O = invert_pose(X_GP)[:3, 1]
+    V = np.vstack([p.vertices_O for p in model.parts])
+    opening = float(np.ptp(V @ d_O))
+    if opening + 2 * GRASP_CLEARANCE_M > robot.finger_opening_max:
+        return Feasibility(
+            False,
+            f"the grasp holds the {workpiece} across {opening:.3f} m: the gripper opens "
+            f"{robot.finger_opening_max:.3f} m, which leaves less than {GRASP_CLEARANCE_M:.3f} m "
+            "each side to close on it; choose the grasp again",
+            0,
+            "grasp",
+        )
+    area = grip_area_m2(robot, scene, workpiece, X_GP)
+    if area < MIN_GRIP_AREA_M2:
+        return Feasibility(
+            False,
+            f"the grasp's finger pads would touch only {area * 1e4:.1f} cm² of the {workpiece} "
+            f"(at least {MIN_GRIP_AREA_M2 * 1e4:.1f} cm² holds it); choose the grasp again",
+            0,
+            "grasp",
+        )
+    carried = _carried(program)
+    start = np.asarray(commands[0].X_WP, dtype=np.float64)
+    poses = {o.name: o.X_WO for o in scene.objects} | (X_WO or {}) | {workpiece: start}
+    path = [np.asarray(commands[k].X_WP) for k in carried]
+    pressed = [
+        PressedContact(c.object, np.asarray(c.normals_W), np.asarray(commands[k].X_WP))
+        for k in carried
+        if commands[k].kind in ("contact_move", "guarded_move")
+        for c in commands[k].contacts
+    ]
+    grasp = Grasp(X_GP, opening, "the program's grasp", area)
+    problem = grasp_problem(robot, scene, workpiece, poses, grasp, path, pressed)
+    if problem:
+        return Feasibility(False, f"{problem}; choose the grasp again", 0, "grasp")
+    return Feasibility(True)
+
+
+def gripper_targets_W(program: MotionProgram, k: int) -> list[np.ndarray]:
+    """The TCP poses ``X_WG`` command ``k``'s motions aim at, in order, as the work site
+    expands it: a grasp's approach from above, the grasp and its lift; a guarded move's
+    overtravel; a contact move's biased target; a move's target."""
+    cmd = program.commands[k]
+    if cmd.kind not in _CARRYING:
+        return []
+    X_WG = np.asarray(cmd.X_WP) @ invert_pose(np.asarray(program.X_GP))
+    if cmd.kind == "guarded_grasp":
+        above, lifted = X_WG.copy(), X_WG.copy()
+        above[2, 3] += GRASP_APPROACH_M
+        lifted[2, 3] += GRASP_LIFT_M
+        return [above, X_WG, lifted]
+    if cmd.kind == "contact_move" and cmd.contacts:
+        biased = X_WG.copy()
+        N = np.array([n for _, n in contact_directions(cmd.contacts)])
+        biased[:3, 3] += target_bias(N, TARGET_BIAS_M, TARGET_BIAS_MAX_M)
+        return [biased]
+    if cmd.kind == "guarded_move":
+        here = program.commands[k - 1].X_WP if k > 0 else cmd.X_WP
+        direction = np.asarray(cmd.X_WP)[:3, 3] - np.asarray(here)[:3, 3]
+        if np.linalg.norm(direction) > 0.0:
+            along = direction / np.linalg.norm(direction)
+        else:  # no motion: the work site presses along the expected contacts' normals
+            normals = [n for _, n in contact_directions(cmd.contacts)] or [-_UP_W]
+            along = -np.sum(normals, axis=0) / np.linalg.norm(np.sum(normals, axis=0))
+        beyond = X_WG.copy()
+        beyond[:3, 3] += GUARD_OVERTRAVEL_M * along
+        return [beyond]
+    return [X_WG]
+
+
+def reach_feasibility(
+    robot: RobotModel,
+    program: MotionProgram,
+    q_start: np.ndarray,
+    X_WB: np.ndarray | None = None,
+) -> Feasibility:
+    """Refuse a program with a gripper target outside the work site's workspace box or out of
+    the arm's reach within its joint limits, followed from ``q_start`` (rad) target after
+    target as the work site's acceptance check does."""
+    geometry = arm_geometry(robot)
+    q = np.asarray(q_start, dtype=np.float64)
+    for k, cmd in enumerate(program.commands):
+        X_WG_cmd = np.asarray(cmd.X_WP) @ invert_pose(np.asarray(program.X_GP))
+        p = X_WG_cmd[:3, 3]
+        if cmd.kind in _CARRYING and (np.any(p < WORKSPACE_MIN_W) or np.any(p > WORKSPACE_MAX_W)):
+            return Feasibility(
+                False,
+                f"{_where(k, cmd)}: the gripper would go to {np.round(p, 3).tolist()} m, outside "
+                f"the robot's workspace {WORKSPACE_MIN_W.tolist()}–{WORKSPACE_MAX_W.tolist()} m",
+                k,
+                "reach",
+            )
+        for X_WG in gripper_targets_W(program, k):
+            result = ik_tcp(X_WG, q, robot, X_WB, geometry)
+            if not result.ok:
+                return Feasibility(
+                    False,
+                    f"{_where(k, cmd)}: the arm cannot reach the gripper pose at "
+                    f"{np.round(X_WG[:3, 3], 3).tolist()} m ({result.reason})",
+                    k,
+                    "reach",
+                )
+            q = result.q
+    return Feasibility(True)
+
+
+def check_feasibility(
+    scene: Scene,
+    workpiece: str,
+    program: MotionProgram,
+    attached_O: tuple[ConvexPart, ...] = (),
+    X_WO: dict[str, np.ndarray] | None = None,
+    robot: RobotModel | None = None,
+    q_start: Sequence[float] | None = None,
+) -> Feasibility:
+    """Whether the robot can do ``program`` for ``workpiece``: its grasp exists, every gripper
+    pose is reachable and every contact it expects can be verified; the first refusal found,
+    grasp first. ``X_WO`` overrides the scene's object poses (the task session's);
+    ``attached_O`` are the fingers of the program's grasp, as the simulator had them;
+    ``q_start`` the arm's joints when the program starts (default: its home)."""
+    robot = robot or load_robot(scene.robot.urdf_path)
+    q0 = scene.robot.q_home_rad if q_start is None else np.asarray(q_start, dtype=np.float64)
+    for result in (
+        grasp_feasibility(robot, scene, workpiece, program, X_WO),
+        reach_feasibility(robot, program, q0, scene.robot.X_WB),
+        contact_feasibility(scene, workpiece, program, attached_O, X_WO),
+    ):
+        if not result.ok:
+            return result
+    return Feasibility(True)

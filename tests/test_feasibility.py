@@ -1,0 +1,229 @@
+"""The check before sending (operator_site/program/feasibility.py): a program the robot cannot do
+is refused with the reason in plain words and the command it concerns. Real geometry and the
+arm's own IK; programs made by the task session and the program generator where they can be."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from models.robot import load_robot
+from models.scene import load_scene
+from models.transforms import make_pose, rpy_to_R
+from operator_site.program import (
+    check_feasibility,
+    choose_grasp_yaw,
+    generate_program,
+    pick_and_place,
+)
+from operator_site.program import feasibility as fz
+from operator_site.program.commands import contact_states
+from operator_site.program.path import path_from_history
+from operator_site.task import TaskSession
+from protocol import ContactState, MotionCommand, MotionProgram
+from work_site.control import controller, executor
+
+SCENE = load_scene()
+ROBOT = load_robot(SCENE.robot.urdf_path)
+
+
+def test_the_rules_are_the_work_sites() -> None:
+    """The operator site may not import work_site: its copies of the rules must agree."""
+    assert fz.CONTACT_VERIFY_N == executor.CONTACT_VERIFY_N
+    assert fz.TARGET_BIAS_M == executor.TARGET_BIAS_M
+    assert fz.TARGET_BIAS_MAX_M == executor.TARGET_BIAS_MAX_M
+    assert fz.GRASP_APPROACH_M == executor.GRASP_APPROACH_M
+    assert fz.GRASP_LIFT_M == executor.GRASP_LIFT_M
+    assert fz.GUARD_OVERTRAVEL_M == executor.GUARD_OVERTRAVEL_M
+    np.testing.assert_array_equal(fz.WORKSPACE_MIN_W, executor.WORKSPACE_MIN_W)
+    np.testing.assert_array_equal(fz.WORKSPACE_MAX_W, executor.WORKSPACE_MAX_W)
+    assert fz.NORMAL_STIFFNESS_N_PER_M == controller.Impedance().stiffness_n_per_m
+    # The work site opens the fingers as wide as the operator's finger model does.
+    assert executor.GRIPPER_OPEN_M == pytest.approx(ROBOT.finger_opening_max)
+
+
+def _cube_against_the_frame() -> TaskSession:
+    """The natural first drag: the cube from where it lies straight into the frame's outer
+    face near the frame's corner, touching frame and table."""
+    session = TaskSession(SCENE)
+    session.select("cube")
+    target = session.X_WO["cube"].copy()
+    target[:3, 3] = (0.345, -0.12, 0.02)
+    session.set_target(target)
+    for _ in range(200):
+        session.step()
+    goal = session.path_history()[-1]
+    assert {c.object for c in goal.contacts} == {"table", "frame"}
+    return session
+
+
+@pytest.fixture(scope="module")
+def against_frame():
+    session = _cube_against_the_frame()
+    X_GP = choose_grasp_yaw(session.start_X_WO, session.X_GP)
+    generated = generate_program(
+        "cube-frame",
+        SCENE,
+        "cube",
+        session.path_history(),
+        X_GP,
+        attached_O=session.fingers_O,
+        X_WO=session.X_WO,
+    )
+    return session, generated.program
+
+
+def test_a_generated_program_pressing_the_frame_is_feasible(against_frame) -> None:
+    session, program = against_frame
+    result = check_feasibility(SCENE, "cube", program, session.fingers_O, session.X_WO)
+    assert result.ok, result.reason
+    assert result.command is None and result.reason == ""
+
+
+def test_touching_the_frame_but_never_pressing_it_is_refused_naming_the_frame(
+    against_frame,
+) -> None:
+    """Set down next to the frame with the goal's contacts: the guarded move down presses only
+    the table, and the work site would read 0 N from the frame."""
+    session, generated = against_frame
+    path = path_from_history(session.path_history(), "cube", SCENE.object("cube").model.com_O)
+    goal = path.nodes[-1]
+    program = pick_and_place("set-down", path.nodes[0].X_WO, goal.X_WO, generated.X_GP)
+    k = next(i for i, c in enumerate(program.commands) if c.kind == "guarded_move")
+    commands = list(program.commands)
+    commands[k] = replace(commands[k], contacts=contact_states(goal))
+    program = replace(program, commands=tuple(commands))
+    result = check_feasibility(SCENE, "cube", program, session.fingers_O, session.X_WO)
+    assert not result.ok and result.check == "contact" and result.command == k
+    assert "the contact with the frame" in result.reason
+    assert "0.0 N" in result.reason
+    assert "must be pressed against the frame, or that contact removed" in result.reason
+
+
+@pytest.mark.parametrize(("off_m", "ok"), [(0.002, True), (0.0045, False)])
+def test_a_contact_the_bias_cannot_reach_is_refused(against_frame, off_m, ok) -> None:
+    """The goal's frame contact with the block off the frame in the model: the 5 mm bias at
+    1,000 N/m presses it with (5 mm − gap) × 1 N/mm, verified from 1 N."""
+    session, program = against_frame
+    k = max(i for i, c in enumerate(program.commands) if c.kind == "contact_move")
+    moved = program.commands[k].X_WP.copy()
+    moved[1, 3] -= off_m  # away from the frame's face (its normal is −y)
+    commands = list(program.commands)
+    commands[k] = replace(commands[k], X_WP=moved)
+    program = replace(program, commands=tuple(commands))
+    result = check_feasibility(SCENE, "cube", program, session.fingers_O, session.X_WO)
+    assert result.ok is ok, result.reason
+    if not ok:
+        assert result.check == "contact" and result.command == k
+        assert "the contact with the frame" in result.reason and "mm from it" in result.reason
+
+
+def test_a_program_needing_an_unreachable_pose_is_refused() -> None:
+    """A carry inside the work site's workspace box but beyond the arm's reach."""
+    X_WO = SCENE.object("cube").X_WO
+    far = make_pose(X_WO[:3, :3], (0.74, 0.44, 0.025))
+    program = pick_and_place("far", X_WO, far, _plain_grasp())
+    result = check_feasibility(SCENE, "cube", program)
+    assert not result.ok and result.check == "reach"
+    assert result.command == 2  # the carry over to the far pose
+    assert "the arm cannot reach" in result.reason and "unreachable" in result.reason
+
+
+def test_a_program_outside_the_workspace_is_refused() -> None:
+    X_WO = SCENE.object("cube").X_WO
+    off = make_pose(X_WO[:3, :3], (0.80, 0.0, 0.025))
+    result = check_feasibility(SCENE, "cube", pick_and_place("off", X_WO, off, _plain_grasp()))
+    assert not result.ok and result.check == "reach" and result.command == 2
+    assert "outside the robot's workspace" in result.reason
+
+
+def _plain_grasp() -> np.ndarray:
+    """The cube's grasp from above, as the session chooses it."""
+    session = TaskSession(SCENE)
+    session.select("cube")
+    return choose_grasp_yaw(session.X_WO["cube"], session.X_GP)
+
+
+def test_a_grasp_wider_than_the_gripper_opens_is_refused() -> None:
+    """The plank held by its ends, 0.10 m apart."""
+    X_WO = SCENE.object("plank").X_WO
+    X_OG = make_pose(rpy_to_R(np.array([np.pi, 0.0, 0.5 * np.pi])), (0.0, 0.0, 0.0085))
+    program = pick_and_place("ends", X_WO, X_WO, np.linalg.inv(X_OG))
+    result = check_feasibility(SCENE, "plank", program)
+    assert not result.ok and result.check == "grasp" and result.command == 0
+    assert "across 0.100 m" in result.reason
+
+
+def test_a_grasp_with_a_finger_between_the_block_and_the_wall_is_refused() -> None:
+    """The plank pushed side-first against a bar while held across its width: the finger on
+    the pressed side is between the plank and the bar."""
+    session = TaskSession(SCENE)
+    R = rpy_to_R(np.array([0.0, 0.0, 0.5 * np.pi]))
+    session.X_WO["plank"] = make_pose(R, (0.45, 0.0, 0.0125))
+    session.select("plank")
+    start = session.X_WO["plank"].copy()
+    goal = start.copy()
+    goal[0, 3] = 0.55 - 0.025 - 1e-4  # its long side on the bar's inner face
+    frame = ContactState(object="frame", normals_W=np.array([[-1.0, 0.0, 0.0]]))
+    table = ContactState(object="table", normals_W=np.array([[0.0, 0.0, 1.0]]))
+    commands = (
+        MotionCommand("guarded_grasp", start, 0.1, 10.0, (table,)),
+        MotionCommand("contact_move", goal, 0.01, 30.0, (table, frame)),
+        MotionCommand("release", goal, 0.0, 10.0, (table, frame)),
+    )
+    program = MotionProgram(program_id="side", X_GP=session.X_GP, commands=commands)
+    result = check_feasibility(SCENE, "plank", program, session.fingers_O, session.X_WO)
+    assert not result.ok and result.check == "grasp"
+    assert "a finger would be between the plank and the frame" in result.reason
+
+
+@pytest.mark.parametrize(("task", "seed"), [("corner", 0), ("corner", 1), ("around-corner", 4)])
+def test_the_scripted_tasks_programs_are_feasible(task, seed) -> None:
+    """No false refusals: the programs the end-to-end runs send (and the robot does)."""
+    from operator_site.scripted import generated_program, layout_demonstration
+
+    session = layout_demonstration(task, seed).session
+    program = generated_program(session, f"{task}-{seed}")  # checks feasibility itself
+    result = check_feasibility(
+        session.scene, session.workpiece, program, session.fingers_O, session.X_WO
+    )
+    assert result.ok, result.reason
+
+
+def test_the_generator_refuses_a_task_the_robot_cannot_do() -> None:
+    """The plank pushed side-first against a bar, held as selected: the page's "make program"
+    gets the reason (a ValueError, as for the sweep's refusals)."""
+    from operator_site.program import ProgramInfeasibleError, ProgramRefusedError
+
+    session = TaskSession(SCENE)
+    R = rpy_to_R(np.array([0.0, 0.0, 0.5 * np.pi]))
+    session.X_WO["plank"] = make_pose(R, (0.45, 0.0, 0.0125))
+    session.select("plank")
+    target = session.X_WO["plank"].copy()
+    target[:3, 3] = (0.53, 0.0, 0.0075)
+    session.set_target(target)
+    for _ in range(300):
+        session.step()
+    assert session.choose_grasp_for_path().grasp is None
+    with pytest.raises(ProgramInfeasibleError, match="between the plank and the frame") as info:
+        generate_program(
+            "side",
+            SCENE,
+            "plank",
+            session.path_history(),
+            choose_grasp_yaw(session.start_X_WO, session.X_GP),
+            attached_O=session.fingers_O,
+            X_WO=session.X_WO,
+        )
+    assert isinstance(info.value, ProgramRefusedError) and isinstance(info.value, ValueError)
+    assert info.value.feasibility.check == "grasp" and info.value.check.segment == 0
+
+
+def test_a_grasp_from_below_is_refused() -> None:
+    X_WO = SCENE.object("cube").X_WO
+    program = pick_and_place("below", X_WO, X_WO, np.eye(4))  # the gripper's z up
+    result = check_feasibility(SCENE, "cube", program)
+    assert not result.ok and result.check == "grasp" and result.command == 0
+    assert "does not hold the cube from above" in result.reason
