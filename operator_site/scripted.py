@@ -149,16 +149,24 @@ def around_corner_waypoints(
     return before, [past, end], goal
 
 
-def drag(session: TaskSession, waypoints: list[np.ndarray]) -> None:
-    """Move the dragger through ``waypoints``, each until the block is there or stops."""
+def drag(
+    session: TaskSession, waypoints: list[np.ndarray], reached_rad: float = math.inf
+) -> None:
+    """Move the dragger through ``waypoints``, each until the block is there (within
+    :data:`WAYPOINT_REACHED_M`, and turned within ``reached_rad``) or stops."""
     for X in waypoints:
         session.set_target(X)
         for _ in range(WAYPOINT_MAX_STEPS):
             result = session.step()
             if result.s_fraction == 0.0 or (
                 np.linalg.norm(result.X_WO[:3, 3] - X[:3, 3]) < WAYPOINT_REACHED_M
+                and _turn_rad(result.X_WO[:3, :3], X[:3, :3]) < reached_rad
             ):
                 break
+
+
+def _turn_rad(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    return float(np.linalg.norm(so3_log(R_a.T @ R_b)))
 
 
 @dataclass(frozen=True, eq=False)
