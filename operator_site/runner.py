@@ -13,17 +13,28 @@ the first step.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import sys
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from models.scene import Scene, load_scene
 from models.transforms import make_pose, so3_log
 from operator_site.model_editor import WorkSiteModel
-from operator_site.scripted import drag
+from operator_site.scripted import (
+    ChainTask,
+    Judgement,
+    ProgramMaker,
+    RunError,
+    drag,
+    generated_program,
+    run_chain,
+)
 from operator_site.simulator.world import SimWorld
 from operator_site.task import TaskSession
-from operator_site.taskfile import Task
+from operator_site.taskfile import Task, pose_error
 
 TRANSIT_CLEARANCE_M = 0.02
 """The carried workpiece passes this far above the highest object top along its way."""
@@ -33,26 +44,6 @@ MAX_TRANSIT_SAMPLES = 2000
 WAYPOINT_REACHED_RAD = 1e-3
 """A step that turns the workpiece is held until it is turned this close (rad), as well as moved
 within :data:`~operator_site.scripted.WAYPOINT_REACHED_M`."""
-
-FAILURES = (
-    "not_recognised",
-    "no_grasp",
-    "infeasible",
-    "program_refused",
-    "execution_failed",
-    "goal_missed",
-)
-"""Why a run of a task did not succeed, as its JSON's ``failure.kind`` says."""
-
-
-class TaskRunError(RuntimeError):
-    """A task that cannot be done on this model: ``kind`` is one of :data:`FAILURES`."""
-
-    def __init__(self, kind: str, message: str) -> None:
-        if kind not in FAILURES:
-            raise ValueError(f"unknown failure kind {kind!r}")
-        super().__init__(message)
-        self.kind = kind
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,13 +65,13 @@ class TaskDemonstration:
 
 def reference_pose_W(model: WorkSiteModel, name: str) -> np.ndarray:
     """``X_WR``: where object ``name`` lies in the model (a fixed object, or an accepted
-    block); :class:`TaskRunError` ``not_recognised`` for a block not in the model."""
+    block); :class:`RunError` ``not_recognised`` for a block not in the model."""
     if name in model.poses:
         return model.poses[name].copy()
     for obj in model.fixed:
         if obj.name == name:
             return obj.X_WO.copy()
-    raise TaskRunError("not_recognised", f"{name!r} is not in the model the vision built")
+    raise RunError("not_recognised", f"{name!r} is not in the model the vision built")
 
 
 def nearest_symmetry(
@@ -153,17 +144,15 @@ def goal_on_reference_W(task: Task, X_WR: np.ndarray, S_O: np.ndarray) -> np.nda
 def drag_task(task: Task, model: WorkSiteModel) -> TaskDemonstration:
     """Play ``task`` in a new task session of ``model``: select the workpiece, carry it to the
     first step, then hold each step until the workpiece is there (or stops against something)
-    and make its captures and releases. :class:`TaskRunError` when the workpiece or the
+    and make its captures and releases. :class:`RunError` when the workpiece or the
     reference is not in the model (``not_recognised``) or cannot be held (``no_grasp``)."""
     if task.workpiece not in model.poses:
-        raise TaskRunError(
-            "not_recognised", f"the workpiece {task.workpiece!r} is not in the model"
-        )
+        raise RunError("not_recognised", f"the workpiece {task.workpiece!r} is not in the model")
     session = TaskSession(model.scene())
     try:
         session.select(task.workpiece)
     except ValueError as e:
-        raise TaskRunError("no_grasp", f"{task.workpiece!r} cannot be held: {e}") from None
+        raise RunError("no_grasp", f"{task.workpiece!r} cannot be held: {e}") from None
     X_start = session.X_WO[task.workpiece].copy()
     steps, goal, S_O = task_targets_W(task, model, X_start)
     transit = transit_waypoints(session.sim.world, X_start, steps[0])
@@ -188,4 +177,96 @@ def drag_task(task: Task, model: WorkSiteModel) -> TaskDemonstration:
         steps_X_WD=tuple(steps),
         captured_after_step=tuple(captured),
         history_after_step=tuple(lengths),
+    )
+
+
+def _needs_in_model(task: Task) -> Callable[[WorkSiteModel], bool]:
+    """Whether a model holds the task's workpiece and (a block) reference."""
+
+    def ready(model: WorkSiteModel) -> bool:
+        fixed = {o.name for o in model.fixed}
+        return task.workpiece in model.poses and (
+            task.reference in fixed or task.reference in model.poses
+        )
+
+    return ready
+
+
+def check_reaches_goal(task: Task, demo: TaskDemonstration, model: WorkSiteModel) -> None:
+    """:class:`RunError` ``infeasible`` unless the simulated drag ended within the goal's
+    tolerances and touching every goal contact: a block in the way, the goal place occupied."""
+    X = demo.session.X_WO[demo.workpiece]
+    error_m, error_rad = pose_error(demo.ideal_X_WO, X, model.symmetries(demo.workpiece))
+    if error_m > task.goal.tolerance_m or error_rad > task.goal.tolerance_rad:
+        raise RunError(
+            "infeasible",
+            f"the simulated drag ends {error_m * 1e3:.1f} mm, {math.degrees(error_rad):.1f}° "
+            "from the goal: something is in the way or the goal place is occupied",
+        )
+    touching = {c.object for c in demo.session.sim.state.contacts}
+    missing = sorted(set(task.goal.contacts) - touching)
+    if missing:
+        raise RunError(
+            "infeasible", f"the simulated drag ends without touching {', '.join(missing)}"
+        )
+
+
+def judge_on_truth(
+    task: Task, demo: TaskDemonstration, model: WorkSiteModel, truth: dict[str, np.ndarray]
+) -> Judgement:
+    """The block's true final pose against the goal placed on the reference's true final pose
+    (both from the work site's ground truth ``truth``), up to the block's symmetries."""
+    X_WR, X_WO = truth[task.reference], truth[task.workpiece]
+    goal = goal_on_reference_W(task, X_WR, demo.S_O)
+    error_m, error_rad = pose_error(goal, X_WO, model.symmetries(task.workpiece))
+    return Judgement(
+        error_m=error_m,
+        error_rad=error_rad,
+        within=error_m <= task.goal.tolerance_m and error_rad <= task.goal.tolerance_rad,
+        goal_contacts=task.goal.contacts,
+        extra={"final_X_WO": X_WO.tolist(), "reference_X_WO": X_WR.tolist()},
+    )
+
+
+def run_task(
+    task: Task,
+    seed: int,
+    scene: Scene | None = None,
+    scene_file: Path | None = None,
+    connect: str | None = None,
+    site_id: str | None = None,
+    make_program: ProgramMaker = generated_program,
+    log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+    oracle: bool = False,
+    time_scale: float = 1.0,
+    work_site_args: tuple[str, ...] = (),
+    label: str | None = None,
+) -> dict:
+    """Run ``task`` end to end (the chain of :func:`~operator_site.scripted.run_chain`, the
+    operator's drag :func:`drag_task`); the result's JSON-ready dict. With ``scene_file`` the
+    started work site lays the blocks out as that scene file does, else by ``seed``.
+    ``label``: the program id's prefix (default: the task's name)."""
+    scene = scene or (load_scene(scene_file) if scene_file is not None else load_scene())
+    chain = ChainTask(
+        label=task.name,
+        program_label=label or task.name,
+        ready=_needs_in_model(task),
+        demonstrate=lambda model: drag_task(task, model),
+        check=lambda demo, model: check_reaches_goal(task, demo, model),
+        judge=lambda demo, model, truth: judge_on_truth(task, demo, model, truth),
+        describe=lambda demo: {"symmetry_O": np.round(demo.S_O).astype(int).tolist()},
+    )
+    extra = ("--scene", str(scene_file)) if scene_file is not None else ()
+    return run_chain(
+        chain,
+        seed,
+        connect=connect,
+        site_id=site_id,
+        scene=scene,
+        make_program=make_program,
+        log=log,
+        oracle=oracle,
+        time_scale=time_scale,
+        work_site_args=(*extra, *work_site_args),
+        seeded_layout=scene_file is None,
     )
