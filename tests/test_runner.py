@@ -23,6 +23,7 @@ from operator_site.runner import (
     TRANSIT_CLEARANCE_M,
     check_reaches_goal,
     drag_task,
+    judge_on_truth,
     nearest_symmetry,
     transit_height_m,
 )
@@ -286,3 +287,34 @@ def test_the_corner_task_file_succeeds_end_to_end() -> None:
     assert np.array(result["final_X_WO"]).shape == (4, 4)
     assert np.array(result["reference_X_WO"]).shape == (4, 4)
     assert result["commands"] > 0 and result["stage_s"]["execute"] > 0
+
+
+def test_the_end_is_judged_on_the_references_true_pose(scene) -> None:
+    """The goal moves with the reference: a block that ended at the goal of a reference that
+    really lies 1 cm and 3° off the model is on target; the same block judged as if the
+    reference were where the model has it is 1 cm off."""
+    task = load_task(TASKS_DIR / "cube-corner.json")
+    model = _layout_model(scene, 0)
+    demo = drag_task(task, model)
+    X_WF = scene.object("frame").X_WO
+    X_WF_true = make_pose(rpy_to_R(np.radians([0.0, 0.0, 3.0])), (0.01, 0.0, 0.0)) @ X_WF
+    quarter = make_pose(rpy_to_R(np.radians([0.0, 0.0, 90.0])))
+    X_WO_true = X_WF_true @ task.goal.X_RO @ make_pose(demo.S_O) @ quarter  # a symmetry off
+    judged = judge_on_truth(task, demo, model, {"frame": X_WF_true, "cube": X_WO_true})
+    assert judged.within and judged.error_m < 1e-9 and judged.error_rad < 1e-6
+    assert judged.goal_contacts == ("frame", "table")
+    np.testing.assert_allclose(judged.extra["reference_X_WO"], X_WF_true)
+    off = judge_on_truth(task, demo, model, {"frame": X_WF, "cube": X_WO_true})
+    assert not off.within and off.error_m > 0.009
+
+
+@pytest.mark.integration
+def test_a_bad_scene_or_option_is_refused_in_one_line() -> None:
+    corner = str(TASKS_DIR / "cube-corner.json")
+    for args, fault in (
+        (["--scene", "/nonexistent/scene.json"], "scene.json: scene file does not exist"),
+        (["--time-scale", "0"], "--time-scale must be > 0"),
+    ):
+        proc = _run_cli(corner, *args)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1 and fault in lines[0], lines
