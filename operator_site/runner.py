@@ -281,7 +281,7 @@ def run_task(
         demonstrate=lambda model: drag_task(task, model),
         check=lambda demo, model: check_reaches_goal(task, demo, model),
         judge=lambda demo, model, truth: judge_on_truth(task, demo, model, truth),
-        describe=lambda demo: {"symmetry_O": np.round(demo.S_O).astype(int).tolist()},
+        describe=lambda demo: {"symmetry_O": np.round(demo.S_O, 6).tolist()},
     )
     extra = ("--scene", str(scene_file)) if scene_file is not None else ()
     return run_chain(
