@@ -332,3 +332,53 @@ def test_a_prism_that_ends_a_sixth_turn_round_is_on_target(scene) -> None:
     X_WO_true = X_WF @ task.goal.X_RO @ make_pose(demo.S_O) @ sixth
     judged = judge_on_truth(task, demo, model, {"frame": X_WF, "hex_prism": X_WO_true})
     assert judged.within and judged.error_rad < 1e-6
+
+
+def _scene_file(tmp_path: Path, moved: dict[str, tuple[float, float, float]]) -> Path:
+    """The puzzle scene with the blocks in ``moved`` put at those positions (m, unturned)."""
+    src = REPO / "models" / "scenes" / "puzzle.json"
+    doc = json.loads(src.read_text())
+    doc["camera"] = str((src.parent / doc["camera"]).resolve())
+    doc["robot"]["urdf"] = str((src.parent / doc["robot"]["urdf"]).resolve())
+    for obj in doc["objects"]:
+        obj["model"] = str((src.parent / obj["model"]).resolve())
+        if obj["name"] in moved:
+            obj["X_WO"] = make_pose(np.eye(3), moved[obj["name"]]).tolist()
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+@pytest.mark.integration
+def test_an_occupied_goal_place_is_reported_not_a_crash(tmp_path) -> None:
+    """The plank lies in the corner the task puts the cube in: the run says so and stops
+    before making a program. The blocks' poses are the work site's ground truth here: what is
+    tested is the run's report, not whether vision sees a plank among the frame's bars."""
+    scene = _scene_file(tmp_path, {"plank": (0.401, -0.074, 0.0125)})
+    proc = _run_cli(
+        str(TASKS_DIR / "cube-corner.json"), "--scene", str(scene), "--time-scale", "3",
+        "--oracle-vision", "--json", timeout_s=300,
+    )  # fmt: skip
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert proc.returncode == 1 and not result["success"], (result, proc.stderr[-2000:])
+    assert result["failure"]["kind"] == "infeasible", result["failure"]
+    assert "commands" not in result
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize(
+    ("where", "kind"),
+    [
+        ((0.45, -0.66, 0.025), "not_recognised"),  # behind the camera
+        ((0.35, 0.62, 0.025), "program_refused"),  # seen, but beyond the arm's workspace
+    ],
+)
+def test_a_workpiece_out_of_the_task_is_reported_not_a_crash(tmp_path, where, kind) -> None:
+    scene = _scene_file(tmp_path, {"cube": where})
+    proc = _run_cli(
+        str(TASKS_DIR / "cube-corner.json"), "--scene", str(scene), "--time-scale", "3",
+        "--json", timeout_s=300,
+    )  # fmt: skip
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert proc.returncode == 1 and not result["success"], (result, proc.stderr[-2000:])
+    assert result["failure"]["kind"] == kind and result["failure"]["message"], result["failure"]
