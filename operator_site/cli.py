@@ -4,6 +4,7 @@ operator-site serve [--connect ENDPOINT] [--port 8080]   # the page, for a runni
                     [--single-link]                      # (default: two links, PORT and PORT+1)
 operator-site demo                                       # both sites on this machine
 operator-site demo --scripted corner --seed 3 --json     # the whole chain, no person
+operator-site run examples/tasks/cube-corner.json --seed 3 --json   # a task file, no person
 """
 
 from __future__ import annotations
@@ -135,6 +136,59 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --scripted: the started work site simulates X seconds per wall second "
         "(default: 1, real time; the JSON's time_scale_achieved says how fast it managed)",
     )
+    run = sub.add_parser(
+        "run",
+        help="run a task file end to end without a page",
+        description="The whole chain driven by a task file (docs/tasks.md): a work site "
+        "started on loopback (or the one at --connect), vision, the model editor, the task's "
+        "drag in the task simulator, the program generator, the robot; the result is judged "
+        "by the work site's ground truth. Exit code 0 on success, 1 when the task was not "
+        "done, 2 for a task file or option that cannot be used.",
+    )
+    run.add_argument("task_file", type=Path, metavar="TASK.json", help="the task file")
+    run.add_argument(
+        "--scene",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="the scene JSON; the started work site lays the blocks out as it does "
+        "(default: the puzzle scene, blocks laid out at random by --seed)",
+    )
+    run.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        metavar="N",
+        help="without --scene: the random layout and the camera's offset from its "
+        "calibration (default: %(default)s)",
+    )
+    run.add_argument(
+        "--connect",
+        default=None,
+        metavar="ENDPOINT",
+        help="a running work site's zenoh endpoint (default: start one on loopback)",
+    )
+    run.add_argument(
+        "--site-id",
+        default=None,
+        help="with --connect: the work site's id (default: site1)",
+    )
+    run.add_argument(
+        "--time-scale",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="the started work site simulates X seconds per wall second (default: 1)",
+    )
+    run.add_argument(
+        "--oracle-vision",
+        action="store_true",
+        help="take the blocks' poses from the simulated work site's ground truth",
+    )
+    run.add_argument(
+        "--json", action="store_true", help="print the result as one JSON line (last line)"
+    )
+    run.add_argument("-v", "--verbose", action="store_true", help="log more")
     return parser
 
 
@@ -232,6 +286,8 @@ def main(argv: list[str]) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s: %(message)s",
     )
+    if args.command == "run":
+        return run_task_file(args)
     if args.command == "demo" and args.scripted:
         return run_scripted_demo(args, connect_given="--connect" in argv)
     return demo(args) if args.command == "demo" else serve(args)
@@ -259,6 +315,47 @@ def run_scripted_demo(args: argparse.Namespace, connect_given: bool) -> int:
         time_scale=args.time_scale,
         work_site_args=_work_site_args(args),
     )
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for k, v in result.items():
+            print(f"{k}: {v}")
+    return 0 if result["success"] else 1
+
+
+def run_task_file(args: argparse.Namespace) -> int:
+    """``run TASK.json``: check the file and the options, then one end-to-end run; exit code
+    0 on success, 1 otherwise, 2 (one line on stderr) for what cannot be used."""
+    import json
+
+    from operator_site.taskfile import TaskFileError, load_task
+
+    try:
+        task = load_task(args.task_file)
+        scene = load_scene(args.scene) if args.scene is not None else load_scene()
+        fixed = {o.name for o in scene.objects if o.fixed}
+        task.check_names({o.name for o in scene.movable}, fixed, where=str(args.task_file))
+        if not args.time_scale > 0:
+            raise ValueError(f"--time-scale must be > 0, got {args.time_scale}")
+        if args.site_id is not None:
+            check_site_id(args.site_id)
+    except (TaskFileError, ModelError, ProtocolError, ValueError) as e:
+        print(f"operator-site: {e}", file=sys.stderr)
+        return 2
+    from operator_site.runner import run_task  # heavy imports after the checks
+
+    result = run_task(
+        task,
+        args.seed,
+        scene=scene,
+        scene_file=args.scene,
+        connect=args.connect,
+        site_id=args.site_id if args.connect is not None else None,
+        oracle=args.oracle_vision,
+        time_scale=args.time_scale,
+        label=args.task_file.stem,
+    )
+    result["task_file"] = str(args.task_file)
     if args.json:
         print(json.dumps(result))
     else:

@@ -6,12 +6,14 @@ score threshold and makes the model consistent; a scripted operator drags the wo
 task simulator as a person would (the dragger's target moved through waypoints); the program
 generator makes the robot program; the work site executes it under its execution monitor. The
 block's final pose is read from the simulated work site's ground truth (``TruthPoses``) and
-compared with the simulator's goal.
+compared with the simulator's goal. The same chain (:func:`run_chain`) runs a task file
+(``operator_site/runner.py``); it differs only in the operator's drag and in the judging.
 """
 
 from __future__ import annotations
 
 import math
+import re
 import signal
 import subprocess
 import sys
@@ -149,16 +151,22 @@ def around_corner_waypoints(
     return before, [past, end], goal
 
 
-def drag(session: TaskSession, waypoints: list[np.ndarray]) -> None:
-    """Move the dragger through ``waypoints``, each until the block is there or stops."""
+def drag(session: TaskSession, waypoints: list[np.ndarray], reached_rad: float = math.inf) -> None:
+    """Move the dragger through ``waypoints``, each until the block is there (within
+    :data:`WAYPOINT_REACHED_M`, and turned within ``reached_rad``) or stops."""
     for X in waypoints:
         session.set_target(X)
         for _ in range(WAYPOINT_MAX_STEPS):
             result = session.step()
             if result.s_fraction == 0.0 or (
                 np.linalg.norm(result.X_WO[:3, 3] - X[:3, 3]) < WAYPOINT_REACHED_M
+                and _turn_rad(result.X_WO[:3, :3], X[:3, :3]) < reached_rad
             ):
                 break
+
+
+def _turn_rad(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    return float(np.linalg.norm(so3_log(R_a.T @ R_b)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -265,11 +273,15 @@ def model_from_frames(
     frames: Iterable[Recognitions],
     log: Callable[[str], None] = lambda _: None,
     max_frames: int = WORKPIECE_FRAMES,
+    ready: Callable[[WorkSiteModel], bool] | None = None,
 ) -> RecognisedModel:
     """The model editor fed as a person would: every recognition of the first of ``frames``
     scoring at least :data:`ACCEPT_SCORE` accepted and made consistent; while no block fit for
-    ``task``'s workpiece is in the model, the next frames' recognitions of blocks not yet in it
-    are added (each frame has its own sensor noise), ``max_frames`` frames in all at most."""
+    ``task``'s workpiece is in the model (or, given ``ready``, until it says the model holds
+    what the task needs), the next frames' recognitions of blocks not yet in it are added
+    (each frame has its own sensor noise), ``max_frames`` frames in all at most."""
+    if ready is None:
+        ready = lambda model: bool(workpiece_candidates(task, model))  # noqa: E731
     found: dict[str, tuple[np.ndarray, float]] = {}
     model, corrections, model_s = WorkSiteModel(scene), [], 0.0
     n, vision_s = 0, 0.0
@@ -290,7 +302,7 @@ def model_from_frames(
                 model.accept(name, X, score)
             corrections = model.make_consistent()
             model_s = time.monotonic() - t0
-        if workpiece_candidates(task, model) or n >= max_frames:
+        if ready(model) or n >= max_frames:
             break
     return RecognisedModel(model, corrections, n, vision_s, model_s)
 
@@ -346,12 +358,6 @@ class _Truth:
             time.sleep(0.05)
         raise TimeoutError("no ground truth from the work site")
 
-    def pose_after(self, t_s: float, name: str) -> np.ndarray:
-        for o in self.latest_after(t_s).objects:
-            if o.name == name:
-                return o.X_WO
-        raise ValueError(f"the work site's ground truth has no {name!r}")
-
 
 def _wait(predicate: Callable[[], bool], link: WorkSiteLink, timeout_s: float) -> bool:
     deadline = time.monotonic() + timeout_s
@@ -364,7 +370,6 @@ def _wait(predicate: Callable[[], bool], link: WorkSiteLink, timeout_s: float) -
 
 
 def _start_work_site(
-    seed: int,
     site_id: str,
     endpoint: str,
     log_path: Path,
@@ -373,7 +378,7 @@ def _start_work_site(
 ) -> subprocess.Popen:
     cmd = [
         sys.executable, "-m", "work_site", "serve", "--listen", endpoint, "--site-id", site_id,
-        "--seed", str(seed), "--vision-rate", "2", "--time-scale", str(time_scale),
+        "--vision-rate", "2", "--time-scale", str(time_scale),
         "--state-rate", str(STATE_RATE_HZ), *extra_args,
     ]  # fmt: skip
     with log_path.open("w") as out:
@@ -405,6 +410,86 @@ def _recognised_frames(link: WorkSiteLink) -> Iterator[Recognitions]:
         yield seen[-1]
 
 
+FAILURES = (
+    "not_recognised",
+    "no_grasp",
+    "infeasible",
+    "program_refused",
+    "execution_failed",
+    "goal_missed",
+)
+"""Why a run did not succeed, as its result's ``failure.kind`` says."""
+
+
+class RunError(RuntimeError):
+    """A run that cannot go on: ``kind`` is one of :data:`FAILURES`, the message says why."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        if kind not in FAILURES:
+            raise ValueError(f"unknown failure kind {kind!r}")
+        super().__init__(message)
+        self.kind = kind
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """How the block ended at the work site against the task's goal: distance (m), angle
+    (rad), whether that is within the goal's tolerances, the goal contacts that must be
+    verified by force (by object), and more fields for the result."""
+
+    error_m: float
+    error_rad: float
+    within: bool
+    goal_contacts: tuple[str, ...] = ()
+    extra: dict | None = None
+
+
+@dataclass(frozen=True)
+class ChainTask:
+    """What one end-to-end run needs of its task: a label (the result's ``task``, the program
+    id's prefix), when a model holds what the task needs (``ready``), the operator's
+    demonstration on a model (an object with ``session``, ``workpiece``, ``ideal_X_WO``; raises
+    :class:`RunError` or RuntimeError), a check of that demonstration before a program is
+    made (raises :class:`RunError`), and the judgement of the block's true final pose given
+    the work site's ground truth of every object."""
+
+    label: str
+    program_label: str
+    ready: Callable[[WorkSiteModel], bool]
+    demonstrate: Callable[[WorkSiteModel], object]
+    judge: Callable[[object, WorkSiteModel, dict[str, np.ndarray]], Judgement]
+    check: Callable[[object, WorkSiteModel], None] = lambda _demo, _model: None
+    describe: Callable[[object], dict] = lambda _demo: {}
+
+
+def _scripted_task(task: str, rng: np.random.Generator) -> ChainTask:
+    """The rehearsed ``corner`` and ``around-corner`` as a :class:`ChainTask`: judged against
+    where the simulated block ended, up to its symmetries, within
+    :data:`SUCCESS_MM` and :data:`SUCCESS_DEG`."""
+
+    def judge(demo, model, truth):
+        goal, X = demo.session.X_WO[demo.workpiece], truth[demo.workpiece]
+        error_m = float(np.linalg.norm(X[:3, 3] - goal[:3, 3]))
+        # Modulo the block's symmetries: a cube turned a quarter turn is the same cube.
+        error_rad = min(
+            _turn_rad(goal[:3, :3] @ S, X[:3, :3]) for S in model.symmetries(demo.workpiece)
+        )
+        within = error_m * 1e3 <= SUCCESS_MM and math.degrees(error_rad) <= SUCCESS_DEG
+        return Judgement(error_m, error_rad, within)
+
+    return ChainTask(
+        label=task,
+        program_label=task,
+        ready=lambda model: bool(workpiece_candidates(task, model)),
+        demonstrate=lambda model: demonstrate(task, model, rng),
+        judge=judge,
+        describe=lambda demo: {"corner": demo.corner},
+    )
+
+
+_VERIFIED_RE = re.compile(r"([A-Za-z0-9_.-]+) -?[0-9.]+ N along ")
+
+
 def run_scripted(
     task: str,
     seed: int,
@@ -425,25 +510,60 @@ def run_scripted(
     while executing); ``work_site_args``: more options for it."""
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r} (known: {', '.join(TASKS)})")
+    return run_chain(
+        _scripted_task(task, np.random.default_rng(seed)),
+        seed,
+        connect=connect,
+        site_id=site_id,
+        scene=scene,
+        make_program=make_program,
+        log=log,
+        oracle=oracle,
+        time_scale=time_scale,
+        work_site_args=work_site_args,
+    )
+
+
+def run_chain(
+    task: ChainTask,
+    seed: int,
+    connect: str | None = None,
+    site_id: str | None = None,
+    scene: Scene | None = None,
+    make_program: ProgramMaker = generated_program,
+    log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+    oracle: bool = False,
+    time_scale: float = 1.0,
+    work_site_args: tuple[str, ...] = (),
+    seeded_layout: bool = True,
+) -> dict:
+    """The whole chain for ``task`` (see :func:`run_scripted`); ``seeded_layout``: the started
+    work site lays the blocks out by ``seed`` (else as its scene file has them, unseeded). The
+    result says ``failure`` (None, or its ``kind`` among :data:`FAILURES` and a ``message``)."""
     scene = scene or load_scene()
-    rng = np.random.default_rng(seed)
     stage_s: dict[str, float] = {}
-    out: dict = {"task": task, "seed": seed, "success": False, "stage_s": stage_s}
+    out: dict = {"task": task.label, "seed": seed, "success": False, "failure": None}
+    out["stage_s"] = stage_s
     proc = None
     site_id = site_id or (f"e2e-{seed}" if connect is None else "site1")
     if connect is None:
         connect = f"tcp/127.0.0.1:{free_port_pair()}"
         log_path = Path(tempfile.gettempdir()) / f"telerobot-e2e-{seed}-work-site.log"
-        proc = _start_work_site(seed, site_id, connect, log_path, time_scale, work_site_args)
+        seed_args = ("--seed", str(seed)) if seeded_layout else ()
+        proc = _start_work_site(
+            site_id, connect, log_path, time_scale, (*seed_args, *work_site_args)
+        )
         log(f"work site started (log: {log_path})")
     link = WorkSiteLink(make_config(connect=link_endpoints([connect])[0]), site_id)
     truth = _Truth(link)
+    kind = "execution_failed"  # what an unexpected error means at the stage reached
     try:
         t0 = time.monotonic()
         if not _wait(lambda: link.status.label == "connected", link, CONNECT_TIMEOUT_S):
             raise RuntimeError(f"no work site at {connect} within {CONNECT_TIMEOUT_S:.0f} s")
         stage_s["connect"] = time.monotonic() - t0
         t0 = time.monotonic()
+        kind = "not_recognised"
         if oracle:
             X_truth = {o.name: o.X_WO for o in truth.latest_after(time.time()).objects}
             truth_frame = Recognitions(
@@ -459,7 +579,7 @@ def run_scripted(
             frames: Iterable[Recognitions] = [truth_frame]
         else:
             frames = _recognised_frames(link)
-        rec = model_from_frames(task, scene, frames, log)
+        rec = model_from_frames(task.label, scene, frames, log, ready=task.ready)
         model, corrections = rec.model, rec.corrections
         stage_s["vision"], stage_s["model"] = rec.vision_s, rec.model_s
         out["vision_frames"] = rec.frames
@@ -468,9 +588,10 @@ def run_scripted(
         out["corrections_mm"] = {c.name: round(c.moved_mm, 2) for c in corrections}
 
         t0 = time.monotonic()
-        demo = demonstrate(task, model, rng)
+        demo = task.demonstrate(model)
         session, workpiece, ideal = demo.session, demo.workpiece, demo.ideal_X_WO
-        out |= {"workpiece": workpiece, "corner": demo.corner}
+        out["workpiece"] = workpiece
+        out |= task.describe(demo)
         goal = session.X_WO[workpiece]
         final = session.sim.history[-1]
         stage_s["operator"] = time.monotonic() - t0
@@ -478,13 +599,19 @@ def run_scripted(
         out["contacts_required"] = len(contact_directions(final.contacts))
         out["contacts_required_objects"] = required
         out["goal_off_ideal_mm"] = float(np.linalg.norm(goal[:3, 3] - ideal[:3, 3]) * 1e3)
+        kind = "infeasible"
+        task.check(demo, model)
 
         t0 = time.monotonic()
-        program = make_program(session, f"{task}-{seed}-{int(time.time())}")
+        try:
+            program = make_program(session, _program_id(task.program_label, seed))
+        except ValueError as e:
+            raise RunError("infeasible", f"no program for the demonstration: {e}") from None
         stage_s["program"] = time.monotonic() - t0
         out["commands"] = len(program.commands)
 
         t0 = time.monotonic()
+        kind = "execution_failed"
         state0 = link.robot_state
         link.send_program(program)
 
@@ -512,24 +639,39 @@ def run_scripted(
         out["execution"] = f"{reports[-1].status}: {reports[-1].message}"
         verified = [r for r in reports if r.status == "contact_verified"]
         out["contacts_verified"] = verified[-1].message.count(" N along ") if verified else 0
+        verified_objects = set(_VERIFIED_RE.findall(verified[-1].message)) if verified else set()
+        out["contacts_verified_objects"] = sorted(verified_objects)
 
-        X = truth.pose_after(time.time() + 0.3, workpiece)
-        error_mm = float(np.linalg.norm(X[:3, 3] - goal[:3, 3]) * 1e3)
-        # Modulo the block's symmetries: a cube turned a quarter turn is the same cube.
-        error_deg = min(
-            math.degrees(float(np.linalg.norm(so3_log((goal[:3, :3] @ S).T @ X[:3, :3]))))
-            for S in model.symmetries(workpiece)
-        )
-        out |= {"final_error_mm": error_mm, "final_error_deg": error_deg}
-        out["success"] = bool(
-            reports[-1].status == "done"
-            and error_mm <= SUCCESS_MM
-            and error_deg <= SUCCESS_DEG
-            and out["contacts_verified"] >= out["contacts_required"]
-        )
+        kind = "goal_missed"
+        X_truth = {o.name: o.X_WO for o in truth.latest_after(time.time() + 0.3).objects}
+        if workpiece not in X_truth:
+            raise ValueError(f"the work site's ground truth has no {workpiece!r}")
+        for obj in scene.objects:  # the fixed objects where the truth does not list them
+            X_truth.setdefault(obj.name, obj.X_WO)
+        judgement = task.judge(demo, model, X_truth)
+        out["final_error_mm"] = judgement.error_m * 1e3
+        out["final_error_deg"] = math.degrees(judgement.error_rad)
+        out |= judgement.extra or {}
+        missing = sorted(set(judgement.goal_contacts) - verified_objects)
+        contacts_ok = out["contacts_verified"] >= out["contacts_required"] and not missing
+        out["success"] = bool(reports[-1].status == "done" and judgement.within and contacts_ok)
+        if reports[-1].status == "refused":
+            out["failure"] = _failure("program_refused", out["execution"])
+        elif reports[-1].status != "done":
+            out["failure"] = _failure("execution_failed", out["execution"])
+        elif not judgement.within:
+            off = f"{out['final_error_mm']:.2f} mm, {out['final_error_deg']:.2f}°"
+            out["failure"] = _failure("goal_missed", f"the block ended {off} from the goal")
+        elif not contacts_ok:
+            why = ", ".join(missing) or f"{out['contacts_verified']} of the directions"
+            out["failure"] = _failure("goal_missed", f"contacts not verified: {why}")
         stage_s["computation"] = sum(stage_s.get(k, 0.0) for k in ("vision", "model", "program"))
+    except RunError as e:
+        out["error"] = str(e)
+        out["failure"] = _failure(e.kind, str(e))
     except (RuntimeError, TimeoutError, ValueError) as e:
         out["error"] = str(e)
+        out["failure"] = _failure(kind, str(e))
     finally:
         link.close()
         if proc is not None:
@@ -540,3 +682,13 @@ def run_scripted(
                 proc.kill()
                 proc.wait()
     return out
+
+
+def _failure(kind: str, message: str) -> dict:
+    return {"kind": kind, "message": message}
+
+
+def _program_id(label: str, seed: int) -> str:
+    """A program id (letters, digits, ``_.-`` only) made of ``label``, the seed and the time."""
+    slug = re.sub(r"[^A-Za-z0-9_.-]+", "-", label).strip("-")[:40] or "task"
+    return f"{slug}-{seed}-{int(time.time())}"

@@ -1,0 +1,299 @@
+"""The drag of a task file: a :class:`~operator_site.taskfile.Task` played in the task simulator
+(§V) on a work-site model, as a person would drag it.
+
+Every pose of the file is the workpiece's frame O in the reference's frame R; here each becomes a
+dragger target in W through the reference's pose in the model (``X_WD = X_WR @ X_RD``). One
+symmetry rotation S of the workpiece, chosen so that the first step's orientation needs the least
+turn from how the block lies, is applied to every step and to the goal, so that a task that turns
+the block a quarter turn still turns it a quarter turn. Before the first step the block is carried
+as a person would carry it: lifted clear of everything it passes, turned on the way, lowered onto
+the first step.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from models.scene import Scene, load_scene
+from models.transforms import make_pose, so3_exp, so3_log
+from operator_site.model_editor import WorkSiteModel
+from operator_site.scripted import (
+    ChainTask,
+    Judgement,
+    ProgramMaker,
+    RunError,
+    drag,
+    generated_program,
+    run_chain,
+)
+from operator_site.simulator.world import SimWorld
+from operator_site.task import TaskSession
+from operator_site.taskfile import Task, pose_error
+
+TRANSIT_CLEARANCE_M = 0.02
+"""The carried workpiece passes this far above the highest object top along its way."""
+TRANSIT_SAMPLE_M = 0.005
+"""The way to the first step is sampled this finely when looking for what it passes over."""
+MAX_TRANSIT_SAMPLES = 2000
+WAYPOINT_REACHED_RAD = 1e-3
+"""A step that turns the workpiece is held until it is turned this close (rad), as well as moved
+within :data:`~operator_site.scripted.WAYPOINT_REACHED_M`."""
+
+
+@dataclass(frozen=True, eq=False)
+class TaskDemonstration:
+    """A task file dragged in a task session: the session (its history is the demonstration),
+    the workpiece, the goal ``ideal_X_WO`` in W with the symmetry ``S_O`` (3×3, in O) applied,
+    the dragger targets in W (the transit's, then the steps'), and, for each of the task's
+    steps, the simulator's captured set and the history's length once that step was reached."""
+
+    session: TaskSession
+    workpiece: str
+    ideal_X_WO: np.ndarray
+    S_O: np.ndarray
+    transit_X_WD: tuple[np.ndarray, ...]
+    steps_X_WD: tuple[np.ndarray, ...]
+    captured_after_step: tuple[frozenset[str], ...]
+    history_after_step: tuple[int, ...]
+
+
+def reference_pose_W(model: WorkSiteModel, name: str) -> np.ndarray:
+    """``X_WR``: where object ``name`` lies in the model (a fixed object, or an accepted
+    block); :class:`RunError` ``not_recognised`` for a block not in the model."""
+    if name in model.poses:
+        return model.poses[name].copy()
+    for obj in model.fixed:
+        if obj.name == name:
+            return obj.X_WO.copy()
+    raise RunError("not_recognised", f"{name!r} is not in the model the vision built")
+
+
+SYMMETRY_ORDERS = (2, 3, 4, 5, 6, 8)
+"""Turns about O's axes by a 1/n turn, n among these, are tried as symmetries of a shape."""
+SYMMETRY_TOL_M = 1e-6
+"""A rotation maps a shape onto itself when every vertex lands this close to a vertex."""
+
+
+def shape_symmetries(model: WorkSiteModel, name: str) -> list[np.ndarray]:
+    """The rotations (3×3, in O) that map object ``name``'s shape onto itself: the model
+    editor's quarter turns and, composed with them, 1/n turns about O's axes (a hexagonal
+    prism's sixth turn: vision cannot tell the prism from itself so turned, nor can a goal)."""
+    parts = model.base.object(name).model.parts
+    V = np.unique(np.round(np.vstack([p.vertices_O for p in parts]), 9), axis=0)  # (n, 3)
+    turns = [np.eye(3)]
+    for axis in np.eye(3):
+        for n in SYMMETRY_ORDERS:
+            turns += [so3_exp(axis * 2.0 * math.pi * k / n) for k in range(1, n)]
+    quarter = model.symmetries(name) or [np.eye(3)]
+    C = np.einsum("aij,bjk->abik", np.array(turns), np.array(quarter)).reshape(-1, 3, 3)
+    _, first = np.unique(np.round(C, 6).reshape(len(C), 9), axis=0, return_index=True)
+    C = C[np.sort(first)]  # (m, 3, 3), each rotation once
+    W = np.einsum("mij,nj->mni", C, V)
+    d = np.linalg.norm(W[:, :, None, :] - V[None, None, :, :], axis=3).min(axis=2)
+    return list(C[np.all(d < SYMMETRY_TOL_M, axis=1)])
+
+
+def nearest_symmetry(
+    R_WD_first: np.ndarray, R_WO_now: np.ndarray, symmetries: Sequence[np.ndarray]
+) -> np.ndarray:
+    """Of the workpiece's symmetry rotations S (in O; identity when none are given), the one
+    for which ``R_WD_first @ S`` is nearest ``R_WO_now``."""
+    candidates = list(symmetries) or [np.eye(3)]
+    return min(
+        candidates, key=lambda S: float(np.linalg.norm(so3_log(R_WO_now.T @ R_WD_first @ S)))
+    )
+
+
+def _with_symmetry(X: np.ndarray, S_O: np.ndarray) -> np.ndarray:
+    return X @ make_pose(S_O)
+
+
+def transit_height_m(world: SimWorld, X_WO_start: np.ndarray, X_WD_first: np.ndarray) -> float:
+    """The height (z of O in W, m) at which the workpiece of ``world`` is carried from
+    ``X_WO_start`` to above ``X_WD_first``: :data:`TRANSIT_CLEARANCE_M` above the highest object
+    top within the workpiece's reach of the straight line between them, plus how far the
+    workpiece (fingers included) reaches below O in either orientation."""
+    V_O = world.wp_vertices_O
+    reach_m = float(np.max(np.linalg.norm(V_O, axis=1)))  # any orientation on the way
+    p0, p1 = X_WO_start[:2, 3], X_WD_first[:2, 3]
+    n = int(min(MAX_TRANSIT_SAMPLES, max(2, math.ceil(np.linalg.norm(p1 - p0) / TRANSIT_SAMPLE_M))))
+    line = p0 + np.linspace(0.0, 1.0, n)[:, None] * (p1 - p0)  # (n, 2)
+    # Distance from each sample to each obstacle part's box, in the horizontal plane.
+    gap = np.maximum(world.lo_W[None, :, :2] - line[:, None, :], 0.0) + np.maximum(
+        line[:, None, :] - world.hi_W[None, :, :2], 0.0
+    )
+    passed = np.linalg.norm(gap, axis=2).min(axis=0) <= reach_m + TRANSIT_CLEARANCE_M
+    top_m = float(world.hi_W[passed, 2].max()) if np.any(passed) else 0.0
+    below_m = max(float(-(V_O @ X[:3, :3].T)[:, 2].min()) for X in (X_WO_start, X_WD_first))
+    return max(top_m + TRANSIT_CLEARANCE_M + below_m, X_WO_start[2, 3], X_WD_first[2, 3])
+
+
+def transit_waypoints(
+    world: SimWorld, X_WO_start: np.ndarray, X_WD_first: np.ndarray
+) -> list[np.ndarray]:
+    """The dragger targets before the first step: straight up to :func:`transit_height_m`,
+    across to above the first step turning to its orientation on the way; the first step
+    itself (lowering onto it) is the task's."""
+    z = transit_height_m(world, X_WO_start, X_WD_first)
+    up = X_WO_start.copy()
+    up[2, 3] = z
+    above = X_WD_first.copy()
+    above[2, 3] = z
+    return [up, above]
+
+
+def task_targets_W(
+    task: Task, model: WorkSiteModel, X_WO_start: np.ndarray
+) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """The task's dragger targets and goal in W, with the symmetry S (3×3) chosen for the
+    workpiece lying at ``X_WO_start`` applied to all: ``(steps_X_WD, goal_X_WO, S_O)``."""
+    X_WR = reference_pose_W(model, task.reference)
+    steps = [X_WR @ step.X_RD for step in task.steps]
+    S_O = nearest_symmetry(
+        steps[0][:3, :3], X_WO_start[:3, :3], shape_symmetries(model, task.workpiece)
+    )
+    steps = [_with_symmetry(X, S_O) for X in steps]
+    return steps, _with_symmetry(X_WR @ task.goal.X_RO, S_O), S_O
+
+
+def goal_on_reference_W(task: Task, X_WR: np.ndarray, S_O: np.ndarray) -> np.ndarray:
+    """The goal ``X_WO`` with the reference at ``X_WR`` (the work site's true one, say) and the
+    symmetry ``S_O`` the drag chose."""
+    return _with_symmetry(X_WR @ task.goal.X_RO, S_O)
+
+
+def drag_task(task: Task, model: WorkSiteModel) -> TaskDemonstration:
+    """Play ``task`` in a new task session of ``model``: select the workpiece, carry it to the
+    first step, then hold each step until the workpiece is there (or stops against something)
+    and make its captures and releases. :class:`RunError` when the workpiece or the
+    reference is not in the model (``not_recognised``) or cannot be held (``no_grasp``)."""
+    if task.workpiece not in model.poses:
+        raise RunError("not_recognised", f"the workpiece {task.workpiece!r} is not in the model")
+    session = TaskSession(model.scene())
+    try:
+        session.select(task.workpiece)
+    except ValueError as e:
+        raise RunError("no_grasp", f"{task.workpiece!r} cannot be held: {e}") from None
+    X_start = session.X_WO[task.workpiece].copy()
+    steps, goal, S_O = task_targets_W(task, model, X_start)
+    transit = transit_waypoints(session.sim.world, X_start, steps[0])
+    drag(session, transit, reached_rad=WAYPOINT_REACHED_RAD)
+    captured, lengths = [], []
+    for step, X_WD in zip(task.steps, steps, strict=True):
+        drag(session, [X_WD], reached_rad=WAYPOINT_REACHED_RAD)
+        for name in step.capture or ():
+            if name not in session.captured:
+                session.toggle_capture(name)
+        for name in step.release or ():
+            if name in session.captured:
+                session.toggle_capture(name)
+        captured.append(frozenset(session.captured))
+        lengths.append(len(session.sim.history))
+    return TaskDemonstration(
+        session=session,
+        workpiece=task.workpiece,
+        ideal_X_WO=goal,
+        S_O=S_O,
+        transit_X_WD=tuple(transit),
+        steps_X_WD=tuple(steps),
+        captured_after_step=tuple(captured),
+        history_after_step=tuple(lengths),
+    )
+
+
+def _needs_in_model(task: Task) -> Callable[[WorkSiteModel], bool]:
+    """Whether a model holds the task's workpiece and (a block) reference."""
+
+    def ready(model: WorkSiteModel) -> bool:
+        fixed = {o.name for o in model.fixed}
+        return task.workpiece in model.poses and (
+            task.reference in fixed or task.reference in model.poses
+        )
+
+    return ready
+
+
+def check_reaches_goal(task: Task, demo: TaskDemonstration, model: WorkSiteModel) -> None:
+    """:class:`RunError` ``infeasible`` unless the simulated drag ended within the goal's
+    tolerances and touching every goal contact: a block in the way, the goal place occupied."""
+    X = demo.session.X_WO[demo.workpiece]
+    error_m, error_rad = pose_error(demo.ideal_X_WO, X, shape_symmetries(model, demo.workpiece))
+    if error_m > task.goal.tolerance_m or error_rad > task.goal.tolerance_rad:
+        raise RunError(
+            "infeasible",
+            f"the simulated drag ends {error_m * 1e3:.1f} mm, {math.degrees(error_rad):.1f}° "
+            "from the goal: something is in the way or the goal place is occupied",
+        )
+    touching = {c.object for c in demo.session.sim.state.contacts}
+    missing = sorted(set(task.goal.contacts) - touching)
+    if missing:
+        raise RunError(
+            "infeasible", f"the simulated drag ends without touching {', '.join(missing)}"
+        )
+
+
+def judge_on_truth(
+    task: Task, demo: TaskDemonstration, model: WorkSiteModel, truth: dict[str, np.ndarray]
+) -> Judgement:
+    """The block's true final pose against the goal placed on the reference's true final pose
+    (both from the work site's ground truth ``truth``), up to the block's symmetries."""
+    X_WR, X_WO = truth[task.reference], truth[task.workpiece]
+    goal = goal_on_reference_W(task, X_WR, demo.S_O)
+    error_m, error_rad = pose_error(goal, X_WO, shape_symmetries(model, task.workpiece))
+    return Judgement(
+        error_m=error_m,
+        error_rad=error_rad,
+        within=error_m <= task.goal.tolerance_m and error_rad <= task.goal.tolerance_rad,
+        goal_contacts=task.goal.contacts,
+        extra={"final_X_WO": X_WO.tolist(), "reference_X_WO": X_WR.tolist()},
+    )
+
+
+def run_task(
+    task: Task,
+    seed: int,
+    scene: Scene | None = None,
+    scene_file: Path | None = None,
+    connect: str | None = None,
+    site_id: str | None = None,
+    make_program: ProgramMaker = generated_program,
+    log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+    oracle: bool = False,
+    time_scale: float = 1.0,
+    work_site_args: tuple[str, ...] = (),
+    label: str | None = None,
+) -> dict:
+    """Run ``task`` end to end (the chain of :func:`~operator_site.scripted.run_chain`, the
+    operator's drag :func:`drag_task`); the result's JSON-ready dict. With ``scene_file`` the
+    started work site lays the blocks out as that scene file does, else by ``seed``.
+    ``label``: the program id's prefix (default: the task's name)."""
+    scene = scene or (load_scene(scene_file) if scene_file is not None else load_scene())
+    chain = ChainTask(
+        label=task.name,
+        program_label=label or task.name,
+        ready=_needs_in_model(task),
+        demonstrate=lambda model: drag_task(task, model),
+        check=lambda demo, model: check_reaches_goal(task, demo, model),
+        judge=lambda demo, model, truth: judge_on_truth(task, demo, model, truth),
+        describe=lambda demo: {"symmetry_O": np.round(demo.S_O, 6).tolist()},
+    )
+    extra = ("--scene", str(scene_file)) if scene_file is not None else ()
+    return run_chain(
+        chain,
+        seed,
+        connect=connect,
+        site_id=site_id,
+        scene=scene,
+        make_program=make_program,
+        log=log,
+        oracle=oracle,
+        time_scale=time_scale,
+        work_site_args=(*extra, *work_site_args),
+        seeded_layout=scene_file is None,
+    )
