@@ -266,3 +266,55 @@ def write_obj(path: Path, vertices: np.ndarray, faces: list[list[int]], comment:
     lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in vertices]
     lines += ["f " + " ".join(str(i + 1) for i in f) for f in faces]
     path.write_text("\n".join(lines) + "\n")
+
+
+SYMMETRY_TURN_ORDERS = (2, 3, 4, 5, 6, 8)
+"""Rotations by a 1/n turn about one of O's axes, n among these, composed with the 24 rotations
+that map the axes onto themselves, are the candidate symmetries of a shape."""
+SYMMETRY_TOL_M = 1e-6
+"""A rotation maps a shape onto itself when every corner lands this close to a corner."""
+
+
+def axis_rotations() -> np.ndarray:
+    """The 24 rotations that map the coordinate axes onto themselves (a cube's), (24, 3, 3),
+    identity first."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            R = np.zeros((3, 3))
+            R[range(3), perm] = signs
+            if np.linalg.det(R) > 0:
+                out.append(R)
+    return np.array(out)
+
+
+def _candidate_symmetries() -> np.ndarray:
+    """(c, 3, 3): the axis rotations, then the 1/n turns about O's axes composed with them,
+    each rotation once, identity first."""
+    turns = []
+    for axis in range(3):
+        for n in SYMMETRY_TURN_ORDERS:
+            for k in range(1, n):
+                a = 2.0 * np.pi * k / n
+                c, s = np.cos(a), np.sin(a)
+                i, j = [q for q in range(3) if q != axis]
+                R = np.eye(3)
+                R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+                turns.append(R)
+    axes = axis_rotations()
+    C = np.concatenate([axes, np.einsum("tij,ajk->taik", np.array(turns), axes).reshape(-1, 3, 3)])
+    _, first = np.unique(np.round(C, 9).reshape(len(C), 9), axis=0, return_index=True)
+    return C[np.sort(first)]
+
+
+_CANDIDATE_SYMMETRIES = _candidate_symmetries()
+
+
+def shape_symmetries(corners_O: np.ndarray, tol_m: float = SYMMETRY_TOL_M) -> np.ndarray:
+    """The rotations about O's origin that map the corner set ``corners_O`` (n, 3) onto itself,
+    (s, 3, 3), identity first: a cube's 24, a square-section block's 8, a hexagonal prism's 12.
+    A rotation that is not among the candidates (1/n turns about O's axes and the axis
+    permutations) is not found."""
+    moved = np.einsum("cij,nj->cni", _CANDIDATE_SYMMETRIES, corners_O)  # (c, n, 3)
+    d = np.linalg.norm(moved[:, :, None, :] - corners_O[None, None, :, :], axis=3).min(axis=2)
+    return _CANDIDATE_SYMMETRIES[np.all(d < tol_m, axis=1)]

@@ -7,6 +7,7 @@ names; anything missing or malformed raises :class:`ModelError` naming the file 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import xml.etree.ElementTree as ET
@@ -23,6 +24,7 @@ from models.geometry import (
     make_convex_part,
     mass_properties,
     read_obj,
+    shape_symmetries,
 )
 from models.transforms import ROTATION_ORTHONORMAL_TOL, is_rigid_transform, make_pose, rpy_to_R
 
@@ -48,6 +50,14 @@ class ObjectModel:
     com_O: np.ndarray
     bbox_O: np.ndarray
     rgba: tuple[float, float, float, float]
+
+    @functools.cached_property
+    def symmetries(self) -> np.ndarray:
+        """(s, 3, 3) rotations in O that map the shape onto itself, identity first: the ones
+        of its corners (the feature edges' ends; part vertices include points where parts
+        touch, which need not be symmetric)."""
+        corners_O = np.unique(np.round(self.feature_edges_O.reshape(-1, 3), 9), axis=0)
+        return shape_symmetries(corners_O)
 
 
 @dataclass(frozen=True, eq=False)

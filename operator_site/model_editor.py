@@ -28,8 +28,6 @@ SETTLE_MAX_STEPS = 400
 SEPARATION_MARGIN_M = 0.5e-3
 """Overlapping objects are pushed this much further apart than their overlap (m)."""
 MAX_SEPARATION_ROUNDS = 20
-SYMMETRY_TOL_M = 1e-6
-"""A rotation maps a model onto itself when every vertex lands this close to a vertex."""
 UNSETTLED_MM = 5.0
 """A settle that moves an object further than this is reported as a warning (m·1e-3)."""
 
@@ -44,22 +42,6 @@ class Correction:
     why: str
 
 
-def _quarter_turns() -> list[np.ndarray]:
-    """The 24 rotations that map the coordinate axes onto themselves."""
-    out = []
-    for perm in ((0, 1, 2), (1, 2, 0), (2, 0, 1), (0, 2, 1), (2, 1, 0), (1, 0, 2)):
-        for signs in np.ndindex(2, 2, 2):
-            S = np.zeros((3, 3))
-            for row, (col, sign) in enumerate(zip(perm, signs, strict=True)):
-                S[row, col] = 1.0 if sign else -1.0
-            if np.linalg.det(S) > 0:
-                out.append(S)
-    return out
-
-
-_QUARTER_TURNS = _quarter_turns()
-
-
 def _turn_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     return math.degrees(float(np.linalg.norm(so3_log(R_a.T @ R_b))))
 
@@ -71,7 +53,6 @@ class WorkSiteModel:
         self.base = scene
         self.poses: dict[str, np.ndarray] = {}
         self.scores: dict[str, float] = {}
-        self._symmetry_cache: dict[str, list[np.ndarray]] = {}
         for name, X in (accepted or {}).items():
             self.accept(name, X)
 
@@ -102,18 +83,8 @@ class WorkSiteModel:
         return best
 
     def symmetries(self, name: str) -> list[np.ndarray]:
-        """The quarter-turn rotations (about O's axes) that map ``name``'s shape onto itself."""
-        if name not in self._symmetry_cache:
-            V = np.vstack([p.vertices_O for p in self.base.object(name).model.parts])
-            V = np.unique(np.round(V, 9), axis=0)
-            found = []
-            for S in _QUARTER_TURNS:
-                W = V @ S.T
-                d = np.min(np.linalg.norm(W[:, None, :] - V[None, :, :], axis=2), axis=1)
-                if np.all(d < SYMMETRY_TOL_M):
-                    found.append(S)
-            self._symmetry_cache[name] = found
-        return self._symmetry_cache[name]
+        """The rotations (in O) that map ``name``'s shape onto itself, identity first."""
+        return list(self.base.object(name).model.symmetries)
 
     def remove(self, name: str) -> None:
         """Take ``name`` out of the model (KeyError if it is not in it)."""

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from models.scene import Scene, load_scene
-from models.transforms import make_pose, so3_exp, so3_log
+from models.transforms import make_pose, so3_log
 from operator_site.model_editor import WorkSiteModel
 from operator_site.scripted import (
     ChainTask,
@@ -72,31 +72,6 @@ def reference_pose_W(model: WorkSiteModel, name: str) -> np.ndarray:
         if obj.name == name:
             return obj.X_WO.copy()
     raise RunError("not_recognised", f"{name!r} is not in the model the vision built")
-
-
-SYMMETRY_ORDERS = (2, 3, 4, 5, 6, 8)
-"""Turns about O's axes by a 1/n turn, n among these, are tried as symmetries of a shape."""
-SYMMETRY_TOL_M = 1e-6
-"""A rotation maps a shape onto itself when every vertex lands this close to a vertex."""
-
-
-def shape_symmetries(model: WorkSiteModel, name: str) -> list[np.ndarray]:
-    """The rotations (3×3, in O) that map object ``name``'s shape onto itself: the model
-    editor's quarter turns and, composed with them, 1/n turns about O's axes (a hexagonal
-    prism's sixth turn: vision cannot tell the prism from itself so turned, nor can a goal)."""
-    parts = model.base.object(name).model.parts
-    V = np.unique(np.round(np.vstack([p.vertices_O for p in parts]), 9), axis=0)  # (n, 3)
-    turns = [np.eye(3)]
-    for axis in np.eye(3):
-        for n in SYMMETRY_ORDERS:
-            turns += [so3_exp(axis * 2.0 * math.pi * k / n) for k in range(1, n)]
-    quarter = model.symmetries(name) or [np.eye(3)]
-    C = np.einsum("aij,bjk->abik", np.array(turns), np.array(quarter)).reshape(-1, 3, 3)
-    _, first = np.unique(np.round(C, 6).reshape(len(C), 9), axis=0, return_index=True)
-    C = C[np.sort(first)]  # (m, 3, 3), each rotation once
-    W = np.einsum("mij,nj->mni", C, V)
-    d = np.linalg.norm(W[:, :, None, :] - V[None, None, :, :], axis=3).min(axis=2)
-    return list(C[np.all(d < SYMMETRY_TOL_M, axis=1)])
 
 
 def nearest_symmetry(
@@ -155,9 +130,7 @@ def task_targets_W(
     workpiece lying at ``X_WO_start`` applied to all: ``(steps_X_WD, goal_X_WO, S_O)``."""
     X_WR = reference_pose_W(model, task.reference)
     steps = [X_WR @ step.X_RD for step in task.steps]
-    S_O = nearest_symmetry(
-        steps[0][:3, :3], X_WO_start[:3, :3], shape_symmetries(model, task.workpiece)
-    )
+    S_O = nearest_symmetry(steps[0][:3, :3], X_WO_start[:3, :3], model.symmetries(task.workpiece))
     steps = [_with_symmetry(X, S_O) for X in steps]
     return steps, _with_symmetry(X_WR @ task.goal.X_RO, S_O), S_O
 
@@ -223,7 +196,7 @@ def check_reaches_goal(task: Task, demo: TaskDemonstration, model: WorkSiteModel
     """:class:`RunError` ``infeasible`` unless the simulated drag ended within the goal's
     tolerances and touching every goal contact: a block in the way, the goal place occupied."""
     X = demo.session.X_WO[demo.workpiece]
-    error_m, error_rad = pose_error(demo.ideal_X_WO, X, shape_symmetries(model, demo.workpiece))
+    error_m, error_rad = pose_error(demo.ideal_X_WO, X, model.symmetries(demo.workpiece))
     if error_m > task.goal.tolerance_m or error_rad > task.goal.tolerance_rad:
         raise RunError(
             "infeasible",
@@ -245,7 +218,7 @@ def judge_on_truth(
     (both from the work site's ground truth ``truth``), up to the block's symmetries."""
     X_WR, X_WO = truth[task.reference], truth[task.workpiece]
     goal = goal_on_reference_W(task, X_WR, demo.S_O)
-    error_m, error_rad = pose_error(goal, X_WO, shape_symmetries(model, task.workpiece))
+    error_m, error_rad = pose_error(goal, X_WO, model.symmetries(task.workpiece))
     return Judgement(
         error_m=error_m,
         error_rad=error_rad,

@@ -341,3 +341,17 @@ def test_the_frames_walls_follow_the_frame_when_it_moves(scene: models.Scene) ->
         frame_opening_W(_with_frame_at(scene, askew))
     with pytest.raises(ValueError, match="no wall"):
         frame_opening_W(scene, "table")
+
+
+def test_every_block_has_the_symmetries_of_its_shape() -> None:
+    scene = load_scene()
+    expected = {"cube": 24, "tall_block": 8, "plank": 4, "wedge": 2, "l_block": 2, "hex_prism": 12}
+    for name, count in expected.items():
+        model = scene.object(name).model
+        S = model.symmetries
+        assert len(S) == count, name
+        np.testing.assert_array_equal(S[0], np.eye(3))
+        corners = np.unique(np.round(model.feature_edges_O.reshape(-1, 3), 9), axis=0)
+        for R in S:  # each maps every corner onto a corner, and each is a rotation
+            d = np.linalg.norm((corners @ R.T)[:, None] - corners[None], axis=2).min(axis=1)
+            assert d.max() < 1e-9 and abs(np.linalg.det(R) - 1.0) < 1e-12, name

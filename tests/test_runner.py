@@ -25,7 +25,6 @@ from operator_site.runner import (
     drag_task,
     judge_on_truth,
     nearest_symmetry,
-    shape_symmetries,
     transit_height_m,
 )
 from operator_site.scripted import FAILURES, RunError
@@ -145,7 +144,7 @@ def test_a_quarter_turn_that_is_no_symmetry_is_still_made(scene, yaw_deg: float)
     X = scene.object("hex_prism").X_WO
     R = rpy_to_R(np.radians([0.0, 0.0, yaw_deg]))
     model = WorkSiteModel(scene, {"hex_prism": make_pose(R, X[:3, 3])})
-    symmetries = shape_symmetries(model, "hex_prism")
+    symmetries = model.symmetries("hex_prism")
     assert len(symmetries) == 12  # sixth turns about its axis, each also upside down
     assert not any(np.allclose(S, rpy_to_R(np.radians([0, 0, 90]))) for S in symmetries)
     demo = drag_task(task, model)

@@ -9,6 +9,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from models.geometry import axis_rotations
 from models.transforms import invert_pose
 from work_site.vision.index import (
     GroupParams,
@@ -18,7 +19,7 @@ from work_site.vision.index import (
     find_junctions,
     group_segments,
 )
-from work_site.vision.model import VisionModel, cube_rotations, transform
+from work_site.vision.model import VisionModel, transform
 from work_site.vision.params import RecognizerParams
 from work_site.vision.pose import fit_pose
 from work_site.vision.pose_sets import PoseSet
@@ -301,7 +302,7 @@ def turned_poses(model: VisionModel) -> np.ndarray:
     symmetries)."""
     c = 0.5 * (model.vertices_O.min(0) + model.vertices_O.max(0))
     out: list[np.ndarray] = []
-    for S in cube_rotations():
+    for S in axis_rotations():
         if any(np.allclose(S, Q, atol=1e-9) for Q in model.symmetries):
             continue
         if any(np.allclose(S @ Q, X[:3, :3], atol=1e-9) for X in out for Q in model.symmetries):

@@ -12,6 +12,7 @@ from functools import cache, cached_property
 
 import numpy as np
 
+from models.geometry import axis_rotations
 from models.scene import ObjectModel
 
 EDGE_SAMPLES = 12
@@ -53,45 +54,6 @@ class VisionModel:
         return float(np.linalg.norm(self.vertices_O.max(0) - self.vertices_O.min(0)))
 
 
-def cube_rotations() -> np.ndarray:
-    """The 24 rotations that map the axes onto the axes, (24, 3, 3)."""
-    Rs = []
-    for perm in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            R = np.zeros((3, 3))
-            for i, j in enumerate(perm):
-                R[i, j] = signs[i]
-            if np.linalg.det(R) > 0:
-                Rs.append(R)
-    return np.array(Rs)
-
-
-def _candidate_rotations() -> np.ndarray:
-    """The 24 rotations of the cube plus the 12 rotations of the hexagonal prism about z."""
-    Rs = list(cube_rotations())
-    for k in range(6):
-        a = k * np.pi / 3
-        Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
-        Rs.append(Rz)
-        for flip in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])):
-            Rs.append(Rz @ flip)
-    return np.array(Rs)
-
-
-def shape_symmetries(vertices_O: np.ndarray, tol_m: float = 1e-6) -> np.ndarray:
-    """Rotations about O's origin (among cube and hexagonal-prism symmetries) that map the
-    vertex set onto itself, (s, 3, 3), identity first and no duplicates."""
-    out = [np.eye(3)]
-    for R in _candidate_rotations():
-        if any(np.allclose(R, Q, atol=1e-9) for Q in out):
-            continue
-        moved = vertices_O @ R.T
-        d = np.linalg.norm(moved[:, None, :] - vertices_O[None, :, :], axis=2)
-        if np.all(d.min(axis=1) < tol_m):
-            out.append(R)
-    return np.array(out)
-
-
 def vision_model(model: ObjectModel) -> VisionModel:
     """The :class:`VisionModel` of a loaded object model."""
     planes = tuple(np.column_stack([p.normals_O, p.offsets_m]) for p in model.parts)
@@ -103,11 +65,7 @@ def vision_model(model: ObjectModel) -> VisionModel:
         edges_O=np.asarray(model.feature_edges_O, dtype=np.float64),
         planes_O=planes,
         vertices_O=V,
-        # The union's true corners are the feature edges' ends (part vertices include points
-        # where parts touch, which need not be symmetric).
-        symmetries=shape_symmetries(
-            np.unique(np.round(model.feature_edges_O.reshape(-1, 3), 9), axis=0)
-        ),
+        symmetries=model.symmetries,
         parts_vertices_O=tuple(p.vertices_O for p in model.parts),
     )
 
@@ -353,7 +311,7 @@ def containments(A: VisionModel, B: VisionModel, tol_m: float = 1e-9) -> list[np
     part's bounding box). A found object may really be part of a bigger one: an L block's bar
     looks like a tall block lying down, its end like a cube."""
     out: list[np.ndarray] = []
-    rots = _candidate_rotations()[:24]
+    rots = axis_rotations()
     for V_P, planes in zip(B.parts_vertices_O, B.planes_O, strict=True):
         lo, hi = V_P.min(0), V_P.max(0)
         for R in rots:
