@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from models.scene import load_scene
+from operator_site.chain import generated_program
 from operator_site.program import DeformParams
-from operator_site.scripted import TASKS, generated_program, layout_demonstration
+from operator_site.scripted import TASKS, layout_demonstration
 
 CAPS = (10, 20, 30, 45, 100, 300)
 

@@ -22,16 +22,16 @@ import numpy as np
 
 from models.scene import Scene, load_scene
 from models.transforms import make_pose, so3_log
-from operator_site.model_editor import WorkSiteModel
-from operator_site.scripted import (
+from operator_site.chain import (
     ChainTask,
     Judgement,
     ProgramMaker,
     RunError,
-    drag,
     generated_program,
     run_chain,
 )
+from operator_site.model_editor import WorkSiteModel
+from operator_site.scripted import drag
 from operator_site.simulator.world import SimWorld
 from operator_site.task import TaskSession
 from operator_site.taskfile import Task, pose_error
@@ -242,7 +242,7 @@ def run_task(
     work_site_args: tuple[str, ...] = (),
     label: str | None = None,
 ) -> dict:
-    """Run ``task`` end to end (the chain of :func:`~operator_site.scripted.run_chain`, the
+    """Run ``task`` end to end (the chain of :func:`~operator_site.chain.run_chain`, the
     operator's drag :func:`drag_task`); the result's JSON-ready dict. With ``scene_file`` the
     started work site lays the blocks out as that scene file does, else by ``seed``.
     ``label``: the program id's prefix (default: the task's name)."""

@@ -342,7 +342,8 @@ def test_around_corner_demonstrations_become_programs_that_pass_the_check(seed: 
     corner were refined by halving; seed 57 after the deformation's sweep cap, until a refused
     program was made again from a longer deformation): a program that keeps frame and table to
     the end."""
-    from operator_site.scripted import generated_program, layout_demonstration
+    from operator_site.chain import generated_program
+    from operator_site.scripted import layout_demonstration
 
     demo = layout_demonstration("around-corner", seed)
     program = generated_program(demo.session, f"around-{seed}")

@@ -18,6 +18,7 @@ import pytest
 from models.layout import random_layout
 from models.scene import frame_bar_height_m, frame_opening_W, frame_outer_W, load_scene
 from models.transforms import make_pose, rpy_to_R, so3_log
+from operator_site.chain import FAILURES, RunError
 from operator_site.model_editor import WorkSiteModel
 from operator_site.runner import (
     TRANSIT_CLEARANCE_M,
@@ -27,7 +28,6 @@ from operator_site.runner import (
     nearest_symmetry,
     transit_height_m,
 )
-from operator_site.scripted import FAILURES, RunError
 from operator_site.task import TaskSession
 from operator_site.taskfile import load_task, pose_error
 from tests.conftest import REPO
@@ -369,7 +369,8 @@ def test_an_occupied_goal_place_is_reported_not_a_crash(tmp_path) -> None:
     ("where", "kind"),
     [
         ((0.45, -0.66, 0.025), "not_recognised"),  # behind the camera
-        ((0.35, 0.62, 0.025), "program_refused"),  # seen, but beyond the arm's workspace
+        # seen, but beyond the arm's workspace: refused before anything is sent
+        ((0.35, 0.62, 0.025), "infeasible"),
     ],
 )
 def test_a_workpiece_out_of_the_task_is_reported_not_a_crash(tmp_path, where, kind) -> None:

@@ -9,7 +9,8 @@ import pytest
 
 from models.layout import random_layout
 from models.scene import load_scene
-from operator_site.scripted import ACCEPT_SCORE, model_from_frames, workpiece_candidates
+from operator_site.chain import ACCEPT_SCORE, model_from_frames
+from operator_site.scripted import workpiece_candidates
 from protocol import Recognition, Recognitions
 
 
@@ -27,9 +28,14 @@ def _frame(seq: int, layout: dict[str, np.ndarray], scores: dict[str, float]) ->
     )
 
 
+def _ready(task: str):
+    """The scripted task's test of a model: a block fit for its workpiece is in it."""
+    return lambda model: bool(workpiece_candidates(task, model))
+
+
 def test_the_first_frame_is_enough_when_it_has_the_workpiece(layout) -> None:
     frames = [_frame(1, layout, {"cube": 0.9, "plank": 0.8}), _frame(2, layout, {"wedge": 0.9})]
-    rec = model_from_frames("corner", load_scene(), iter(frames))
+    rec = model_from_frames(load_scene(), iter(frames), _ready("corner"))
     assert rec.frames == 1 and set(rec.model.poses) == {"cube", "plank"}
     assert rec.vision_s == pytest.approx(0.07)
     assert [c.name for c in rec.corrections] == ["cube", "plank"]
@@ -44,7 +50,7 @@ def test_later_frames_add_the_missing_workpiece_and_their_vision_time(layout) ->
         _frame(3, layout, {"cube": 0.7, "wedge": 0.6}),
         _frame(4, layout, {"tall_block": 0.9}),
     ]
-    rec = model_from_frames("around-corner", scene, iter(frames))
+    rec = model_from_frames(scene, iter(frames), _ready("around-corner"))
     assert rec.frames == 3
     assert set(rec.model.poses) == {"plank", "cube", "wedge"}
     assert workpiece_candidates("around-corner", rec.model) == ["cube"]
@@ -53,11 +59,11 @@ def test_later_frames_add_the_missing_workpiece_and_their_vision_time(layout) ->
 
 def test_the_frames_watched_are_bounded_when_the_workpiece_never_shows(layout) -> None:
     frames = (_frame(k, layout, {"plank": 0.9}) for k in range(1, 100))
-    rec = model_from_frames("corner", load_scene(), frames, max_frames=4)
+    rec = model_from_frames(load_scene(), frames, _ready("corner"), max_frames=4)
     assert rec.frames == 4 and set(rec.model.poses) == {"plank"}
     assert workpiece_candidates("corner", rec.model) == []
 
 
 def test_no_frame_gives_an_empty_model() -> None:
-    rec = model_from_frames("corner", load_scene(), iter([]))
+    rec = model_from_frames(load_scene(), iter([]), _ready("corner"))
     assert rec.frames == 0 and rec.model.poses == {} and rec.vision_s == 0.0

@@ -1,0 +1,435 @@
+"""The whole chain against a work site, for any task: connect (or start a work site on
+loopback), build the model from vision as a person would, let the task's operator demonstrate,
+make the program, send it, follow it, and judge the block's true final pose.
+
+The scripted rehearsed tasks (:mod:`operator_site.scripted`) and task files
+(:mod:`operator_site.runner`) differ only in their :class:`ChainTask`: the operator's drag and
+the judging.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from models.scene import Scene, load_scene
+from operator_site.link import WorkSiteLink
+from operator_site.model_editor import Correction, WorkSiteModel
+from operator_site.program import (
+    CommandParams,
+    DeformParams,
+    choose_grasp_yaw,
+    generate_program,
+    pick_and_place,
+)
+from operator_site.simulator import SimParams
+from operator_site.task import TaskSession
+from protocol import MotionProgram, Recognition, Recognitions, TruthPoses, decode, key, make_config
+from protocol.messages import contact_directions
+from protocol.session import free_port_pair, link_endpoints
+
+ACCEPT_SCORE = 0.5
+CONNECT_TIMEOUT_S = 60.0
+VISION_TIMEOUT_S = 120.0
+VISION_FRAMES = 3
+"""Recognised frames waited for at most while they come back empty."""
+WORKPIECE_FRAMES = 6
+"""Recognised frames looked at in all, at most, while none fit for the task's workpiece is
+among them (3 s at the work site's 2 Hz)."""
+FRAME_TIMEOUT_S = 10.0
+"""A next recognised frame is waited for at most this long (the work site sends one a 0.5 s)."""
+EXECUTE_TIMEOUT_S = 240.0
+STATE_RATE_HZ = 100.0
+"""The started work site's robot-state rate: one state a simulated control period, so that
+counting states over the execution measures the time scale it really achieved."""
+SLOW_TIME_SCALE_FRACTION = 0.9
+"""A work site simulating at less than this fraction of its asked time scale is reported: the
+physics is stepped alike (per control period, not per wall second), but the run takes longer
+than asked."""
+
+
+@dataclass(frozen=True, eq=False)
+class RecognisedModel:
+    """The model the scripted operator built from vision: the model, the model editor's
+    corrections, the recognised frames looked at, their vision time summed (s) and the model
+    editor's time for the last build (s)."""
+
+    model: WorkSiteModel
+    corrections: list[Correction]
+    frames: int
+    vision_s: float
+    model_s: float
+
+
+def model_from_frames(
+    scene: Scene,
+    frames: Iterable[Recognitions],
+    ready: Callable[[WorkSiteModel], bool],
+    log: Callable[[str], None] = lambda _: None,
+    max_frames: int = WORKPIECE_FRAMES,
+) -> RecognisedModel:
+    """The model editor fed as a person would: every recognition of the first of ``frames``
+    scoring at least :data:`ACCEPT_SCORE` accepted and made consistent; until ``ready`` says
+    the model holds what the task needs, the next frames' recognitions of blocks not yet in it
+    are added (each frame has its own sensor noise), ``max_frames`` frames in all at most."""
+    found: dict[str, tuple[np.ndarray, float]] = {}
+    model, corrections, model_s = WorkSiteModel(scene), [], 0.0
+    n, vision_s = 0, 0.0
+    for recs in frames:
+        n += 1
+        vision_s += recs.elapsed_s
+        new = {
+            r.model: (r.X_WO, r.score)
+            for r in recs.objects
+            if r.score >= ACCEPT_SCORE and r.model not in found
+        }
+        log(f"frame {n}: recognised {[(r.model, round(r.score, 2)) for r in recs.objects]}")
+        if new or n == 1:
+            found |= new
+            t0 = time.monotonic()
+            model = WorkSiteModel(scene)
+            for name, (X, score) in found.items():
+                model.accept(name, X, score)
+            corrections = model.make_consistent()
+            model_s = time.monotonic() - t0
+        if ready(model) or n >= max_frames:
+            break
+    return RecognisedModel(model, corrections, n, vision_s, model_s)
+
+
+ProgramMaker = Callable[[TaskSession, str], MotionProgram]
+
+
+def pick_and_place_program(session: TaskSession, program_id: str) -> MotionProgram:
+    """The simple program: lift, carry, set down where the task ended (no contacts)."""
+    name = session.workpiece
+    start, goal = session.start_X_WO, session.X_WO[name]
+    return pick_and_place(program_id, start, goal, choose_grasp_yaw(start, session.X_GP))
+
+
+def generated_program(
+    session: TaskSession,
+    program_id: str,
+    sim_params: SimParams | None = None,
+    deform_params: DeformParams | None = None,
+    command_params: CommandParams | None = None,
+) -> MotionProgram:
+    """The program generator's program (§VI): deformed path, contact moves, checked. The
+    parameters default to the session's simulator and the generator's defaults."""
+    return generate_program(
+        program_id,
+        session.scene,
+        session.workpiece,
+        session.path_history(),
+        choose_grasp_yaw(session.start_X_WO, session.X_GP),
+        attached_O=session.fingers_O,
+        sim_params=sim_params or session.params,
+        deform_params=deform_params,
+        command_params=command_params,
+        X_WO=session.X_WO,
+    ).program
+
+
+class _Truth:
+    def __init__(self, link: WorkSiteLink) -> None:
+        self.latest: TruthPoses | None = None
+        self._sub = link.session.declare_subscriber(key(link.site_id, "truth"), self._on)
+
+    def _on(self, sample) -> None:
+        self.latest = decode(sample.payload.to_bytes(), expected=TruthPoses)
+
+    def latest_after(self, t_s: float, timeout_s: float = 5.0) -> TruthPoses:
+        """The first ground truth stamped at or after ``t_s`` (wall-clock s)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            truth = self.latest
+            if truth is not None and truth.stamp_s >= t_s:
+                return truth
+            time.sleep(0.05)
+        raise TimeoutError("no ground truth from the work site")
+
+
+def _wait(predicate: Callable[[], bool], link: WorkSiteLink, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        link.poll()
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def _start_work_site(
+    site_id: str,
+    endpoint: str,
+    log_path: Path,
+    time_scale: float,
+    extra_args: tuple[str, ...] = (),
+) -> subprocess.Popen:
+    cmd = [
+        sys.executable, "-m", "work_site", "serve", "--listen", endpoint, "--site-id", site_id,
+        "--vision-rate", "2", "--time-scale", str(time_scale),
+        "--state-rate", str(STATE_RATE_HZ), *extra_args,
+    ]  # fmt: skip
+    with log_path.open("w") as out:
+        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def _recognised_frames(link: WorkSiteLink) -> Iterator[Recognitions]:
+    """The work site's recognised frames as they arrive: first the first one with objects (or
+    the :data:`VISION_FRAMES`-th if they all come back empty; RuntimeError if none within
+    :data:`VISION_TIMEOUT_S`), then each next one until none comes within
+    :data:`FRAME_TIMEOUT_S`."""
+    seen: list[Recognitions] = []
+
+    def arrived(after: int, need_objects: bool) -> Callable[[], bool]:
+        def check() -> bool:
+            r = link.recognitions
+            if r is not None and (not seen or seen[-1].seq != r.seq):
+                seen.append(r)
+            if len(seen) <= after:
+                return False
+            return not need_objects or bool(seen[-1].objects) or len(seen) >= VISION_FRAMES
+
+        return check
+
+    if not _wait(arrived(0, need_objects=True), link, VISION_TIMEOUT_S):
+        raise RuntimeError(f"no recognitions within {VISION_TIMEOUT_S:.0f} s")
+    yield seen[-1]
+    while _wait(arrived(len(seen), need_objects=False), link, FRAME_TIMEOUT_S):
+        yield seen[-1]
+
+
+FAILURES = (
+    "not_recognised",
+    "no_grasp",
+    "infeasible",
+    "program_refused",
+    "execution_failed",
+    "goal_missed",
+)
+"""Why a run did not succeed, as its result's ``failure.kind`` says."""
+
+
+class RunError(RuntimeError):
+    """A run that cannot go on: ``kind`` is one of :data:`FAILURES`, the message says why."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        if kind not in FAILURES:
+            raise ValueError(f"unknown failure kind {kind!r}")
+        super().__init__(message)
+        self.kind = kind
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """How the block ended at the work site against the task's goal: distance (m), angle
+    (rad), whether that is within the goal's tolerances, the goal contacts that must be
+    verified by force (by object), and more fields for the result."""
+
+    error_m: float
+    error_rad: float
+    within: bool
+    goal_contacts: tuple[str, ...] = ()
+    extra: dict | None = None
+
+
+@dataclass(frozen=True)
+class ChainTask:
+    """What one end-to-end run needs of its task: a label (the result's ``task``, the program
+    id's prefix), when a model holds what the task needs (``ready``), the operator's
+    demonstration on a model (an object with ``session``, ``workpiece``, ``ideal_X_WO``; raises
+    :class:`RunError` or RuntimeError), a check of that demonstration before a program is
+    made (raises :class:`RunError`), and the judgement of the block's true final pose given
+    the work site's ground truth of every object."""
+
+    label: str
+    program_label: str
+    ready: Callable[[WorkSiteModel], bool]
+    demonstrate: Callable[[WorkSiteModel], object]
+    judge: Callable[[object, WorkSiteModel, dict[str, np.ndarray]], Judgement]
+    check: Callable[[object, WorkSiteModel], None] = lambda _demo, _model: None
+    describe: Callable[[object], dict] = lambda _demo: {}
+
+
+_VERIFIED_RE = re.compile(r"([A-Za-z0-9_.-]+) -?[0-9.]+ N along ")
+
+
+def run_chain(
+    task: ChainTask,
+    seed: int,
+    connect: str | None = None,
+    site_id: str | None = None,
+    scene: Scene | None = None,
+    make_program: ProgramMaker = generated_program,
+    log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True),
+    oracle: bool = False,
+    time_scale: float = 1.0,
+    work_site_args: tuple[str, ...] = (),
+    seeded_layout: bool = True,
+) -> dict:
+    """The whole chain for ``task`` (see :func:`run_scripted`); ``seeded_layout``: the started
+    work site lays the blocks out by ``seed`` (else as its scene file has them, unseeded). The
+    result says ``failure`` (None, or its ``kind`` among :data:`FAILURES` and a ``message``)."""
+    scene = scene or load_scene()
+    stage_s: dict[str, float] = {}
+    out: dict = {"task": task.label, "seed": seed, "success": False, "failure": None}
+    out["stage_s"] = stage_s
+    proc = None
+    site_id = site_id or (f"e2e-{seed}" if connect is None else "site1")
+    if connect is None:
+        connect = f"tcp/127.0.0.1:{free_port_pair()}"
+        log_path = Path(tempfile.gettempdir()) / f"telerobot-e2e-{seed}-work-site.log"
+        seed_args = ("--seed", str(seed)) if seeded_layout else ()
+        proc = _start_work_site(
+            site_id, connect, log_path, time_scale, (*seed_args, *work_site_args)
+        )
+        log(f"work site started (log: {log_path})")
+    link = WorkSiteLink(make_config(connect=link_endpoints([connect])[0]), site_id)
+    truth = _Truth(link)
+    kind = "execution_failed"  # what an unexpected error means at the stage reached
+    try:
+        t0 = time.monotonic()
+        if not _wait(lambda: link.status.label == "connected", link, CONNECT_TIMEOUT_S):
+            raise RuntimeError(f"no work site at {connect} within {CONNECT_TIMEOUT_S:.0f} s")
+        stage_s["connect"] = time.monotonic() - t0
+        t0 = time.monotonic()
+        kind = "not_recognised"
+        if oracle:
+            X_truth = {o.name: o.X_WO for o in truth.latest_after(time.time()).objects}
+            truth_frame = Recognitions(
+                seq=0,
+                stamp_s=time.time(),
+                elapsed_s=0.0,
+                objects=tuple(
+                    Recognition(model=n, X_WO=X, score=1.0)
+                    for n, X in X_truth.items()
+                    if not scene.object(n).fixed
+                ),
+            )
+            frames: Iterable[Recognitions] = [truth_frame]
+        else:
+            frames = _recognised_frames(link)
+        rec = model_from_frames(scene, frames, task.ready, log)
+        model, corrections = rec.model, rec.corrections
+        stage_s["vision"], stage_s["model"] = rec.vision_s, rec.model_s
+        out["vision_frames"] = rec.frames
+        stage_s["vision_wait"] = time.monotonic() - t0
+        out["recognised"] = sorted(model.poses)
+        out["corrections_mm"] = {c.name: round(c.moved_mm, 2) for c in corrections}
+
+        t0 = time.monotonic()
+        demo = task.demonstrate(model)
+        session, workpiece, ideal = demo.session, demo.workpiece, demo.ideal_X_WO
+        out["workpiece"] = workpiece
+        out |= task.describe(demo)
+        goal = session.X_WO[workpiece]
+        final = session.sim.history[-1]
+        stage_s["operator"] = time.monotonic() - t0
+        required = sorted({c.object for c in final.contacts})
+        out["contacts_required"] = len(contact_directions(final.contacts))
+        out["contacts_required_objects"] = required
+        out["goal_off_ideal_mm"] = float(np.linalg.norm(goal[:3, 3] - ideal[:3, 3]) * 1e3)
+        kind = "infeasible"
+        task.check(demo, model)
+
+        t0 = time.monotonic()
+        try:
+            program = make_program(session, _program_id(task.program_label, seed))
+        except ValueError as e:
+            raise RunError("infeasible", f"no program for the demonstration: {e}") from None
+        stage_s["program"] = time.monotonic() - t0
+        out["commands"] = len(program.commands)
+
+        t0 = time.monotonic()
+        kind = "execution_failed"
+        state0 = link.robot_state
+        link.send_program(program)
+
+        def finished() -> bool:
+            return any(
+                r.program_id == program.program_id and r.command_index == -1
+                and r.status in ("done", "failed", "refused", "stopped")
+                for r in link.status.reports
+            )  # fmt: skip
+
+        if not _wait(finished, link, EXECUTE_TIMEOUT_S):
+            raise RuntimeError(f"the program did not finish within {EXECUTE_TIMEOUT_S:.0f} s")
+        stage_s["execute"] = time.monotonic() - t0
+        if proc is not None and state0 is not None and link.robot_state is not None:
+            simulated_s = (link.robot_state.seq - state0.seq) / STATE_RATE_HZ
+            out["time_scale"] = time_scale
+            out["time_scale_achieved"] = simulated_s / stage_s["execute"]
+            if out["time_scale_achieved"] < SLOW_TIME_SCALE_FRACTION * time_scale:
+                log(
+                    f"warning: the work site simulated at {out['time_scale_achieved']:.2f}× "
+                    f"real time, asked {time_scale:g}× (the machine is too slow or loaded: "
+                    "the physics is the same, the run slower)"
+                )
+        reports = [r for r in link.status.reports if r.program_id == program.program_id]
+        out["execution"] = f"{reports[-1].status}: {reports[-1].message}"
+        verified = [r for r in reports if r.status == "contact_verified"]
+        out["contacts_verified"] = verified[-1].message.count(" N along ") if verified else 0
+        verified_objects = set(_VERIFIED_RE.findall(verified[-1].message)) if verified else set()
+        out["contacts_verified_objects"] = sorted(verified_objects)
+
+        kind = "goal_missed"
+        X_truth = {o.name: o.X_WO for o in truth.latest_after(time.time() + 0.3).objects}
+        if workpiece not in X_truth:
+            raise ValueError(f"the work site's ground truth has no {workpiece!r}")
+        for obj in scene.objects:  # the fixed objects where the truth does not list them
+            X_truth.setdefault(obj.name, obj.X_WO)
+        judgement = task.judge(demo, model, X_truth)
+        out["final_error_mm"] = judgement.error_m * 1e3
+        out["final_error_deg"] = math.degrees(judgement.error_rad)
+        out |= judgement.extra or {}
+        missing = sorted(set(judgement.goal_contacts) - verified_objects)
+        contacts_ok = out["contacts_verified"] >= out["contacts_required"] and not missing
+        out["success"] = bool(reports[-1].status == "done" and judgement.within and contacts_ok)
+        if reports[-1].status == "refused":
+            out["failure"] = _failure("program_refused", out["execution"])
+        elif reports[-1].status != "done":
+            out["failure"] = _failure("execution_failed", out["execution"])
+        elif not judgement.within:
+            off = f"{out['final_error_mm']:.2f} mm, {out['final_error_deg']:.2f}°"
+            out["failure"] = _failure("goal_missed", f"the block ended {off} from the goal")
+        elif not contacts_ok:
+            why = ", ".join(missing) or f"{out['contacts_verified']} of the directions"
+            out["failure"] = _failure("goal_missed", f"contacts not verified: {why}")
+        stage_s["computation"] = sum(stage_s.get(k, 0.0) for k in ("vision", "model", "program"))
+    except RunError as e:
+        out["error"] = str(e)
+        out["failure"] = _failure(e.kind, str(e))
+    except (RuntimeError, TimeoutError, ValueError) as e:
+        out["error"] = str(e)
+        out["failure"] = _failure(kind, str(e))
+    finally:
+        link.close()
+        if proc is not None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+    return out
+
+
+def _failure(kind: str, message: str) -> dict:
+    return {"kind": kind, "message": message}
+
+
+def _program_id(label: str, seed: int) -> str:
+    """A program id (letters, digits, ``_.-`` only) made of ``label``, the seed and the time."""
+    slug = re.sub(r"[^A-Za-z0-9_.-]+", "-", label).strip("-")[:40] or "task"
+    return f"{slug}-{seed}-{int(time.time())}"
