@@ -7,6 +7,9 @@ Only this package calls viser. Each panel is its own module, mixed into :class:`
 the model (:mod:`.model_panel`), the task (:mod:`.task_panel`), the program
 (:mod:`.program_panel`), the 3D view (:mod:`.scene_view`), the status and the log
 (:mod:`.status`).
+
+Text from the wire or from files reaches the page's markdown only through
+:func:`.text.plain`: viser renders markdown's embedded HTML as is.
 """
 
 from __future__ import annotations
@@ -73,7 +76,7 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
                 self.model.accept(obj.name, obj.X_WO)
         self.session = TaskSession(self.model.scene())
         self._lock = threading.Lock()
-        self.message = ""
+        self.message = ""  # markdown: any outside text in it already went through plain()
         self.finger_meshes: list = []
         self.path_lines: list = []
         self.pending_program = None
