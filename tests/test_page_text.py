@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from operator_site.link import LinkStatus
 from operator_site.ui.status import log_markdown, status_markdown
-from operator_site.ui.text import plain
+from operator_site.ui.text import WORD_JOINER, plain
 from protocol import ExecutionReport
 from tests.conftest import examples
 
@@ -24,7 +24,17 @@ PAYLOADS = (
     "[click](http://203.0.113.7/) ![x](http://203.0.113.7/a.png) www.example.com a@b.example",
     "**bold** _em_ `code` ~~gone~~ | a | b |\n|---|---|\n# heading\n    indented\n> quote",
     "&lt;img src=x&gt; &#60;b&#62; \\<b\\>",
+    "mailto:x@y.example HTTPS://A.EXAMPLE/ xmpp:a@b.example WWW.EXAMPLE.COM",
 )
+
+
+GFM_AUTOLINKS = (
+    re.compile(r"(https?://|www(?=\.))([-.\w]+)([^ \t\r\n]*)", re.IGNORECASE | re.ASCII),
+    re.compile(r"([-.\w+]+)@([-\w]+(?:\.[-\w]+)+)", re.ASCII),
+    re.compile(r"(mailto|xmpp):", re.IGNORECASE),
+)
+"""What GFM (mdast-util-gfm-autolink-literal, as viser's markdown runs it) links in a text
+node after character references are decoded: web addresses, mail addresses, protocols."""
 
 
 def rendered(markdown: str) -> str:
@@ -45,7 +55,9 @@ def shown_as_text(text: str) -> None:
     m = re.fullmatch(r"<p>(.*)</p>\n", out, flags=re.DOTALL)
     assert m is not None, out
     assert "<" not in m.group(1), out  # no element at all inside the paragraph
-    assert html.unescape(m.group(1)) == words
+    text_node = html.unescape(m.group(1))
+    assert text_node.replace(WORD_JOINER, "") == words
+    assert not any(r.search(text_node) for r in GFM_AUTOLINKS), text_node
 
 
 @pytest.mark.parametrize("text", PAYLOADS)
@@ -54,7 +66,7 @@ def test_markup_in_outside_text_is_shown_as_text(text: str) -> None:
 
 
 @settings(max_examples=examples(500))
-@given(st.text(alphabet=st.characters(blacklist_categories=("Cc", "Cs")), max_size=80))
+@given(st.text(alphabet=st.characters(blacklist_categories=("Cc", "Cf", "Cs")), max_size=80))
 def test_any_text_is_shown_as_its_own_words(text: str) -> None:
     shown_as_text(text)
 
@@ -71,6 +83,7 @@ def test_control_characters_are_replaced_and_whitespace_collapsed() -> None:
     assert plain("a\x00b\x1bc") == "a\ufffdb\ufffdc"
     assert plain("  two\n\nlines\tand  tabs ") == "two lines and tabs"
     assert plain(ValueError("bad <x>")) == "bad &#60;x&#62;"
+    assert plain("www.a.b x@y.z") == f"www{WORD_JOINER}&#46;a&#46;b x{WORD_JOINER}&#64;y&#46;z"
 
 
 def report(message: str, program_id: str = "p-1") -> ExecutionReport:
@@ -90,4 +103,5 @@ def test_status_and_log_show_report_messages_as_text(text: str) -> None:
     for markdown in (status_markdown("site_1", status), log_markdown(status.reports)):
         out = rendered(markdown)
         assert not re.search(r"<(img|iframe|script|a)\b", out), out
-        assert " ".join(text.split()) in html.unescape(re.sub(r"<[^>]+>", "", out))
+        text_nodes = html.unescape(re.sub(r"<[^>]+>", "", out)).replace(WORD_JOINER, "")
+        assert " ".join(text.split()) in text_nodes

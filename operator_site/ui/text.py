@@ -10,11 +10,16 @@ text: they take the text as it is (escaping them would show the escapes).
 
 from __future__ import annotations
 
+import re
 import string
 import unicodedata
 
 _ACTIVE = frozenset(string.punctuation)
 """Every ASCII punctuation character: HTML's and markdown's active ones are all among them."""
+WORD_JOINER = "\u2060"
+_AUTOLINK_STARTS = re.compile(r"www(?=\.)|(?=[:@])", re.IGNORECASE)
+"""Where a web or mail address could start to be linked: GFM links ``www.``, ``scheme:`` and
+``name@domain`` found in the text itself, after character references are decoded."""
 
 
 def _safe_char(c: str) -> str:
@@ -29,9 +34,12 @@ def _safe_char(c: str) -> str:
 def plain(text: object) -> str:
     """``text`` (``str()`` of it) as markdown that shows exactly its characters as text.
 
-    Punctuation becomes numeric character references (no HTML, emphasis, link, image, table or
-    web address can start), whitespace runs become one space (a newline would start a markdown
-    block), other control characters become U+FFFD. Not for code spans, where markdown shows
-    character references as they are written.
+    Punctuation becomes numeric character references (no HTML, emphasis, link, image or table
+    can start), an invisible word joiner goes before each ``:`` and ``@`` and after ``www``
+    before a dot (no web or mail address becomes a link), whitespace runs become one space (a
+    newline would start a markdown block), other control characters become U+FFFD. Not for
+    code spans, where markdown shows character references as they are written.
     """
-    return "".join(_safe_char(c) for c in " ".join(str(text).split()))
+    words = " ".join(str(text).split())
+    words = _AUTOLINK_STARTS.sub(lambda m: m.group(0) + WORD_JOINER, words)
+    return "".join(_safe_char(c) for c in words)
