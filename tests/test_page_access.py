@@ -201,3 +201,59 @@ def test_serve_beyond_loopback_prints_a_url_with_a_new_token() -> None:
         os.killpg(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=30)
     assert "warning" in err and "plain HTTP" in err
+
+
+@pytest.mark.integration
+@pytest.mark.browser
+def test_in_chromium_the_printed_url_or_the_typed_token_gives_control() -> None:
+    from tests.test_browser import CHROMIUM, CHROMIUM_FLAGS
+
+    if not os.access(CHROMIUM, os.X_OK):
+        print(f"skipping: {CHROMIUM} is missing (`make test` installs Debian's chromium as root)")
+        pytest.skip(f"{CHROMIUM} is missing (`make test` installs Debian's chromium as root)")
+    playwright = pytest.importorskip("playwright.sync_api")
+    link = WorkSiteLink(make_config(connect=[f"tcp/127.0.0.1:{free_port()}"]), "access_test")
+    page = OperatorPage(load_scene(), link, port=free_port(), token=TOKEN)
+    stops: list[Stop] = []
+    sub = link.session.declare_subscriber(
+        key(link.site_id, "stop"), lambda s: stops.append(decode(s.payload.to_bytes(), Stop))
+    )
+    port = page.server.get_port()
+    try:
+        with playwright.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
+            try:
+                # The bare address: read only, and says how to get control.
+                tab = browser.new_page(viewport={"width": 1400, "height": 900})
+                tab.goto(f"http://127.0.0.1:{port}/")
+                tab.get_by_text("Read only.").wait_for(timeout=60_000)
+                tab.get_by_role("button", name="STOP the robot").click()
+                tab.wait_for_timeout(1_000)
+                assert stops == []
+                # viser's text input has no id for its label: the first input after it.
+                field = tab.locator(
+                    "xpath=//label[normalize-space()='access token']/following::input[1]"
+                )
+                field.fill("wrong")
+                tab.get_by_role("button", name="get control").click()
+                tab.get_by_text("That is not the token").wait_for(timeout=10_000)
+                field.fill(TOKEN)
+                tab.get_by_role("button", name="get control").click()
+                tab.get_by_text("Read only.").wait_for(state="detached", timeout=10_000)
+                tab.get_by_role("button", name="STOP the robot").click()
+                assert wait_until(lambda: len(stops) == 1, 10.0)
+                tab.close()
+                # The printed address: control at once.
+                tab = browser.new_page(viewport={"width": 1400, "height": 900})
+                tab.goto(page_url("127.0.0.1", port, TOKEN))
+                tab.get_by_role("button", name="STOP the robot").wait_for(timeout=60_000)
+                tab.wait_for_timeout(1_000)  # a notice would have come with the first panel
+                assert tab.get_by_text("Read only.").count() == 0
+                tab.get_by_role("button", name="STOP the robot").click()
+                assert wait_until(lambda: len(stops) == 2, 10.0)
+            finally:
+                browser.close()
+    finally:
+        sub.undeclare()
+        page.close()
+        link.close()
