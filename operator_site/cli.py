@@ -65,8 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(
             "--token",
             default=None,
-            help="the page's access token (default: a new one at each start when --host is "
-            "not loopback, none on loopback); the printed address carries it",
+            help="the page's access token, at least 16 of A-Z a-z 0-9 _ - . ~ (default: a new "
+            "one at each start when --host is not loopback, none on loopback); the printed "
+            "address carries it",
         )
         p.add_argument(
             "--no-token",
@@ -163,18 +164,20 @@ def _install_stop_signals(stop: threading.Event) -> None:
 def _page_token(args: argparse.Namespace) -> str | None:
     """The page's access token from ``--token``/``--no-token`` and ``--host``; warns on stderr
     when the page is reachable from other machines."""
-    from operator_site.ui.access import is_loopback_host, new_token
+    from operator_site.ui.access import check_token, is_loopback_host, new_token
 
     loopback = is_loopback_host(args.host)
-    if args.no_token and args.token is not None:
+    # A command without the token options (one that calls serve() itself) gets the defaults.
+    token, no_token = getattr(args, "token", None), getattr(args, "no_token", False)
+    if no_token and token is not None:
         raise ValueError("--token and --no-token contradict each other")
-    if args.no_token and not loopback:
+    if no_token and not loopback:
         raise ValueError(
             f"--no-token needs a loopback --host (127.0.0.1, localhost, ::1), not {args.host}: "
             "anyone who reaches the page would control the robot"
         )
-    if args.token is not None and not args.token.strip():
-        raise ValueError("--token must not be empty")
+    if token is not None:
+        check_token(token)
     if not loopback:
         # viser serves plain HTTP: the token and the page cross the network in clear.
         print(
@@ -184,9 +187,9 @@ def _page_token(args: argparse.Namespace) -> str | None:
             file=sys.stderr,
             flush=True,
         )
-    if args.token is not None:
-        return args.token.strip()
-    return None if loopback or args.no_token else new_token()
+    if token is not None:
+        return token
+    return None if loopback or no_token else new_token()
 
 
 def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:

@@ -24,6 +24,7 @@ from protocol import Stop, decode, key, make_config
 from tests.conftest import REPO, free_port, wait_until
 
 TOKEN = "correct-horse-battery"
+MINE = "mine-0123456789ab"
 
 
 @pytest.mark.parametrize(
@@ -47,11 +48,11 @@ def test_loopback_hosts(host: str, loopback: bool) -> None:
 
 def test_the_url_makes_the_browser_websocket_carry_the_token() -> None:
     assert page_url("127.0.0.1", 8080, None, "localhost") == "http://localhost:8080/"
-    url = page_url("0.0.0.0", 8080, "a-b_c", "ops")
-    assert url == "http://ops:8080/?websocket=ws://ops:8080/?token=a-b_c"
+    url = page_url("0.0.0.0", 8080, "a-b_c.d~0123456789", "ops")
+    assert url == "http://ops:8080/?websocket=ws://ops:8080/?token=a-b_c.d~0123456789"
     # As viser's page reads it: the websocket parameter, query included.
     ws = parse_qs(urlsplit(url).query)["websocket"][0]
-    assert parse_qs(urlsplit(ws).query) == {"token": ["a-b_c"]}
+    assert parse_qs(urlsplit(ws).query) == {"token": ["a-b_c.d~0123456789"]}
     assert page_url("::", 8080, None, "::1") == "http://[::1]:8080/"
 
 
@@ -63,8 +64,9 @@ def test_only_the_token_admits_a_client() -> None:
     access.forget(1)
     assert not access.allows(1)
     assert PageAccess(None).allows(7)
-    with pytest.raises(ValueError, match="empty"):
-        PageAccess("")
+    for bad in ("", "short", "sixteen&chars+++", "sixteen chars ok"):
+        with pytest.raises(ValueError, match="at least 16 characters"):
+            PageAccess(bad)
     assert len(new_token()) >= 32 and new_token() != new_token()
 
 
@@ -74,18 +76,18 @@ def args_for(*argv: str):
 
 def test_the_command_line_token(capsys: pytest.CaptureFixture[str]) -> None:
     assert _page_token(args_for()) is None  # loopback: no token, no warning
-    assert _page_token(args_for("--token", "mine")) == "mine"
+    assert _page_token(args_for("--token", MINE)) == MINE
     assert capsys.readouterr().err == ""
     made = _page_token(args_for("--host", "0.0.0.0"))
     assert made is not None and len(made) >= 32
     assert "warning" in capsys.readouterr().err  # plain HTTP beyond loopback
-    assert _page_token(args_for("--host", "0.0.0.0", "--token", "mine")) == "mine"
+    assert _page_token(args_for("--host", "0.0.0.0", "--token", MINE)) == MINE
     with pytest.raises(ValueError, match="--no-token needs a loopback --host"):
         _page_token(args_for("--host", "0.0.0.0", "--no-token"))
     with pytest.raises(ValueError, match="contradict"):
         _page_token(args_for("--token", "x", "--no-token"))
-    with pytest.raises(ValueError, match="must not be empty"):
-        _page_token(args_for("--token", " "))
+    with pytest.raises(ValueError, match="at least 16 characters"):
+        _page_token(args_for("--token", "guessable"))
 
 
 def test_a_page_beyond_loopback_needs_a_token() -> None:

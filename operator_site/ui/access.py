@@ -14,9 +14,10 @@ from __future__ import annotations
 import inspect
 import ipaddress
 import logging
+import re
 import secrets
 import threading
-from urllib.parse import parse_qs, quote, urlsplit
+from urllib.parse import parse_qs, urlsplit
 
 import viser
 from viser import _messages
@@ -25,6 +26,9 @@ log = logging.getLogger("operator-site")
 
 LOOPBACK_NAMES = ("localhost",)
 TOKEN_PARAM = "token"
+TOKEN_PATTERN = re.compile(r"[A-Za-z0-9_~.-]{16,}")
+"""A token a deployment sets itself: long enough not to be guessed, and characters that pass
+through the page's URL unchanged."""
 READ_ONLY_MESSAGES = (
     _messages.ViewerCameraMessage,
     _messages.GetRenderResponseMessage,
@@ -50,6 +54,16 @@ def new_token() -> str:
     return secrets.token_urlsafe(24)
 
 
+def check_token(token: str) -> str:
+    """``token`` if it may be the page's access token, else ValueError saying why."""
+    if not TOKEN_PATTERN.fullmatch(token):
+        raise ValueError(
+            "the access token must be at least 16 characters of A-Z, a-z, 0-9, '_', '-', '.', "
+            "'~' (omit it for a new random one)"
+        )
+    return token
+
+
 def page_url(host: str, port: int, token: str | None, browse_host: str | None = None) -> str:
     """The URL to open: with a token, one whose websocket carries it (viser's page connects to
     the ``websocket`` parameter's address, query included). ``browse_host`` replaces a wildcard
@@ -60,7 +74,7 @@ def page_url(host: str, port: int, token: str | None, browse_host: str | None = 
     base = f"http://{name}:{port}/"
     if token is None:
         return base
-    ws = f"ws://{name}:{port}/?{TOKEN_PARAM}={quote(token, safe='')}"
+    ws = f"ws://{name}:{port}/?{TOKEN_PARAM}={check_token(token)}"
     return f"{base}?websocket={ws}"
 
 
@@ -68,9 +82,7 @@ class PageAccess:
     """The token (None: every client may control) and the clients that showed it."""
 
     def __init__(self, token: str | None) -> None:
-        if token is not None and not token:
-            raise ValueError("the access token must not be empty")
-        self.token = token
+        self.token = None if token is None else check_token(token)
         self._admitted: set[int] = set()
         self._lock = threading.Lock()
 

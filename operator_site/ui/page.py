@@ -158,7 +158,9 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
                 for handle in (notice, field, button):
                     handle.remove()
                 client.add_notification("Access granted", "You control the robot now.")
+                log.info("page client %d typed the access token: it controls the robot", cid)
             else:
+                log.warning("page client %d typed a wrong access token", cid)
                 notice.content = READ_ONLY_HELP + "  \n⚠ That is not the token."
 
         button.on_click(on_token)
