@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -59,7 +60,21 @@ def build_parser() -> argparse.ArgumentParser:
             "--host",
             default="127.0.0.1",
             help="address the web page listens on (default: %(default)s; "
-            "0.0.0.0 for every interface)",
+            "0.0.0.0 for every interface: then only a browser given the access token may "
+            "control the robot)",
+        )
+        p.add_argument(
+            "--token",
+            default=None,
+            help="the page's access token, at least 16 of A-Z a-z 0-9 _ - . ~ (default: a new "
+            "one at each start when --host is not loopback, none on loopback); the printed "
+            "address carries it",
+        )
+        p.add_argument(
+            "--no-token",
+            action="store_true",
+            help="no access token: every browser that reaches the page controls the robot "
+            "(only with a loopback --host)",
         )
         p.add_argument(
             "--port", type=int, default=8080, help="port of the web page (default: %(default)s)"
@@ -200,6 +215,37 @@ def _install_stop_signals(stop: threading.Event) -> None:
     signal.signal(signal.SIGTERM, on_signal)
 
 
+def _page_token(args: argparse.Namespace) -> str | None:
+    """The page's access token from ``--token``/``--no-token`` and ``--host``; warns on stderr
+    when the page is reachable from other machines."""
+    from operator_site.ui.access import check_token, is_loopback_host, new_token
+
+    loopback = is_loopback_host(args.host)
+    # A command without the token options (one that calls serve() itself) gets the defaults.
+    token, no_token = getattr(args, "token", None), getattr(args, "no_token", False)
+    if no_token and token is not None:
+        raise ValueError("--token and --no-token contradict each other")
+    if no_token and not loopback:
+        raise ValueError(
+            f"--no-token needs a loopback --host (127.0.0.1, localhost, ::1), not {args.host}: "
+            "anyone who reaches the page would control the robot"
+        )
+    if token is not None:
+        check_token(token)
+    if not loopback:
+        # viser serves plain HTTP: the token and the page cross the network in clear.
+        print(
+            f"operator-site: warning: the page listens on {args.host} over plain HTTP (no TLS): "
+            "the access token and everything on the page can be read on the network; put it "
+            "behind an HTTPS proxy or an SSH tunnel beyond a trusted network",
+            file=sys.stderr,
+            flush=True,
+        )
+    if token is not None:
+        return token
+    return None if loopback or no_token else new_token()
+
+
 def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     """Serve the page until SIGINT/SIGTERM (or ``stop``); returns the exit code."""
     from operator_site.link import WorkSiteLink  # heavy imports after parsing
@@ -218,6 +264,7 @@ def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         config = make_config(connect=connect, tls=tls)
         if not 1 <= args.port <= 65535:
             raise ValueError(f"--port must be in 1..65535, got {args.port}")
+        token = _page_token(args)
     except (ModelError, ProtocolError, ValueError) as e:
         print(f"operator-site: {e}", file=sys.stderr)
         return 2
@@ -227,7 +274,13 @@ def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     link = WorkSiteLink(config, args.site_id)
     try:
         page = OperatorPage(
-            scene, link, host=args.host, port=args.port, initial_model=args.initial_model
+            scene,
+            link,
+            host=args.host,
+            port=args.port,
+            initial_model=args.initial_model,
+            token=token,
+            browse_host=socket.gethostname() if args.host in ("0.0.0.0", "::") else None,
         )
         try:
             print(

@@ -3,6 +3,8 @@ through the page's own callbacks (no browser)."""
 
 from __future__ import annotations
 
+from html import unescape as shown  # the page's markdown escapes outside text
+
 import numpy as np
 import pytest
 
@@ -191,7 +193,7 @@ def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) ->
     page.remove_mode.value = False
     assert set(page.model.poses) == {"cube"} and not page.object_frames["plank"].visible
     page.on_select("plank")  # no longer in the model: refused, with the reason
-    assert page.session.workpiece is None and "no object 'plank'" in page.message
+    assert page.session.workpiece is None and "no object 'plank'" in shown(page.message)
 
 
 def test_the_stop_button_sends_a_stop(page: OperatorPage) -> None:
@@ -230,7 +232,7 @@ def test_a_task_saved_and_loaded_comes_back(page: OperatorPage, tmp_path) -> Non
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
     page.on_load(str(bad))
-    assert "⚠" in page.task_md.content and "bad.json" in page.task_md.content
+    assert "⚠" in page.task_md.content and "bad.json" in shown(page.task_md.content)
     assert page.session.workpiece == "cube"
     page.on_load(str(tmp_path / "missing.json"))
     assert "cannot read it" in page.task_md.content

@@ -11,6 +11,7 @@ from models.scene import Scene
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import WorkSiteModel
 from operator_site.task import TaskSession
+from operator_site.ui.text import plain
 
 MODEL_HELP = (
     "Blocks the work site's camera recognised are outlined on its image (orange: not in the "
@@ -51,9 +52,11 @@ class ModelPanel:
         self._show_fingers(None)
         self._show_path(None, None)
         self._show_model()
-        lines = [f"model: {len(self.model.poses)} blocks ({', '.join(sorted(self.model.poses))})"]
+        names = ", ".join(sorted(self.model.poses))
+        lines = [f"model: {len(self.model.poses)} blocks ({plain(names)})"]
         lines += [
-            f"{c.name}: moved {c.moved_mm:.1f} mm, turned {c.turned_deg:.1f}° ({c.why})"
+            f"{plain(c.name)}: moved {c.moved_mm:.1f} mm, turned {c.turned_deg:.1f}° "
+            f"({plain(c.why)})"
             for c in corrections
             if c.moved_mm >= 0.05 or c.turned_deg >= 0.05
         ]
@@ -78,7 +81,7 @@ class ModelPanel:
             try:
                 corrections = self.model.make_consistent(self.session.params)
             except ValueError as e:
-                self.model_md.content = f"⚠ {e}"
+                self.model_md.content = f"⚠ {plain(e)}"
                 return accepted
             self._model_changed(corrections)
         return accepted
@@ -89,7 +92,7 @@ class ModelPanel:
         recs = self.link.recognitions
         found = [r for r in (recs.objects if recs else ()) if r.model == name]
         if not found:
-            self.model_md.content = f"{name} is not among the latest recognitions"
+            self.model_md.content = f"{plain(name)} is not among the latest recognitions"
             return False
         with self._lock:
             self.model.accept(name, found[0].X_WO, found[0].score)
@@ -97,7 +100,7 @@ class ModelPanel:
                 corrections = self.model.make_consistent(self.session.params)
             except ValueError as e:
                 self.model.remove(name)
-                self.model_md.content = f"⚠ {name} not added: {e}"
+                self.model_md.content = f"⚠ {plain(name)} not added: {plain(e)}"
                 return False
             self._model_changed(corrections)
         self._show_recognitions()
@@ -128,7 +131,7 @@ class ModelPanel:
         lines = [f"frame {recs.seq}, {recs.elapsed_s * 1e3:.0f} ms:"]
         for r in sorted(recs.objects, key=lambda r: -r.score):
             state = "in the model" if r.model in self.model.poses else "not accepted"
-            lines.append(f"- {r.model}: score {r.score:.2f} ({state})")
+            lines.append(f"- {plain(r.model)}: score {r.score:.2f} ({state})")
         self.recognitions_md.content = "\n".join(lines)
         self._show_add_buttons(
             {r.model: r.score for r in recs.objects if r.model not in self.model.poses}

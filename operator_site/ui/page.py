@@ -7,6 +7,9 @@ Only this package calls viser. Each panel is its own module, mixed into :class:`
 the model (:mod:`.model_panel`), the task (:mod:`.task_panel`), the program
 (:mod:`.program_panel`), the 3D view (:mod:`.scene_view`), the status and the log
 (:mod:`.status`).
+
+Text from the wire or from files reaches the page's markdown only through
+:func:`.text.plain`: viser renders markdown's embedded HTML as is.
 """
 
 from __future__ import annotations
@@ -24,6 +27,13 @@ from models.scene import Scene
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import WorkSiteModel
 from operator_site.task import TaskSession
+from operator_site.ui.access import (
+    PageAccess,
+    connection_token,
+    install_gate,
+    is_loopback_host,
+    page_url,
+)
 from operator_site.ui.model_panel import ModelPanel
 from operator_site.ui.overlay import draw_wireframes
 from operator_site.ui.program_panel import ProgramPanel
@@ -38,6 +48,10 @@ UI_PERIOD_S = 0.05
 STATUS_PERIOD_S = 0.5
 INITIAL_EYE_W = (1.05, -0.85, 0.75)
 INITIAL_LOOK_AT_W = (0.40, 0.0, 0.05)
+READ_ONLY_HELP = (
+    "**Read only.** This page controls a robot: to control it, open the address with the "
+    "access token that `operator-site serve` printed when it started, or type the token here."
+)
 
 
 class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
@@ -45,6 +59,10 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
 
     ``initial_model``: "scene" starts the model from the scene file's layout (the demo without
     vision), "empty" from the fixed environment alone, waiting for recognitions.
+
+    ``token``: only clients that show it may control the robot (:mod:`.access`); required
+    when ``host`` is not loopback. ``browse_host``: the host name :attr:`url` uses when ``host``
+    is a wildcard address.
     """
 
     def __init__(
@@ -54,15 +72,24 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
         host: str = "127.0.0.1",
         port: int = 8080,
         initial_model: str = "scene",
+        token: str | None = None,
+        browse_host: str | None = None,
     ) -> None:
         if initial_model not in ("scene", "empty"):
             raise ValueError(f"initial_model must be 'scene' or 'empty', not {initial_model!r}")
+        if token is None and not is_loopback_host(host):
+            raise ValueError(f"a page listening on {host} needs an access token")
+        self.access = PageAccess(token)
         self.scene, self.link = scene, link
         self.robot: RobotModel = load_robot(scene.robot.urdf_path)
         self.server = viser.ViserServer(
             host=host, port=port, label="Telerobot operator site", verbose=False
         )
-        self.url = f"http://{'localhost' if host in ('0.0.0.0', '127.0.0.1') else host}:{port}"
+        install_gate(self.server, self.access)
+        if browse_host is None and host in ("0.0.0.0", "127.0.0.1", "::", "::1"):
+            browse_host = "localhost"
+        # viser moves to the next free port if this one is taken: the URL says where it is.
+        self.url = page_url(host, self.server.get_port(), token, browse_host)
         self.server.scene.set_up_direction("+z")
         self.server.initial_camera.position = INITIAL_EYE_W
         self.server.initial_camera.look_at = INITIAL_LOOK_AT_W
@@ -73,7 +100,7 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
                 self.model.accept(obj.name, obj.X_WO)
         self.session = TaskSession(self.model.scene())
         self._lock = threading.Lock()
-        self.message = ""
+        self.message = ""  # markdown: any outside text in it already went through plain()
         self.finger_meshes: list = []
         self.path_lines: list = []
         self.pending_program = None
@@ -85,6 +112,8 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
         self.frames_shown = 0
         self.states_shown = 0
         self._last_drag_s = -math.inf
+        self.server.on_client_connect(self._on_client_connect)
+        self.server.on_client_disconnect(lambda client: self.access.forget(client.client_id))
 
     # ------------------------------------------------------------------------------ building
 
@@ -113,6 +142,28 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
             self._build_program_panel(gui)
         with gui.add_folder("Execution log"):
             self.log_md = gui.add_markdown(log_markdown([]))
+
+    def _on_client_connect(self, client: viser.ClientHandle) -> None:
+        """A client without the token is told it sees a read-only page, and how to get access."""
+        cid = client.client_id
+        if self.access.admit(cid, connection_token(self.server, cid)):
+            return
+        # Client-scoped: only this client sees them, and its messages to them pass the gate.
+        notice = client.gui.add_markdown(READ_ONLY_HELP, order=-3.0)
+        field = client.gui.add_text("access token", "", order=-2.0)
+        button = client.gui.add_button("get control", order=-1.0)
+
+        def on_token(_) -> None:
+            if self.access.admit(cid, field.value.strip()):
+                for handle in (notice, field, button):
+                    handle.remove()
+                client.add_notification("Access granted", "You control the robot now.")
+                log.info("page client %d typed the access token: it controls the robot", cid)
+            else:
+                log.warning("page client %d typed a wrong access token", cid)
+                notice.content = READ_ONLY_HELP + "  \n⚠ That is not the token."
+
+        button.on_click(on_token)
 
     def _camera_view(self) -> np.ndarray:
         """The latest frame, with the latest recognitions outlined (vision runs slower than

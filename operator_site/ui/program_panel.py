@@ -11,6 +11,7 @@ import viser
 from operator_site.link import WorkSiteLink
 from operator_site.program import choose_grasp_yaw, generate_program
 from operator_site.task import TaskSession
+from operator_site.ui.text import plain
 
 
 class ProgramPanel:
@@ -68,22 +69,23 @@ class ProgramPanel:
                 )
             except ValueError as e:  # ProgramRefusedError says which command and why
                 self.pending_program = None
-                self.program_md.content = f"⚠ no program: {e}"
+                self.program_md.content = f"⚠ no program: {plain(e)}"
                 self.progress.visible = False
                 return
             self.pending_program = made.program
         self.progress.value = 100.0
         self._show_path(made.raw.centres_W, made.deformed.path.centres_W)
         lines = [
-            f"**program `{program_id}`**, {len(made.program.commands)} commands; path "
+            f"**program {plain(program_id)}**, {len(made.program.commands)} commands; path "
             f"{made.raw.length_m() * 1e3:.0f} → {made.deformed.path.length_m() * 1e3:.0f} mm "
             f"(grey: as dragged, green: as the robot will go):"
         ]
         for i, c in enumerate(made.program.commands):
             p = c.X_WP[:3, 3]
-            contacts = f" keeping {', '.join(x.object for x in c.contacts)}" if c.contacts else ""
+            kept = ", ".join(x.object for x in c.contacts)
+            contacts = f" keeping {plain(kept)}" if c.contacts else ""
             lines.append(
-                f"{i}. {c.kind} to ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m at "
+                f"{i}. {plain(c.kind)} to ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m at "
                 f"{c.speed_mps * 1000:.0f} mm/s{contacts}"
             )
         lines.append("Check the green path in the 3D view, then send it.")
@@ -93,7 +95,7 @@ class ProgramPanel:
 
     def _show_progress(self, fraction: float, stage: str) -> None:
         self.progress.value = 100.0 * fraction
-        self.program_md.content = f"making the program: {stage}…"
+        self.program_md.content = f"making the program: {plain(stage)}…"
 
     def on_send_program(self) -> None:
         """Second confirmation: send the pending program to the work site."""
@@ -102,4 +104,4 @@ class ProgramPanel:
         if program is None:
             return
         self.link.send_program(program)
-        self.program_md.content += f"  \nsent to the work site `{self.link.site_id}`"
+        self.program_md.content += f"  \nsent to the work site {plain(self.link.site_id)}"

@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 
 from operator_site.link import LinkStatus
+from operator_site.ui.text import plain
 
 LOG_LINES = 8
 
@@ -31,7 +32,7 @@ def waiting_image(width: int, height: int, text: str) -> np.ndarray:
 
 def status_markdown(site_id: str, status: LinkStatus) -> str:
     """The status panel's text for the link state ``status``."""
-    lines = [f"**work site: {status.label}** (`{site_id}`)"]
+    lines = [f"**work site: {status.label}** ({plain(site_id)})"]
     if status.work_site_alive:
         lines.append(
             f"robot state {status.state_rate_hz:.0f} Hz · camera {status.frame_rate_hz:.1f} Hz"
@@ -42,7 +43,9 @@ def status_markdown(site_id: str, status: LinkStatus) -> str:
         lines.append(f"⚠ {status.rejected} invalid messages rejected")
     if status.reports:
         r = status.reports[-1]
-        lines.append(f"last report: program `{r.program_id}` {r.status}: {r.message}")
+        lines.append(
+            f"last report: program {plain(r.program_id)} {plain(r.status)}: {plain(r.message)}"
+        )
     return "  \n".join(lines)
 
 
@@ -53,5 +56,5 @@ def log_markdown(reports) -> str:
     lines = []
     for r in reports[-LOG_LINES:]:
         where = "program" if r.command_index < 0 else f"command {r.command_index}"
-        lines.append(f"`{r.program_id}` {where}: **{r.status}** {r.message}")
+        lines.append(f"{plain(r.program_id)} {where}: **{plain(r.status)}** {plain(r.message)}")
     return "  \n".join(lines)

@@ -16,6 +16,7 @@ from operator_site.model_editor import WorkSiteModel
 from operator_site.task import TaskSession
 from operator_site.ui.scene_view import set_pose
 from operator_site.ui.taskfile import TaskFile, load_task, save_task
+from operator_site.ui.text import plain
 
 NO_WORKPIECE = "(none)"
 TASK_HELP = (
@@ -77,14 +78,14 @@ class TaskPanel:
             try:
                 self.session.select(name)
             except (KeyError, ValueError) as e:
-                self.message = _reason(e)
+                self.message = plain(_reason(e))
                 return
             X = self.session.X_WO[name]
             set_pose(self.dragger, X)
             self.dragger.visible = True
             self._show_fingers(name)
             self._show_path(None, None)
-            self.message = f"dragging **{name}**, held as the gripper will hold it"
+            self.message = f"dragging **{plain(name)}**, held as the gripper will hold it"
         if self.workpiece_dropdown.value != name:
             self.workpiece_dropdown.value = name
 
@@ -99,9 +100,9 @@ class TaskPanel:
             with self._lock:
                 try:
                     now = self.session.toggle_capture(name)
-                    self.message = f"{name}: {'captured' if now else 'released'}"
+                    self.message = f"{plain(name)}: {'captured' if now else 'released'}"
                 except ValueError as e:
-                    self.message = str(e)
+                    self.message = plain(e)
             return
         if not self.scene.object(name).fixed:
             self.on_select(name)
@@ -158,9 +159,9 @@ class TaskPanel:
         try:
             save_task(path, task)
         except OSError as e:
-            self.task_md.content = f"⚠ could not save to `{path}`: {e.strerror}"
+            self.task_md.content = f"⚠ could not save to {plain(path)}: {plain(e.strerror)}"
             return
-        self.task_md.content = f"saved to `{Path(path).resolve()}` ({len(task.path)} steps)"
+        self.task_md.content = f"saved to {plain(Path(path).resolve())} ({len(task.path)} steps)"
 
     def on_load(self, path: str) -> None:
         """Load a task file: its model, its workpiece, and its path dragged again."""
@@ -169,13 +170,13 @@ class TaskPanel:
             if task.scene != self.scene.name:
                 raise ValueError(f"{path}: made for scene {task.scene!r}, not {self.scene.name!r}")
         except ValueError as e:
-            self.task_md.content = f"⚠ {e}"
+            self.task_md.content = f"⚠ {plain(e)}"
             return
         with self._lock:
             try:
                 model = WorkSiteModel(self.scene, task.model)
             except (KeyError, ValueError) as e:
-                self.task_md.content = f"⚠ {path}: {_reason(e)}"
+                self.task_md.content = f"⚠ {plain(path)}: {plain(_reason(e))}"
                 return
             self.model = model
             self._model_changed()
@@ -189,7 +190,7 @@ class TaskPanel:
                 set_pose(self.dragger, X)
                 set_pose(self.object_frames[task.workpiece], X)
         # As the message, so that the live task text (rewritten every step) keeps it.
-        self.message = f"loaded `{path}` ({len(task.path)} steps replayed)"
+        self.message = f"loaded {plain(path)} ({len(task.path)} steps replayed)"
         self.task_md.content = self.message
 
     def step_task(self) -> None:
@@ -209,8 +210,8 @@ class TaskPanel:
                 None,
                 [
                     self.message,
-                    f"touching: {touching}",
-                    f"captured: {', '.join(captured)}" if captured else "",
+                    f"touching: {plain(touching)}",
+                    f"captured: {plain(', '.join(captured))}" if captured else "",
                 ],
             )
         )

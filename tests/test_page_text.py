@@ -1,0 +1,107 @@
+"""Outside text on the page: :func:`plain` shows any string as text, never as markup, and the
+status and log panels put wire text through it."""
+
+from __future__ import annotations
+
+import html
+import re
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from operator_site.link import LinkStatus
+from operator_site.ui.status import log_markdown, status_markdown
+from operator_site.ui.text import WORD_JOINER, plain
+from protocol import ExecutionReport
+from tests.conftest import examples
+
+PAYLOADS = (
+    '<img src=x onerror="window.__pwned=1">',
+    '<iframe srcdoc="<script>parent.__pwned=2</script>"></iframe>',
+    "<script>window.__pwned=3</script>",
+    "[click](http://203.0.113.7/) ![x](http://203.0.113.7/a.png) www.example.com a@b.example",
+    "**bold** _em_ `code` ~~gone~~ | a | b |\n|---|---|\n# heading\n    indented\n> quote",
+    "&lt;img src=x&gt; &#60;b&#62; \\<b\\>",
+    "mailto:x@y.example HTTPS://A.EXAMPLE/ xmpp:a@b.example WWW.EXAMPLE.COM",
+)
+
+
+GFM_AUTOLINKS = (
+    re.compile(r"(https?://|www(?=\.))([-.\w]+)([^ \t\r\n]*)", re.IGNORECASE | re.ASCII),
+    re.compile(r"([-.\w+]+)@([-\w]+(?:\.[-\w]+)+)", re.ASCII),
+    re.compile(r"(mailto|xmpp):", re.IGNORECASE),
+)
+"""What GFM (mdast-util-gfm-autolink-literal, as viser's markdown runs it) links in a text
+node after character references are decoded: web addresses, mail addresses, protocols."""
+
+
+def rendered(markdown: str) -> str:
+    """``markdown`` as HTML by a CommonMark parser that passes raw HTML through, as viser's
+    does, with GFM's tables and strikethrough."""
+    markdown_it = pytest.importorskip("markdown_it")
+    md = markdown_it.MarkdownIt("commonmark", {"html": True}).enable(["table", "strikethrough"])
+    return md.render(markdown)
+
+
+def shown_as_text(text: str) -> None:
+    """Assert that ``plain(text)`` renders as one paragraph holding exactly ``text``'s words."""
+    out = rendered(plain(text))
+    words = " ".join(text.split())
+    if not words:
+        assert out == ""
+        return
+    m = re.fullmatch(r"<p>(.*)</p>\n", out, flags=re.DOTALL)
+    assert m is not None, out
+    assert "<" not in m.group(1), out  # no element at all inside the paragraph
+    text_node = html.unescape(m.group(1))
+    assert text_node.replace(WORD_JOINER, "") == words
+    assert not any(r.search(text_node) for r in GFM_AUTOLINKS), text_node
+
+
+@pytest.mark.parametrize("text", PAYLOADS)
+def test_markup_in_outside_text_is_shown_as_text(text: str) -> None:
+    shown_as_text(text)
+
+
+@settings(max_examples=examples(500))
+@given(st.text(alphabet=st.characters(blacklist_categories=("Cc", "Cf", "Cs")), max_size=80))
+def test_any_text_is_shown_as_its_own_words(text: str) -> None:
+    shown_as_text(text)
+
+
+@settings(max_examples=examples(500))
+@given(st.text(max_size=80))
+def test_plain_leaves_no_active_character(text: str) -> None:
+    # Outside its numeric character references, no ASCII punctuation or control character.
+    rest = re.sub(r"&#\d+;", "", plain(text))
+    assert not re.search(r"[!-/:-@\[-`{-~\x00-\x1f\x7f]", rest), rest
+
+
+def test_control_characters_are_replaced_and_whitespace_collapsed() -> None:
+    assert plain("a\x00b\x1bc") == "a\ufffdb\ufffdc"
+    assert plain("  two\n\nlines\tand  tabs ") == "two lines and tabs"
+    assert plain(ValueError("bad <x>")) == "bad &#60;x&#62;"
+    assert plain("www.a.b x@y.z") == f"www{WORD_JOINER}&#46;a&#46;b x{WORD_JOINER}&#64;y&#46;z"
+
+
+def report(message: str, program_id: str = "p-1") -> ExecutionReport:
+    return ExecutionReport(
+        program_id=program_id,
+        command_index=-1,
+        status="refused",
+        wrench_S=np.zeros(6),
+        message=message,
+        stamp_s=1.0,
+    )
+
+
+@pytest.mark.parametrize("text", PAYLOADS[:4])
+def test_status_and_log_show_report_messages_as_text(text: str) -> None:
+    status = LinkStatus(reports=[report(text)])
+    for markdown in (status_markdown("site_1", status), log_markdown(status.reports)):
+        out = rendered(markdown)
+        assert not re.search(r"<(img|iframe|script|a)\b", out), out
+        text_nodes = html.unescape(re.sub(r"<[^>]+>", "", out)).replace(WORD_JOINER, "")
+        assert " ".join(text.split()) in text_nodes
