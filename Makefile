@@ -61,6 +61,8 @@ E2E_SEEDS ?= 100
 # trade: each user knob's values on each task, TRADE_SEEDS seeds a value (the defaults' runs
 # shared).
 TRADE_SEEDS ?= 5
+# tasks: every shipped task file (examples/tasks/) on TASK_SEEDS seeded layouts.
+TASK_SEEDS ?= 20
 bench: $(BENCH_STAMP)
 	$(PY) -m bench sim --out docs/bench
 	$(PY) -m bench deform --out docs/bench
@@ -73,6 +75,7 @@ bench: $(BENCH_STAMP)
 	$(PY) -m bench trade --seeds $(TRADE_SEEDS) --time-scale 3 --tasks corner --out docs/bench
 	$(PY) -m bench trade --seeds $(TRADE_SEEDS) --time-scale 3 --tasks around-corner \
 	  --out docs/bench/trade-around-corner
+	$(PY) -m bench tasks --seeds $(TASK_SEEDS) --time-scale 3 --out docs/bench
 	$(PY) -m bench report
 
 clean:

@@ -173,6 +173,36 @@ FIGURES: tuple[Figure, ...] = (
            "{:.2f} s", "(reported)"),
 )  # fmt: skip
 
+TASK_LAYOUTS = 20
+"""Each shipped task's goal counts success over this many layouts."""
+TASK_SUCCESS_FRACTION = (TASK_LAYOUTS - 1) / TASK_LAYOUTS
+TASKS_DIR = REPO / "examples" / "tasks"
+
+
+def _task_row(data: list[dict], file: str) -> dict:
+    return next(row for row in data if row["file"] == file)
+
+
+def _task_figures() -> tuple[Figure, ...]:
+    """Success and final error of each shipped task file (``python -m bench tasks``)."""
+    out = []
+    for path in sorted(TASKS_DIR.glob("*.json")):
+        f = path.name
+        out += [
+            Figure("Any task (20)", f"{f}: success", "tasks.json",
+                   lambda d, f=f: (_task_row(d, f)["successes"], _task_row(d, f)["runs"]),
+                   "{0} / {1}", f"≥ {TASK_LAYOUTS - 1} of {TASK_LAYOUTS} layouts",
+                   lambda v: v[1] >= TASK_LAYOUTS and v[0] >= TASK_SUCCESS_FRACTION * v[1]),
+            Figure("Any task (20)", f"{f}: final error of successes, median / max", "tasks.json",
+                   lambda d, f=f: (_task_row(d, f)["final_error_mm_median"],
+                                   _task_row(d, f)["final_error_mm_max"]),
+                   "{0:.2f} / {1:.2f} mm", "(reported)"),
+        ]  # fmt: skip
+    return tuple(out)
+
+
+FIGURES += _task_figures()
+
 
 def file_date(path: Path) -> str:
     """The UTC date of ``path``'s figures: its last commit's, or its modification time if the

@@ -1,0 +1,49 @@
+"""bench/tasks.py: the per-task summary counts and the refusal of a malformed task file."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import pytest
+
+from bench import tasks
+
+
+def _row(seed: int, ok: bool, kind: str | None = None, mm: float = 0.2) -> dict:
+    return {
+        "task": "cube into the corner",
+        "file": "cube-corner.json",
+        "workpiece": "cube",
+        "seed": seed,
+        "success": ok,
+        "failure": None if ok else {"kind": kind, "message": f"why {seed}"},
+        "final_error_mm": mm,
+        "final_error_deg": 0.1,
+        "stage_s": {"computation": 0.2 + seed / 10},
+        "tree": "abc",
+    }
+
+
+def test_summary_counts_successes_and_failure_kinds() -> None:
+    rows = [_row(0, True, mm=0.1), _row(1, True, mm=0.3), _row(2, False, "not_recognised", 9.0),
+            _row(3, False, "infeasible"), _row(4, False, "not_recognised")]  # fmt: skip
+    s = tasks.summarise("cube-corner.json", "cube", rows)
+    assert (s["runs"], s["successes"]) == (5, 2)
+    assert s["failures"] == {"not_recognised": 2, "infeasible": 1}
+    assert s["failed_seeds"] == {2: "why 2", 3: "why 3", 4: "why 4"}
+    # Errors are the successes' only: a failed run's 9 mm is not among them.
+    assert s["final_error_mm_median"] == pytest.approx(0.2)
+    assert s["final_error_mm_max"] == pytest.approx(0.3)
+    assert s["computation_s_max"] == pytest.approx(0.6)
+
+
+def test_a_malformed_task_file_is_refused_before_any_run(tmp_path: Path, capsys) -> None:
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"task": 1}')
+    args = argparse.Namespace(
+        seeds=1, first_seed=0, time_scale=1.0, tasks=[bad], keep=False, out=tmp_path / "out"
+    )
+    assert tasks.main(args) == 2
+    assert "bad.json: missing field" in capsys.readouterr().err
+    assert not (tmp_path / "out" / "tasks.jsonl").exists()
