@@ -48,6 +48,7 @@ from work_site.control.controller import (
     TaskController,
 )
 from work_site.control.executor import Execution, program_refusal
+from work_site.inbox import DropCounter, stop_inbox
 from work_site.recognition import VisionProcess
 from work_site.world import World
 
@@ -61,6 +62,10 @@ LATE_WARNING_PERIOD_S = 10.0
 behind changes no physics (every control period still runs its 10 steps), only how fast
 simulated time passes: a user watching the robot, or a benchmark's timing, must know."""
 INBOX_CAPACITY = 64
+"""Program samples waiting to be decoded; beyond it the oldest are dropped (and counted)."""
+INVALID_REPORTS_PER_S = 10.0
+"""Undecodable programs answered with a "refused" report at most this often: a flood of
+garbage must not turn into a flood of reports; the rest are counted and summed up in the log."""
 REMEMBERED_PROGRAMS = 100
 """Program ids (and their reports) kept to answer re-sends."""
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
@@ -224,6 +229,8 @@ class WorkSiteServer:
             self._journal.writelines(_journal_line(pid, payload) for pid, payload in added)
             self._journal.flush()
         self._faults_logged: set[str] = set()
+        self._invalid_programs = DropCounter("program")
+        self._invalid_report_budget, self._invalid_report_s = INVALID_REPORTS_PER_S, 0.0
 
     def run(self, stop: threading.Event, ready: threading.Event | None = None) -> None:
         """Serve until ``stop`` is set; ``ready`` is set once publishing has started."""
@@ -268,12 +275,12 @@ class WorkSiteServer:
         opts, site = self.options, self.options.site_id
         token = session.liveliness().declare_token(alive_key(site, "work_site"))
         self._declare_publishers(session)
-        # Never block inside zenoh's callbacks: samples go to bounded rings read by this loop.
+        # Each key its own inbox: stops are validated as they arrive and only valid ones
+        # queued (no flood can push one out), and a stop wakes this loop at once.
+        wake = threading.Event()
+        inbox_stop = stop_inbox(session, key(site, "stop"), wake)
         inbox_program = session.declare_subscriber(
             key(site, "program"), zenoh.handlers.RingChannel(INBOX_CAPACITY)
-        )
-        inbox_stop = session.declare_subscriber(
-            key(site, "stop"), zenoh.handlers.RingChannel(INBOX_CAPACITY)
         )
         controller = TaskController(world, load_robot(self.scene.robot.urdf_path))
         self._controller = controller
@@ -293,6 +300,8 @@ class WorkSiteServer:
             ready.set()
         try:
             while not stop.is_set():
+                wake.clear()
+                self._handle_stops(inbox_stop.drain())  # first, before any motion this period
                 elapsed = time.monotonic() - t0
                 due = int(elapsed / wall_tick_s) - ticks
                 if due > MAX_CATCH_UP_TICKS:
@@ -309,7 +318,10 @@ class WorkSiteServer:
                     except Exception as e:  # a fault of ours: stop safely, keep serving
                         ticks += 1
                         self._fault(e)
-                self._handle_inbox(inbox_program, inbox_stop, world)
+                self._handle_stops(inbox_stop.drain())
+                self._handle_programs(inbox_program)
+                inbox_stop.dropped.summarize(elapsed)
+                self._invalid_programs.summarize(elapsed)
                 if camera is not None:
                     self._publish_camera(camera, elapsed)
                     self._request_frame(camera, world, elapsed)
@@ -318,7 +330,7 @@ class WorkSiteServer:
                 self._publish_heartbeat(elapsed)
                 sleep_s = t0 + (ticks + 1) * wall_tick_s - time.monotonic()
                 if sleep_s > 0:
-                    time.sleep(sleep_s)
+                    wake.wait(sleep_s)
         finally:
             inbox_program.undeclare()
             inbox_stop.undeclare()
@@ -506,31 +518,40 @@ class WorkSiteServer:
         while len(self._reports) > REMEMBERED_PROGRAMS:
             self._reports.popitem(last=False)
 
-    def _handle_inbox(
-        self, inbox_program: zenoh.Subscriber, inbox_stop: zenoh.Subscriber, world: World
-    ) -> None:
-        running = self._execution is not None and not self._execution.finished
-        while (sample := inbox_stop.try_recv()) is not None:
-            try:
-                msg = decode(sample.payload.to_bytes(), expected=Stop)
-            except ProtocolError as e:
-                self.stats["refused"] += 1
-                log.warning("refused a stop message: %s", e)
-                continue
-            # Stops act even when malformed programs flood the inbox: they are read first.
-            if running:
+    def _handle_stops(self, stops: list[Stop]) -> None:
+        """Act on the valid stops received: end the running program, or hold the arm."""
+        for msg in stops:
+            if self._execution is not None and not self._execution.finished:
                 self._execution.stop(f"stop: {msg.reason}")
-                running = False
             else:
                 self._controller.stop()
             log.info("stop: %s", msg.reason)
-        while (sample := inbox_program.try_recv()) is not None:
+
+    def _refuse_invalid(self, error: ProtocolError) -> None:
+        """Count an undecodable program; answer it while the report budget lasts."""
+        self.stats["refused"] += 1
+        self._invalid_programs.add(str(error))
+        now = time.monotonic()
+        self._invalid_report_budget = min(
+            INVALID_REPORTS_PER_S,
+            self._invalid_report_budget + (now - self._invalid_report_s) * INVALID_REPORTS_PER_S,
+        )
+        self._invalid_report_s = now
+        if self._invalid_report_budget >= 1.0:
+            self._invalid_report_budget -= 1.0
+            self._report("invalid", -1, "refused", f"program refused: {error}")
+
+    def _handle_programs(self, inbox_program) -> None:
+        """Decode and check the programs received (at most a ring's worth); start one."""
+        running = self._execution is not None and not self._execution.finished
+        for _ in range(INBOX_CAPACITY):
+            sample = inbox_program.try_recv()
+            if sample is None:
+                break
             try:
                 program = decode(sample.payload.to_bytes(), expected=MotionProgram)
             except ProtocolError as e:
-                self.stats["refused"] += 1
-                log.warning("refused a program: %s", e)
-                self._report("invalid", -1, "refused", f"program refused: {e}")
+                self._refuse_invalid(e)
                 continue
             pid = program.program_id
             if pid in self._reports:
