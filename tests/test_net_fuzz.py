@@ -108,6 +108,8 @@ class Harness:
     def reset(self) -> None:
         self.server._execution = None
         self.server._reports.clear()
+        self.server._busy = None
+        self.server._ready.clear()
         self.controller.move = None
         self.world.q_target = self.q_target0.copy()
         self.publisher.reports.clear()
@@ -119,7 +121,8 @@ class Harness:
         if stop is not None:
             self.stops.offer(stop)
         self.server._handle_stops(self.stops.drain())
-        self.server._handle_programs(self.programs)
+        self.server._handle_programs(self.programs)  # the checking thread's part
+        self.server._start_ready()  # the control loop's
 
     def moving(self) -> bool:
         return (
@@ -295,6 +298,7 @@ def test_the_harness_can_see_motion(harness: Harness) -> None:
     assert harness.moving()
     harness.handle(stop=VALID_STOP)
     assert harness.server._execution.finished
+    harness.server._release_finished()
     harness.server._execution = None
     before = len(harness.publisher.reports)
     harness.handle(program=VALID_PROGRAM)  # the same id again: replayed, never run again

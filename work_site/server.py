@@ -11,6 +11,7 @@ from __future__ import annotations
 import collections
 import json
 import logging
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -47,8 +48,9 @@ from work_site.control.controller import (
     Impedance,
     TaskController,
 )
-from work_site.control.executor import Execution, program_refusal
+from work_site.control.executor import CheckCancelledError, Execution, program_refusal
 from work_site.inbox import DropCounter, stop_inbox
+from work_site.journal import JournalWriter, journal_line
 from work_site.recognition import VisionProcess
 from work_site.world import World
 
@@ -69,6 +71,11 @@ garbage must not turn into a flood of reports; the rest are counted and summed u
 REMEMBERED_PROGRAMS = 100
 """Program ids (and their reports) kept to answer re-sends."""
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
+SWITCH_INTERVAL_S = 0.001
+"""The interpreter's thread switch interval while serving: a program being checked on the
+checking thread hands the control loop the GIL back within this (Python's default is 5 ms)."""
+CHECK_IDLE_S = 0.002
+"""The checking thread looks for new programs this often when there are none (s)."""
 
 
 def read_journal(
@@ -124,10 +131,6 @@ def read_journal(
         payloads.append(closing)
         added.append((pid, closing))
     return reports, added
-
-
-def _journal_line(program_id: str, payload: bytes) -> str:
-    return json.dumps({"program_id": program_id, "report": payload.hex()}) + "\n"
 
 
 @dataclass(frozen=True)
@@ -221,13 +224,24 @@ class WorkSiteServer:
         self._reports: collections.OrderedDict[str, list[bytes]] = collections.OrderedDict()
         """Every report sent for each program id received (the newest REMEMBERED_PROGRAMS),
         encoded: a program re-sent with the same id is not run again, its reports are."""
-        self._journal = None
+        self._journal: JournalWriter | None = None
         if self.options.journal is not None:
             self.options.journal.parent.mkdir(parents=True, exist_ok=True)
             self._reports, added = read_journal(self.options.journal)
-            self._journal = self.options.journal.open("a")
-            self._journal.writelines(_journal_line(pid, payload) for pid, payload in added)
-            self._journal.flush()
+            with self.options.journal.open("a") as f:
+                f.writelines(journal_line(pid, payload) for pid, payload in added)
+        self._lock = threading.Lock()
+        """Guards what the checking thread and the control loop share: the reports, the
+        program being checked or run (``_busy``) and the programs ready to start."""
+        self._busy: str | None = None
+        """The id of the program being checked, waiting to start or running."""
+        self._stops_seen = 0
+        """Stops acted on so far: a program whose check began before the latest one is cancelled."""
+        self._ready: collections.deque[tuple[MotionProgram, int]] = collections.deque()
+        """Programs that passed their check, with ``_stops_seen`` when their check began."""
+        self._last_stop_reason = ""
+        self._wrench_S = np.zeros(6)
+        """The wrist wrench of the last control period, for reports sent off the loop's thread."""
         self._faults_logged: set[str] = set()
         self._invalid_programs = DropCounter("program")
         self._invalid_report_budget, self._invalid_report_s = INVALID_REPORTS_PER_S, 0.0
@@ -252,10 +266,15 @@ class WorkSiteServer:
             if opts.vision_rate_hz > 0
             else None
         )
+        if self.options.journal is not None:
+            self._journal = JournalWriter(self.options.journal)
+        switch_interval_s = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         try:
             with zenoh.open(self._zenoh_config) as session:
                 self._serve(session, world, camera, stop, ready)
         finally:
+            sys.setswitchinterval(switch_interval_s)
             if self._vision is not None:
                 self._vision.close()
             if camera is not None:
@@ -284,6 +303,14 @@ class WorkSiteServer:
         )
         controller = TaskController(world, load_robot(self.scene.robot.urdf_path))
         self._controller = controller
+        self._wake = wake
+        # Programs are decoded and checked whole on a thread of their own: a long one must
+        # not hold this loop (its states, its stops) up.
+        checking_done = threading.Event()
+        checker = threading.Thread(
+            target=self._check_programs, args=(inbox_program, checking_done), name="checker"
+        )
+        checker.start()
         tick_s = controller.steps_per_tick * world.time_step_s
         wall_tick_s = tick_s / opts.time_scale
         state_every = max(1, round(1.0 / (tick_s * opts.state_rate_hz)))
@@ -319,7 +346,7 @@ class WorkSiteServer:
                         ticks += 1
                         self._fault(e)
                 self._handle_stops(inbox_stop.drain())
-                self._handle_programs(inbox_program)
+                self._start_ready()
                 inbox_stop.dropped.summarize(elapsed)
                 self._invalid_programs.summarize(elapsed)
                 if camera is not None:
@@ -332,6 +359,8 @@ class WorkSiteServer:
                 if sleep_s > 0:
                     wake.wait(sleep_s)
         finally:
+            checking_done.set()
+            checker.join()
             inbox_program.undeclare()
             inbox_stop.undeclare()
             token.undeclare()
@@ -364,9 +393,20 @@ class WorkSiteServer:
             self._execution.tick()
         else:
             self._controller.tick()
+        self._release_finished()
+
+    def _release_finished(self) -> None:
+        """Once the running program has finished, the next may be checked."""
+        execution = self._execution
+        if execution is not None and execution.finished:
+            with self._lock:
+                if self._busy == execution.program.program_id:
+                    self._busy = None
 
     def _publish_robot_state(self, world: World) -> None:
-        self._pub_state.put(encode(self._robot_state(world, self._seq_state)))
+        state = self._robot_state(world, self._seq_state)
+        self._wrench_S = state.wrench_S
+        self._pub_state.put(encode(state))
         self._seq_state += 1
         self.stats["states"] += 1
 
@@ -490,37 +530,47 @@ class WorkSiteServer:
                 self._execution.stop(f"work-site fault: {kind}: {error}")
             else:
                 self._controller.stop()
+            self._release_finished()
         except Exception:
             log.exception("could not stop cleanly after the fault")
 
-    def _report(self, program_id: str, command_index: int, status: str, message: str) -> None:
-        payload = encode(
-            ExecutionReport(
-                program_id=program_id,
-                command_index=command_index,
-                status=status,
-                wrench_S=self._controller.world.robot_snapshot().wrench_S,
-                message=message[:4096],
-                stamp_s=time.time(),
-                seq=len(self._reports.get(program_id, ())),
+    def _report(
+        self, program_id: str, command_index: int, status: str, message: str, fresh: bool = True
+    ) -> None:
+        """Send (and journal) a report; ``fresh``: with the wrench read now (the control
+        loop's thread only), else the last control period's."""
+        wrench_S = self._controller.world.robot_snapshot().wrench_S if fresh else self._wrench_S
+        with self._lock:
+            payload = encode(
+                ExecutionReport(
+                    program_id=program_id,
+                    command_index=command_index,
+                    status=status,
+                    wrench_S=wrench_S,
+                    message=message[:4096],
+                    stamp_s=time.time(),
+                    seq=len(self._reports.get(program_id, ())),
+                )
             )
-        )
-        if program_id in self._reports:
-            self._reports[program_id].append(payload)
-            if self._journal is not None:
-                self._journal.write(_journal_line(program_id, payload))
-                self._journal.flush()
-        self._pub_report.put(payload)
+            if program_id in self._reports:
+                self._reports[program_id].append(payload)
+                if self._journal is not None:
+                    self._journal.append(program_id, payload)
+            self._pub_report.put(payload)
         log.info("program %s command %d: %s %s", program_id, command_index, status, message)
 
     def _remember(self, program_id: str) -> None:
+        """(With the lock held.)"""
         self._reports[program_id] = []
         while len(self._reports) > REMEMBERED_PROGRAMS:
             self._reports.popitem(last=False)
 
     def _handle_stops(self, stops: list[Stop]) -> None:
-        """Act on the valid stops received: end the running program, or hold the arm."""
+        """Act on the valid stops received: end the running program, or hold the arm; a
+        program being checked or waiting to start is cancelled."""
         for msg in stops:
+            self._stops_seen += 1
+            self._last_stop_reason = msg.reason
             if self._execution is not None and not self._execution.finished:
                 self._execution.stop(f"stop: {msg.reason}")
             else:
@@ -539,44 +589,95 @@ class WorkSiteServer:
         self._invalid_report_s = now
         if self._invalid_report_budget >= 1.0:
             self._invalid_report_budget -= 1.0
-            self._report("invalid", -1, "refused", f"program refused: {error}")
+            self._report("invalid", -1, "refused", f"program refused: {error}", fresh=False)
 
-    def _handle_programs(self, inbox_program) -> None:
-        """Decode and check the programs received (at most a ring's worth); start one."""
-        running = self._execution is not None and not self._execution.finished
-        for _ in range(INBOX_CAPACITY):
+    def _check_programs(self, inbox_program, done: threading.Event) -> None:
+        """The checking thread: take programs off the wire until ``done``."""
+        while not done.is_set():
+            try:
+                if not self._handle_programs(inbox_program):
+                    time.sleep(CHECK_IDLE_S)
+            except Exception:  # a fault of ours: log it, keep checking
+                log.exception("internal fault while checking a program")
+                with self._lock:
+                    self._busy = None
+
+    def _handle_programs(self, inbox_program) -> int:
+        """Decode and check the programs received (at most a ring's worth); how many."""
+        for n in range(INBOX_CAPACITY):
             sample = inbox_program.try_recv()
             if sample is None:
-                break
+                return n
             try:
                 program = decode(sample.payload.to_bytes(), expected=MotionProgram)
             except ProtocolError as e:
                 self._refuse_invalid(e)
                 continue
-            pid = program.program_id
-            if pid in self._reports:
-                # A re-send (the operator missed our answer, or reconnected): never run twice;
-                # replay every report so far, in order.
-                for payload in self._reports[pid]:
-                    self._pub_report.put(payload)
-                self.stats["duplicates"] = self.stats.get("duplicates", 0) + 1
-                log.info(
-                    "program %s received again: %d reports replayed", pid, len(self._reports[pid])
-                )
-                continue
-            if running:
-                reason = f"busy with program {self._execution.program.program_id}"
-            else:
-                reason = program_refusal(program, self._controller)
-            self._remember(pid)
-            if reason:
-                self.stats["refused"] += 1
-                self._report(pid, -1, "refused", reason)
-                continue
-            self._report(pid, -1, "accepted", f"{len(program.commands)} commands")
-            surface = self.options.surface_stiffness_n_per_m
-            impedance = Impedance(tangential_stiffness_n_per_m=surface)
-            self._execution = Execution(
-                program, self._controller, self._report, impedance=impedance
+            self._take_program(program)
+        return INBOX_CAPACITY
+
+    def _take_program(self, program: MotionProgram) -> None:
+        """Answer a re-send from the reports kept, refuse a program while another is checked
+        or runs, else check it whole and hand it to the control loop."""
+        pid = program.program_id
+        with self._lock:
+            replay = list(self._reports.get(pid, ())) if pid in self._reports else None
+            busy = self._busy
+            if replay is None:
+                self._remember(pid)
+                if busy is None:
+                    self._busy, stops_seen = pid, self._stops_seen
+        if replay is not None:
+            # A re-send (the operator missed our answer, or reconnected): never run twice;
+            # replay every report so far, in order.
+            for payload in replay:
+                self._pub_report.put(payload)
+            self.stats["duplicates"] = self.stats.get("duplicates", 0) + 1
+            log.info("program %s received again: %d reports replayed", pid, len(replay))
+            return
+        if busy is not None:
+            self.stats["refused"] += 1
+            self._report(pid, -1, "refused", f"busy with program {busy}", fresh=False)
+            return
+        try:
+            reason = program_refusal(
+                program, self._controller, cancelled=lambda: self._stops_seen != stops_seen
             )
-            running = True
+        except CheckCancelledError:
+            self._cancel(pid, "while it was being checked")
+            return
+        if reason:
+            self.stats["refused"] += 1
+            self._report(pid, -1, "refused", reason, fresh=False)
+            with self._lock:
+                self._busy = None
+            return
+        self._report(pid, -1, "accepted", f"{len(program.commands)} commands", fresh=False)
+        with self._lock:
+            self._ready.append((program, stops_seen))
+        wake = getattr(self, "_wake", None)
+        if wake is not None:
+            wake.set()
+
+    def _cancel(self, program_id: str, when: str) -> None:
+        """A stop came for a program that had not started: it never will."""
+        reason = self._last_stop_reason
+        self._report(program_id, -1, "stopped", f"stop: {reason} ({when})", fresh=False)
+        with self._lock:
+            if self._busy == program_id:
+                self._busy = None
+
+    def _start_ready(self) -> None:
+        """Start the program that passed its check, unless a stop came since its check began
+        (control loop's thread)."""
+        with self._lock:
+            item = self._ready.popleft() if self._ready else None
+        if item is None:
+            return
+        program, stops_seen = item
+        if stops_seen != self._stops_seen:
+            self._cancel(program.program_id, "before it started")
+            return
+        surface = self.options.surface_stiffness_n_per_m
+        impedance = Impedance(tangential_stiffness_n_per_m=surface)
+        self._execution = Execution(program, self._controller, self._report, impedance=impedance)

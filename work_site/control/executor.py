@@ -77,16 +77,28 @@ def contact_forces_n(force_W: np.ndarray, normals_W: np.ndarray) -> np.ndarray:
     return nnls(N.T, np.asarray(force_W, dtype=np.float64))[0]
 
 
-def program_refusal(program: MotionProgram, controller: TaskController) -> str:
+class CheckCancelledError(Exception):
+    """A program's check was abandoned (a stop came meanwhile)."""
+
+
+def program_refusal(
+    program: MotionProgram,
+    controller: TaskController,
+    cancelled: Callable[[], bool] | None = None,
+) -> str:
     """Why ``program`` must not run ("" if it may): a contact move with nothing held, targets
     outside the workspace or unreachable, speeds or force limits beyond the work site's.
-    Checked whole, before any motion."""
+    Checked whole, before any motion; raises :class:`CheckCancelledError` as soon as ``cancelled()``
+    (asked before each command) holds. Reads the controller's joint targets and kinematics
+    only, so it may run on another thread while the arm holds still."""
     if not program.commands:
         return "empty program"
     X_PG = invert_pose(program.X_GP)
-    q = controller.world.q_target.copy()
+    q = np.array(controller.world.q_target, copy=True)
     holding = False
     for i, cmd in enumerate(program.commands):
+        if cancelled is not None and cancelled():
+            raise CheckCancelledError(f"cancelled at command {i}")
         where = f"command {i} ({cmd.kind})"
         if cmd.kind in ("open_gripper", "release"):
             holding = False

@@ -1,0 +1,87 @@
+"""The control loop never waits for a program's check: a real work site process checking a
+1,000-command program keeps its state rate and acts on a stop at once."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from models.transforms import make_pose
+from operator_site.link import WorkSiteLink
+from protocol import MotionCommand, MotionProgram, make_config
+from protocol.messages import MAX_COMMANDS
+from tests.conftest import GRIPPER_DOWN, wait_until
+
+pytestmark = pytest.mark.integration
+
+MIN_STATE_RATE_HZ = 95.0
+STOP_WITHIN_S = 0.05
+STOP_AFTER_SEND_S = 0.02
+
+
+def long_program(program_id: str) -> MotionProgram:
+    """MAX_COMMANDS valid moves back and forth: checked whole, each target through the IK."""
+    points = [(0.40, -0.1, 0.15), (0.42, -0.08, 0.16)]
+    commands = tuple(
+        MotionCommand(
+            kind="move",
+            X_WP=make_pose(GRIPPER_DOWN, points[i % 2]),
+            speed_mps=0.05,
+            force_limit_n=10.0,
+            contacts=(),
+        )
+        for i in range(MAX_COMMANDS)
+    )
+    return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=commands)
+
+
+def test_state_keeps_its_rate_and_a_stop_acts_while_a_long_program_is_checked(work_site):
+    ws = work_site("--no-camera")
+    link = WorkSiteLink(make_config(connect=[ws.endpoint]), ws.site_id)
+    seqs: list[tuple[float, int]] = []
+
+    def poll() -> None:
+        if link.poll()[0]:
+            seqs.append((time.monotonic(), link.robot_state.seq))
+
+    def reports(pid: str) -> list:
+        return [r for r in link.status.reports if r.program_id == pid]
+
+    try:
+        assert wait_until(lambda: (poll(), link.status.label == "connected")[1], 20), ws.log()
+        # 1. The check of a long program: robot state keeps coming at its rate meanwhile.
+        link.send_program(long_program("long"))
+        sent = time.monotonic()
+        assert wait_until(lambda: (poll(), bool(reports("long")))[1], 30, poll_s=0.002)
+        answered = time.monotonic()
+        assert [r.status for r in reports("long")] == ["accepted"], reports("long")
+        during = [q for t, q in seqs if sent <= t <= answered]
+        rate_hz = (during[-1] - during[0]) / (answered - sent)
+        check_s = answered - sent
+        link.send_stop("enough")
+        assert wait_until(lambda: (poll(), reports("long")[-1].status == "stopped")[1], 5)
+        # 2. A stop 20 ms after a long program is sent: it acts at once, and the program,
+        # still being checked, never starts.
+        link.send_program(long_program("cancelled"))
+        time.sleep(STOP_AFTER_SEND_S)
+        stop_sent_s = time.time()
+        link.send_stop("changed my mind")
+        assert wait_until(lambda: (poll(), bool(reports("cancelled")))[1], 5, poll_s=0.002)
+        answer = reports("cancelled")
+        latency_s = answer[0].stamp_s - stop_sent_s
+        time.sleep(0.5)
+        poll()
+        answer = reports("cancelled")
+    finally:
+        link.close()
+    print(
+        f"check of {MAX_COMMANDS} commands {check_s:.2f} s; state rate meanwhile "
+        f"{rate_hz:.1f} Hz; stop during a check answered in {1e3 * latency_s:.1f} ms"
+    )
+    assert check_s > 0.1  # a check long enough to matter
+    assert rate_hz >= MIN_STATE_RATE_HZ, rate_hz
+    assert [(r.command_index, r.status) for r in answer] == [(-1, "stopped")], answer
+    assert "being checked" in answer[0].message
+    assert latency_s <= STOP_WITHIN_S, latency_s
