@@ -239,6 +239,14 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="HZ",
         help="robot-state messages per second (default: %(default)s)",
     )
+    parser.add_argument(
+        "--deadman-s",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="stop a running program when its operator's heartbeats have not come for S "
+        "seconds, 0.2..5 (default: %(default)s)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="log more")
 
 
@@ -271,6 +279,7 @@ def serve(args: argparse.Namespace) -> int:
             site_id=args.site_id,
             physics_rate_hz=args.physics_rate,
             state_rate_hz=args.state_rate,
+            deadman_s=args.deadman_s,
             camera=not args.no_camera,
             camera_supersample=args.camera_supersample,
             camera_noise_grey=args.camera_noise,

@@ -49,7 +49,7 @@ from work_site.control.controller import (
     TaskController,
 )
 from work_site.control.executor import CheckCancelledError, Execution, program_refusal
-from work_site.inbox import DropCounter, stop_inbox
+from work_site.inbox import DropCounter, heartbeat_inbox, stop_inbox
 from work_site.journal import JournalWriter, journal_line
 from work_site.recognition import VisionProcess
 from work_site.world import World
@@ -74,6 +74,11 @@ FINAL_STATUSES = ("done", "failed", "refused", "stopped")
 SWITCH_INTERVAL_S = 0.001
 """The interpreter's thread switch interval while serving: a program being checked on the
 checking thread hands the control loop the GIL back within this (Python's default is 5 ms)."""
+DEADMAN_RANGE_S = (0.2, 5.0)
+"""Accepted dead-man timeouts (s): above two heartbeat periods of the operator's link (0.1 s),
+so that one late beat stops nothing; at most a few seconds of motion nobody watches."""
+DEADMAN_STALL_S = 0.05
+"""A loop iteration this long after the last one means this process was starved (s)."""
 CHECK_IDLE_S = 0.002
 """The checking thread looks for new programs this often when there are none (s)."""
 
@@ -174,8 +179,17 @@ class ServerOptions:
     per frame, less accuracy (docs/benchmarks.md, vision's resolution sweep)."""
     vision_index_views: int | None = None
     """Viewing directions sampled for vision's model index (None: its default)."""
+    deadman_s: float = 0.5
+    """A running program is stopped when the operator's heartbeats have not come for this
+    long (s; :data:`DEADMAN_RANGE_S`): its process died, or the link to it was cut."""
 
     def __post_init__(self) -> None:
+        low, high = DEADMAN_RANGE_S
+        if not low <= self.deadman_s <= high:
+            raise ValueError(
+                f"deadman_s must be in [{low:g}, {high:g}] s (the dead-man's timeout), "
+                f"got {self.deadman_s}"
+            )
         if not 100.0 <= self.physics_rate_hz <= 10000.0:
             raise ValueError(f"physics_rate_hz must be in [100, 10000], got {self.physics_rate_hz}")
         if not 0 < self.state_rate_hz <= 1.0 / CONTROL_PERIOD_S:
@@ -240,6 +254,8 @@ class WorkSiteServer:
         self._ready: collections.deque[tuple[MotionProgram, int]] = collections.deque()
         """Programs that passed their check, with ``_stops_seen`` when their check began."""
         self._last_stop_reason = ""
+        self._execution_started_s = 0.0
+        self._deadman_checked_s = 0.0
         self._wrench_S = np.zeros(6)
         """The wrist wrench of the last control period, for reports sent off the loop's thread."""
         self._faults_logged: set[str] = set()
@@ -298,6 +314,7 @@ class WorkSiteServer:
         # queued (no flood can push one out), and a stop wakes this loop at once.
         wake = threading.Event()
         inbox_stop = stop_inbox(session, key(site, "stop"), wake)
+        inbox_heartbeat = heartbeat_inbox(session, key(site, "heartbeat"), site)
         inbox_program = session.declare_subscriber(
             key(site, "program"), zenoh.handlers.RingChannel(INBOX_CAPACITY)
         )
@@ -329,6 +346,7 @@ class WorkSiteServer:
             while not stop.is_set():
                 wake.clear()
                 self._handle_stops(inbox_stop.drain())  # first, before any motion this period
+                self._check_deadman(inbox_heartbeat)
                 elapsed = time.monotonic() - t0
                 due = int(elapsed / wall_tick_s) - ticks
                 if due > MAX_CATCH_UP_TICKS:
@@ -348,6 +366,7 @@ class WorkSiteServer:
                 self._handle_stops(inbox_stop.drain())
                 self._start_ready()
                 inbox_stop.dropped.summarize(elapsed)
+                inbox_heartbeat.dropped.summarize(elapsed)
                 self._invalid_programs.summarize(elapsed)
                 if camera is not None:
                     self._publish_camera(camera, elapsed)
@@ -363,6 +382,7 @@ class WorkSiteServer:
             checker.join()
             inbox_program.undeclare()
             inbox_stop.undeclare()
+            inbox_heartbeat.undeclare()
             token.undeclare()
             log.info("work site %r stopped: %s", site, self.stats)
 
@@ -574,7 +594,7 @@ class WorkSiteServer:
             if self._execution is not None and not self._execution.finished:
                 self._execution.stop(f"stop: {msg.reason}")
             else:
-                self._controller.stop()
+                self._controller.stop(ease=True)
             log.info("stop: %s", msg.reason)
 
     def _refuse_invalid(self, error: ProtocolError) -> None:
@@ -681,3 +701,22 @@ class WorkSiteServer:
         surface = self.options.surface_stiffness_n_per_m
         impedance = Impedance(tangential_stiffness_n_per_m=surface)
         self._execution = Execution(program, self._controller, self._report, impedance=impedance)
+        self._execution_started_s = time.monotonic()
+
+    def _check_deadman(self, inbox_heartbeat) -> None:
+        """Stop the running program when the operator's heartbeats stopped coming: the newest
+        beat, or the program's start if later, is more than ``deadman_s`` ago."""
+        now = time.monotonic()
+        stalled = now - self._deadman_checked_s > DEADMAN_STALL_S
+        self._deadman_checked_s = now
+        execution = self._execution
+        if execution is None or execution.finished:
+            return
+        inbox_heartbeat.drain()  # only when the newest came matters
+        last_s = max(inbox_heartbeat.last_s or 0.0, self._execution_started_s)
+        # After a stall of this process, beats that came meanwhile may still wait for their
+        # callback: judge at the next iteration.
+        if not stalled and now - last_s > self.options.deadman_s:
+            execution.stop(f"no heartbeat from the operator for {self.options.deadman_s:g} s")
+            self.stats["deadman"] = self.stats.get("deadman", 0) + 1
+            self._release_finished()

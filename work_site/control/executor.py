@@ -465,9 +465,9 @@ class Execution:
         return ""
 
     def stop(self, reason: str) -> None:
-        """Stop now: hold the arm where it is."""
+        """Stop now: hold the arm where it is, eased off any contact it presses."""
         if not self.finished:
-            self.controller.stop()
+            self.controller.stop(ease=True)
             self._finish("stopped", reason)
 
     def _finish(self, status: str, message: str) -> None:
