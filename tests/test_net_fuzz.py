@@ -108,6 +108,8 @@ class Harness:
     def reset(self) -> None:
         self.server._execution = None
         self.server._reports.clear()
+        self.server._seen.clear()
+        self.server._ids.clear()
         self.server._busy = None
         self.server._ready.clear()
         self.controller.move = None

@@ -9,7 +9,6 @@ and validated first, and nothing that arrives can stop this loop.
 from __future__ import annotations
 
 import collections
-import json
 import logging
 import sys
 import threading
@@ -50,7 +49,7 @@ from work_site.control.controller import (
 )
 from work_site.control.executor import CheckCancelledError, Execution, program_refusal
 from work_site.inbox import DropCounter, heartbeat_inbox, stop_inbox
-from work_site.journal import JournalWriter, journal_line
+from work_site.journal import JournalWriter, journal_line, load_journal
 from work_site.recognition import VisionProcess
 from work_site.world import World
 
@@ -69,7 +68,8 @@ INVALID_REPORTS_PER_S = 10.0
 """Undecodable programs answered with a "refused" report at most this often: a flood of
 garbage must not turn into a flood of reports; the rest are counted and summed up in the log."""
 REMEMBERED_PROGRAMS = 100
-"""Program ids (and their reports) kept to answer re-sends."""
+"""Programs whose reports are kept to replay to a re-send; every id is remembered (and never
+run again), these with their reports."""
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
 SWITCH_INTERVAL_S = 0.001
 """The interpreter's thread switch interval while serving: a program being checked on the
@@ -86,56 +86,10 @@ CHECK_IDLE_S = 0.002
 def read_journal(
     path: Path,
 ) -> tuple[collections.OrderedDict[str, list[bytes]], list[tuple[str, bytes]]]:
-    """The programs and reports of a journal (the newest REMEMBERED_PROGRAMS), and the closing
-    "failed" reports added for programs a restart interrupted. Unreadable lines are skipped (a
-    crash may leave the last one half written). A report an older schema wrote cannot be
-    replayed to today's operators, but its program id is still remembered, so that a re-send
-    never runs that program again."""
-    reports: collections.OrderedDict[str, list[bytes]] = collections.OrderedDict()
-    last: dict[str, ExecutionReport | None] = {}
-    added: list[tuple[str, bytes]] = []
-    if not path.exists():
-        return reports, added
-    for line in path.read_text(errors="replace").splitlines():
-        try:
-            entry = json.loads(line)
-            pid, payload = str(entry["program_id"]), bytes.fromhex(entry["report"])
-        except (ValueError, KeyError, TypeError):
-            continue
-        payloads = reports.setdefault(pid, [])
-        reports.move_to_end(pid)
-        try:
-            last[pid] = decode(payload, expected=ExecutionReport)
-        except ProtocolError:
-            last.setdefault(pid, None)
-            continue
-        payloads.append(payload)
-    while len(reports) > REMEMBERED_PROGRAMS:
-        reports.popitem(last=False)
-    for pid, payloads in reports.items():
-        final = last[pid]
-        if final is not None and final.command_index == -1 and final.status in FINAL_STATUSES:
-            continue
-        message = (
-            "interrupted: the work site restarted during this program"
-            if final is not None
-            else "run by an earlier version of the work site, whose reports cannot be "
-            "replayed; not run again"
-        )
-        closing = encode(
-            ExecutionReport(
-                program_id=pid,
-                command_index=-1,
-                status="failed",
-                wrench_S=np.zeros(6),
-                message=message,
-                stamp_s=time.time(),
-                seq=len(payloads),
-            )
-        )
-        payloads.append(closing)
-        added.append((pid, closing))
-    return reports, added
+    """The reports of a journal's newest REMEMBERED_PROGRAMS programs, and the closing "failed"
+    reports added for programs a restart interrupted (:func:`work_site.journal.load_journal`)."""
+    state = load_journal(path, REMEMBERED_PROGRAMS)
+    return state.reports, state.added
 
 
 @dataclass(frozen=True)
@@ -238,12 +192,10 @@ class WorkSiteServer:
         self._reports: collections.OrderedDict[str, list[bytes]] = collections.OrderedDict()
         """Every report sent for each program id received (the newest REMEMBERED_PROGRAMS),
         encoded: a program re-sent with the same id is not run again, its reports are."""
-        self._journal: JournalWriter | None = None
-        if self.options.journal is not None:
-            self.options.journal.parent.mkdir(parents=True, exist_ok=True)
-            self._reports, added = read_journal(self.options.journal)
-            with self.options.journal.open("a") as f:
-                f.writelines(journal_line(pid, payload) for pid, payload in added)
+        self._ids: list[str] = []
+        """Every program id ever received, in order (append only)."""
+        self._seen: set[str] = set()
+        """The same ids, to look up: a program id is run at most once, ever."""
         self._lock = threading.Lock()
         """Guards what the checking thread and the control loop share: the reports, the
         program being checked or run (``_busy``) and the programs ready to start."""
@@ -258,6 +210,21 @@ class WorkSiteServer:
         self._deadman_checked_s = 0.0
         self._wrench_S = np.zeros(6)
         """The wrist wrench of the last control period, for reports sent off the loop's thread."""
+        self._journal: JournalWriter | None = None
+        if self.options.journal is not None:
+            path = self.options.journal
+            path.parent.mkdir(parents=True, exist_ok=True)
+            state = load_journal(path, REMEMBERED_PROGRAMS)
+            self._reports, self._ids, self._seen = state.reports, state.ids, state.seen
+            with path.open("a") as f:
+                f.writelines(journal_line(pid, payload) for pid, payload in state.added)
+            self._journal = JournalWriter(
+                path,
+                self._ids,
+                self._journal_snapshot,
+                self._lock,
+                report_lines=state.report_lines + len(state.added),
+            )
         self._faults_logged: set[str] = set()
         self._invalid_programs = DropCounter("program")
         self._invalid_report_budget, self._invalid_report_s = INVALID_REPORTS_PER_S, 0.0
@@ -282,8 +249,6 @@ class WorkSiteServer:
             if opts.vision_rate_hz > 0
             else None
         )
-        if self.options.journal is not None:
-            self._journal = JournalWriter(self.options.journal)
         switch_interval_s = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         try:
@@ -584,6 +549,14 @@ class WorkSiteServer:
         self._reports[program_id] = []
         while len(self._reports) > REMEMBERED_PROGRAMS:
             self._reports.popitem(last=False)
+        if program_id not in self._seen:
+            self._seen.add(program_id)
+            self._ids.append(program_id)
+
+    def _journal_snapshot(self) -> tuple[int, list[tuple[str, list[bytes]]]]:
+        """(Called by the journal's writer with the lock held.) The ids journaled, and the
+        kept programs' reports."""
+        return len(self._ids), [(pid, list(p)) for pid, p in self._reports.items()]
 
     def _handle_stops(self, stops: list[Stop]) -> None:
         """Act on the valid stops received: end the running program, or hold the arm; a
@@ -642,11 +615,30 @@ class WorkSiteServer:
         pid = program.program_id
         with self._lock:
             replay = list(self._reports.get(pid, ())) if pid in self._reports else None
+            forgotten = replay is None and pid in self._seen
             busy = self._busy
-            if replay is None:
+            if replay is None and not forgotten:
                 self._remember(pid)
                 if busy is None:
                     self._busy, stops_seen = pid, self._stops_seen
+        if forgotten:
+            # Received long ago: its reports are no longer kept, but it never runs again.
+            self.stats["duplicates"] = self.stats.get("duplicates", 0) + 1
+            self._pub_report.put(
+                encode(
+                    ExecutionReport(
+                        program_id=pid,
+                        command_index=-1,
+                        status="refused",
+                        wrench_S=self._wrench_S,
+                        message="received before (its reports are no longer kept): "
+                        "a program id runs at most once",
+                        stamp_s=time.time(),
+                    )
+                )
+            )
+            log.info("program %s received again, long after: refused", pid)
+            return
         if replay is not None:
             # A re-send (the operator missed our answer, or reconnected): never run twice;
             # replay every report so far, in order.
