@@ -23,12 +23,12 @@ STOP_AFTER_SEND_S = 0.02
 
 def long_program(program_id: str) -> MotionProgram:
     """MAX_COMMANDS valid moves back and forth: checked whole, each target through the IK."""
-    points = [(0.40, -0.1, 0.15), (0.42, -0.08, 0.16)]
+    points = [(0.40, -0.1, 0.15), (0.41, -0.1, 0.15)]
     commands = tuple(
         MotionCommand(
             kind="move",
             X_WP=make_pose(GRIPPER_DOWN, points[i % 2]),
-            speed_mps=0.05,
+            speed_mps=0.1,
             force_limit_n=10.0,
             contacts=(),
         )

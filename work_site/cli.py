@@ -205,7 +205,8 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=1000.0,
         metavar="HZ",
-        help="physics steps per second of real time (default: %(default)s)",
+        help="physics steps per second of real time, 500..2000 and a multiple of 100 "
+        "(default: %(default)s)",
     )
     parser.add_argument(
         "--journal",
@@ -253,10 +254,12 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
 def serve(args: argparse.Namespace) -> int:
     """Run the server with parsed ``args`` until SIGINT/SIGTERM; returns the exit code."""
     from work_site.server import ServerOptions, WorkSiteServer  # heavy imports after parsing
+    from work_site.world import check_scene
 
     try:
         check_site_id(args.site_id)
         scene = load_scene(args.scene)
+        check_scene(scene)
         camera_X_WC = None
         if args.seed is not None:
             layout = random_layout(scene, args.seed)

@@ -74,6 +74,12 @@ FINAL_STATUSES = ("done", "failed", "refused", "stopped")
 SWITCH_INTERVAL_S = 0.001
 """The interpreter's thread switch interval while serving: a program being checked on the
 checking thread hands the control loop the GIL back within this (Python's default is 5 ms)."""
+PHYSICS_RATE_RANGE_HZ = (500.0, 2000.0)
+"""Physics rates a work site accepts (Hz): within the range where grasping and placing were
+verified, with a margin (too slow, the held block slips; too fast, the grasp's descent reads a
+touch)."""
+MAX_CAMERA_SUPERSAMPLE = 4
+"""Rendering cost grows with its square: beyond it a frame takes seconds."""
 DEADMAN_RANGE_S = (0.2, 5.0)
 """Accepted dead-man timeouts (s): above two heartbeat periods of the operator's link (0.1 s),
 so that one late beat stops nothing; at most a few seconds of motion nobody watches."""
@@ -144,16 +150,30 @@ class ServerOptions:
                 f"deadman_s must be in [{low:g}, {high:g}] s (the dead-man's timeout), "
                 f"got {self.deadman_s}"
             )
-        if not 100.0 <= self.physics_rate_hz <= 10000.0:
-            raise ValueError(f"physics_rate_hz must be in [100, 10000], got {self.physics_rate_hz}")
+        low, high = PHYSICS_RATE_RANGE_HZ
+        rate = self.physics_rate_hz
+        if not low <= rate <= high:
+            raise ValueError(
+                f"physics_rate_hz must be in [{low:g}, {high:g}] Hz (where grasping works), "
+                f"got {rate}"
+            )
+        steps = rate * CONTROL_PERIOD_S
+        if abs(steps - round(steps)) > 1e-9:
+            raise ValueError(
+                f"physics_rate_hz must be a whole number of steps per {CONTROL_PERIOD_S} s "
+                f"control period (a multiple of {1 / CONTROL_PERIOD_S:g} Hz), got {rate}"
+            )
         if not 0 < self.state_rate_hz <= 1.0 / CONTROL_PERIOD_S:
             raise ValueError(
                 f"state_rate_hz must be in (0, {1.0 / CONTROL_PERIOD_S:g}] (the control rate)"
             )
         if not 0 < self.heartbeat_rate_hz <= 100:
             raise ValueError("heartbeat_rate_hz must be in (0, 100]")
-        if self.camera_supersample < 1:
-            raise ValueError("camera_supersample must be ≥ 1")
+        if not 1 <= self.camera_supersample <= MAX_CAMERA_SUPERSAMPLE:
+            raise ValueError(
+                f"camera_supersample must be in 1..{MAX_CAMERA_SUPERSAMPLE}, "
+                f"got {self.camera_supersample}"
+            )
         if self.camera_encoding not in IMAGE_ENCODINGS:
             raise ValueError(
                 f"camera_encoding must be one of {IMAGE_ENCODINGS}, got {self.camera_encoding!r}"

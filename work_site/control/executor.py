@@ -32,12 +32,14 @@ from work_site.control.controller import (
     DEFAULT_SURFACE_STIFFNESS_N_PER_M,
     HARD_FORCE_LIMIT_N,
     MAX_TCP_SPEED_MPS,
+    TCP_ACCEL_MPS2,
     Guard,
     Impedance,
     TaskController,
     compliant_projector,
 )
 from work_site.control.kinematics import ik_tcp
+from work_site.control.trajectory import LinearMove
 
 WORKSPACE_MIN_W = np.array([0.10, -0.45, 0.02])
 """Lowest corner of the box every TCP target must lie in (m). z: the fingertips hang 15 mm
@@ -45,6 +47,15 @@ below the TCP, so 0.02 m keeps them 5 mm above the table."""
 WORKSPACE_MAX_W = np.array([0.75, 0.45, 0.50])
 GRIPPER_OPEN_M = 0.08
 MAX_CONTACT_SPEED_MPS = 0.02
+MIN_TCP_SPEED_MPS = 0.005
+"""No command may be slower (m/s): half the speed asked in contact; slower ones only tie the
+robot up."""
+MAX_PROGRAM_DURATION_S = 600.0
+"""A program whose moves, at their speeds, take longer than this is refused (s): it would tie
+the robot up."""
+MIN_FORCE_LIMIT_N = 1.0
+"""No force limit may be lower (N): the contact verification threshold, below which no contact
+could be verified nor a block carried."""
 """Moves in contact (guarded and contact moves) are no faster than this (§VI-B)."""
 TARGET_BIAS_M = 0.005
 """d of §VI-B: how far past each contact a contact move aims (the paper's ≈ 5 mm)."""
@@ -95,6 +106,8 @@ def program_refusal(
         return "empty program"
     X_PG = invert_pose(program.X_GP)
     q = np.array(controller.world.q_target, copy=True)
+    X_WG_before = controller.robot.tcp_pose_W(q, controller.X_WB)
+    duration_s = 0.0
     holding = False
     for i, cmd in enumerate(program.commands):
         if cancelled is not None and cancelled():
@@ -109,17 +122,23 @@ def program_refusal(
             return f"{where}: nothing is held (a guarded_grasp must come first)"
         if not np.all(np.isfinite(cmd.X_WP)):
             return f"{where}: target pose has NaN or infinite entries"
-        if not (math.isfinite(cmd.speed_mps) and 0 < cmd.speed_mps <= MAX_TCP_SPEED_MPS):
-            return f"{where}: speed {cmd.speed_mps} m/s not in (0, {MAX_TCP_SPEED_MPS}] m/s"
+        if not (
+            math.isfinite(cmd.speed_mps) and MIN_TCP_SPEED_MPS <= cmd.speed_mps <= MAX_TCP_SPEED_MPS
+        ):
+            return (
+                f"{where}: speed {cmd.speed_mps} m/s not in [{MIN_TCP_SPEED_MPS}, "
+                f"{MAX_TCP_SPEED_MPS}] m/s"
+            )
         if cmd.kind in ("guarded_move", "contact_move") and cmd.speed_mps > MAX_CONTACT_SPEED_MPS:
             return (
                 f"{where}: speed {cmd.speed_mps} m/s is above {MAX_CONTACT_SPEED_MPS} m/s, "
                 "the limit for moves into contact"
             )
-        if not (math.isfinite(cmd.force_limit_n) and 0 < cmd.force_limit_n <= HARD_FORCE_LIMIT_N):
+        limit_n = cmd.force_limit_n
+        if not (math.isfinite(limit_n) and MIN_FORCE_LIMIT_N <= limit_n <= HARD_FORCE_LIMIT_N):
             return (
-                f"{where}: force limit {cmd.force_limit_n} N not in (0, {HARD_FORCE_LIMIT_N}] N "
-                "(the work site's own limit)"
+                f"{where}: force limit {limit_n} N not in [{MIN_FORCE_LIMIT_N}, "
+                f"{HARD_FORCE_LIMIT_N}] N (the work site's own limits)"
             )
         if cmd.kind == "contact_move":
             if not cmd.contacts:
@@ -147,6 +166,15 @@ def program_refusal(
                 if not result.ok:
                     return f"{where}: {result.reason}"
                 q = result.q
+                duration_s += LinearMove(
+                    X_WG_before, action.X_WG, action.speed_mps, TCP_ACCEL_MPS2
+                ).duration_s
+                X_WG_before = action.X_WG
+                if duration_s > MAX_PROGRAM_DURATION_S:
+                    return (
+                        f"{where}: the program's moves would take more than "
+                        f"{MAX_PROGRAM_DURATION_S:g} s, the longest this work site runs"
+                    )
     return ""
 
 
