@@ -60,6 +60,7 @@ def send(server: WorkSiteServer, program: MotionProgram) -> list[tuple]:
     ]
 
 
+@pytest.mark.slow
 def test_an_id_resent_after_10000_others_never_runs(tmp_path, world, monkeypatch) -> None:
     monkeypatch.setattr(journal, "COMPACT_AFTER_LINES", COMPACT_AFTER)
     path = tmp_path / "programs.jsonl"
@@ -99,6 +100,7 @@ def test_an_id_resent_after_10000_others_never_runs(tmp_path, world, monkeypatch
         restarted._journal.close()
 
 
+@pytest.mark.slow
 def test_a_journal_of_a_million_ids_starts_in_under_a_second(tmp_path, world) -> None:
     path = tmp_path / "programs.jsonl"
     ids = [f"program-{i:07d}" for i in range(STARTUP_IDS)]

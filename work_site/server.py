@@ -727,8 +727,10 @@ class WorkSiteServer:
         inbox_heartbeat.drain()  # only when the newest came matters
         last_s = max(inbox_heartbeat.last_s or 0.0, self._execution_started_s)
         # After a stall of this process, beats that came meanwhile may still wait for their
-        # callback: judge at the next iteration.
-        if not stalled and now - last_s > self.options.deadman_s:
+        # callback: judge at the next iteration (unless silence is long past doubt).
+        silent_s = now - last_s
+        deadman_s = self.options.deadman_s
+        if silent_s > deadman_s and (not stalled or silent_s > 2 * deadman_s):
             execution.stop(f"no heartbeat from the operator for {self.options.deadman_s:g} s")
             self.stats["deadman"] = self.stats.get("deadman", 0) + 1
             self._release_finished()

@@ -48,6 +48,8 @@ EASE_M = 0.003
 """A safety stop in contact holds the hand this far back from it, along the contact force (m)."""
 EASE_S = 0.1
 """How long the hand takes to ease off (s)."""
+EASE_WEIGHT_COS = 0.7
+"""A force within about 45° of straight down is taken for a payload's weight: no easing off."""
 EASE_FROM_N = 1.5
 """A safety stop eases off when the external force exceeds this (N): above a resting block's
 weight, which the table carries once the block is set down."""
@@ -218,7 +220,8 @@ class TaskController:
         q = self.world.robot_joint_positions()[0]
         self._ease_q, self._ease_ticks = None, 0
         size_n = float(np.linalg.norm(self.force_W))
-        if ease and size_n > EASE_FROM_N:
+        # A force pointing mostly down is a held block's weight, not a contact pushing back.
+        if ease and size_n > EASE_FROM_N and self.force_W[2] > -EASE_WEIGHT_COS * size_n:
             X_WG = self.robot.tcp_pose_W(q, self.X_WB)
             X_WG[:3, 3] += EASE_M * self.force_W / size_n
             eased = ik_tcp(X_WG, q, self.robot, self.X_WB, self.geometry)
