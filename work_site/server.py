@@ -2,8 +2,11 @@
 
 Publishes robot state (≥ 100 Hz), grey camera frames (at the camera's rate), the objects vision
 recognises in them (at ``vision_rate_hz`` or as fast as vision keeps up) and a heartbeat;
-declares a liveliness token; takes programs and stops from the wire. Whatever arrives is decoded
-and validated first, and nothing that arrives can stop this loop.
+declares a liveliness token; takes programs, stops and operator heartbeats from the wire, each
+key on its own inbox (``work_site/inbox.py``). Whatever arrives is decoded and validated first,
+and nothing that arrives can stop this loop: programs are checked on a thread of their own, the
+journal is written by another, and a running program stops when its operator falls silent for
+``deadman_s`` (the dead-man).
 """
 
 from __future__ import annotations
