@@ -90,6 +90,8 @@ DEADMAN_STALL_S = 0.05
 """A loop iteration this long after the last one means this process was starved (s)."""
 CHECK_IDLE_S = 0.002
 """The checking thread looks for new programs this often when there are none (s)."""
+CHECK_YIELD_S = 1e-4
+"""The checking thread sleeps this long before each command it checks (s)."""
 
 
 def read_journal(
@@ -675,9 +677,14 @@ class WorkSiteServer:
             self._report(pid, -1, "refused", f"busy with program {busy}", fresh=False)
             return
         try:
-            reason = program_refusal(
-                program, self._controller, cancelled=lambda: self._stops_seen != stops_seen
-            )
+
+            def cancelled() -> bool:
+                # Between commands, let the control loop have the interpreter if it waits for
+                # it: the switch interval alone has let a check hold it up for periods.
+                time.sleep(CHECK_YIELD_S)
+                return self._stops_seen != stops_seen
+
+            reason = program_refusal(program, self._controller, cancelled=cancelled)
         except CheckCancelledError:
             self._cancel(pid, "while it was being checked")
             return

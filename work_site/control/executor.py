@@ -32,14 +32,12 @@ from work_site.control.controller import (
     DEFAULT_SURFACE_STIFFNESS_N_PER_M,
     HARD_FORCE_LIMIT_N,
     MAX_TCP_SPEED_MPS,
-    TCP_ACCEL_MPS2,
     Guard,
     Impedance,
     TaskController,
     compliant_projector,
 )
 from work_site.control.kinematics import ik_tcp
-from work_site.control.trajectory import LinearMove
 
 WORKSPACE_MIN_W = np.array([0.10, -0.45, 0.02])
 """Lowest corner of the box every TCP target must lie in (m). z: the fingertips hang 15 mm
@@ -166,9 +164,9 @@ def program_refusal(
                 if not result.ok:
                     return f"{where}: {result.reason}"
                 q = result.q
-                duration_s += LinearMove(
-                    X_WG_before, action.X_WG, action.speed_mps, TCP_ACCEL_MPS2
-                ).duration_s
+                # At least the translation at the command's speed (a lower bound: cheap).
+                step_m = math.dist(action.X_WG[:3, 3].tolist(), X_WG_before[:3, 3].tolist())
+                duration_s += step_m / action.speed_mps
                 X_WG_before = action.X_WG
                 if duration_s > MAX_PROGRAM_DURATION_S:
                     return (
