@@ -3,6 +3,10 @@
 zenoh delivers into bounded rings (the newest samples win, so nothing goes stale behind a slow
 reader); :meth:`WorkSiteLink.poll` drains them on the caller's thread and decodes there. A payload
 that fails validation is counted and logged once per kind, never raised.
+
+While a program of this link's is unfinished, a thread of the link's sends the work site a
+heartbeat every :data:`HEARTBEAT_PERIOD_S`: the work site's dead-man stops the robot when they
+stop coming (the operator's process died, the link was cut).
 """
 
 from __future__ import annotations
@@ -10,6 +14,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -41,6 +46,10 @@ RESEND_AFTER_S = 1.0
 GIVE_UP_AFTER_S = 30.0
 """A program still unanswered this long after it was first sent is given up (and logged)."""
 REMEMBERED_REPORTS = 10_000
+HEARTBEAT_PERIOD_S = 0.1
+"""Heartbeats go this often while a program of ours is unfinished: several within the work
+site's dead-man timeout (``work-site serve --deadman-s``, 0.5 s by default), so that one lost
+or late beat stops nothing."""
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
 
 
@@ -106,6 +115,13 @@ class WorkSiteLink:
         self._pub_stop = self.session.declare_publisher(
             key(site_id, "stop"), priority=zenoh.Priority.REAL_TIME
         )
+        # Beats must never wait behind camera frames, nor ever block the beating thread.
+        self._pub_heartbeat = self.session.declare_publisher(
+            key(site_id, "heartbeat"),
+            priority=zenoh.Priority.REAL_TIME,
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
+        self._heartbeat_seq = 0
         self.status = LinkStatus()
         self.robot_state: RobotState | None = None
         self.camera_frame: CameraFrame | None = None
@@ -122,6 +138,25 @@ class WorkSiteLink:
         replays their reports (the work site never runs an id twice)."""
         self._seen_reports: set[tuple] = set()
         self._seen_order: collections.deque[tuple] = collections.deque()
+        self._closing = threading.Event()
+        self._beating = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
+        self._beating.start()
+
+    def _beat(self) -> None:
+        """The heartbeat thread: beat while a program of ours is unfinished, until closed."""
+        while not self._closing.wait(HEARTBEAT_PERIOD_S):
+            if self._unanswered or self._unfinished:
+                self._send_heartbeat()
+
+    def _send_heartbeat(self) -> None:
+        beat = Heartbeat(
+            site_id=self.site_id, role="operator_site", seq=self._heartbeat_seq, stamp_s=time.time()
+        )
+        self._heartbeat_seq += 1
+        try:
+            self._pub_heartbeat.put(encode(beat))
+        except zenoh.ZError:  # the session is closing
+            pass
 
     def _decode(self, sample: zenoh.Sample, expected: type, what: str):
         try:
@@ -210,9 +245,10 @@ class WorkSiteLink:
         :data:`RESEND_AFTER_S` until the work site answers, and again whenever it comes back
         before the program has finished. The work site runs each id at most once."""
         payload = encode(program)
-        self._pub_program.put(payload)
         now = time.monotonic()
         self._unanswered[program.program_id] = (payload, now, now)
+        self._send_heartbeat()  # the dead-man's clock starts with the program, not a beat later
+        self._pub_program.put(payload)
 
     def pending_programs(self) -> list[str]:
         """Ids of programs sent and not finished (answered or not)."""
@@ -223,6 +259,9 @@ class WorkSiteLink:
         self._pub_stop.put(encode(Stop(reason=reason, stamp_s=time.time())))
 
     def close(self) -> None:
-        """Undeclare everything and close the session (idempotent)."""
+        """Stop beating, undeclare everything and close the session (idempotent)."""
+        self._closing.set()
+        if self._beating.is_alive():
+            self._beating.join()
         if not self.session.is_closed():
             self.session.close()

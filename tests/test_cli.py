@@ -55,6 +55,11 @@ def test_bad_arguments_are_refused_clearly(module: str, args: list[str], message
         (["--vision-scale", "9"], "vision_scale must be in [0.25, 2], got 9.0"),
         (["--vision-index-views", "3"], "vision_index_views must be in [50, 20000], got 3"),
         (["--surface-stiffness", "1"], "surface_stiffness_n_per_m must be in [100, 1e5]"),
+        (["--deadman-s", "0.05"], "deadman_s must be in [0.2, 5] s (the dead-man's timeout)"),
+        (["--deadman-s", "60"], "deadman_s must be in [0.2, 5] s"),
+        (["--physics-rate", "5000"], "physics_rate_hz must be in [500, 2000] Hz (where grasping"),
+        (["--physics-rate", "1234"], "whole number of steps per 0.01 s control period"),
+        (["--camera-supersample", "64"], "camera_supersample must be in 1..4, got 64"),
     ],
 )
 def test_work_site_refuses_knobs_out_of_range(args: list[str], message: str) -> None:

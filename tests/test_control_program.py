@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -14,7 +15,8 @@ from models.transforms import make_pose, rpy_to_R, so3_log
 from protocol import ContactState, MotionCommand, MotionProgram, ProtocolError
 from work_site.control.controller import TaskController
 from work_site.control.executor import Execution, program_refusal
-from work_site.world import World
+from work_site.server import PHYSICS_RATE_RANGE_HZ
+from work_site.world import World, check_scene
 
 CUBE_HALF = 0.025
 
@@ -46,7 +48,22 @@ TOP_GRASP = make_pose(rpy_to_R(np.array([math.pi, 0.0, math.pi])))
 
 @pytest.mark.slow
 def test_pick_carry_and_place_the_cube(site) -> None:
-    world, controller = site
+    pick_carry_and_place(*site)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rate_hz", PHYSICS_RATE_RANGE_HZ)
+def test_grasping_works_at_both_ends_of_the_accepted_physics_rates(rate_hz: float) -> None:
+    scene = load_scene()
+    world = World(scene, time_step_s=1.0 / rate_hz)
+    try:
+        pick_carry_and_place(world, TaskController(world, load_robot(scene.robot.urdf_path)))
+    finally:
+        world.close()
+
+
+def pick_carry_and_place(world: World, controller: TaskController) -> None:
+    """The cube grasped, lifted, carried 6 cm, set down and released where it was asked."""
     X_cube = world.object_pose("cube")
     X_GP = TOP_GRASP
     lifted = X_cube.copy()
@@ -99,6 +116,20 @@ def test_grasping_air_fails_with_a_reason(site) -> None:
     assert "nothing between the fingers" in reports[-1][3]
 
 
+def test_a_scene_with_a_movable_mass_out_of_range_is_refused() -> None:
+    scene = load_scene()
+    for mass_kg in (0.0, 1e-6, 50.0):
+        objects = tuple(
+            dataclasses.replace(o, model=dataclasses.replace(o.model, mass_kg=mass_kg))
+            if o.name == "cube"
+            else o
+            for o in scene.objects
+        )
+        with pytest.raises(ValueError, match=r"'cube': mass .* kg is not in \[0.005, 1.0\] kg"):
+            check_scene(dataclasses.replace(scene, objects=objects))
+    check_scene(scene)  # the product's own scene is in range
+
+
 def test_each_unsafe_program_is_refused_with_its_reason_before_motion(site) -> None:
     world, controller = site
     q0 = world.q_target.copy()
@@ -125,6 +156,12 @@ def test_each_unsafe_program_is_refused_with_its_reason_before_motion(site) -> N
         "limit for moves into contact": program(grasp, cmd("contact_move", speed=0.1)),
         "the work site's own limit": program(cmd("move", force=1000.0)),
         "force limit 0.0 N": program(cmd("move", force=0.0)),
+        "force limit 0.5 N not in [1.0, 40.0] N": program(cmd("move", force=0.5)),
+        "speed 1e-300 m/s not in [0.005, 0.25] m/s": program(cmd("move", speed=1e-300)),
+        # Each move fine alone, together they would hold the robot for hours.
+        "would take more than 600 s": program(
+            *[cmd("move", (X, near)[i % 2], speed=0.005) for i in range(200)]
+        ),
         "no room for its contacts": program(
             grasp, cmd("contact_move", force=1.0, contacts=(table,))
         ),

@@ -147,7 +147,7 @@ def test_bad_payloads_are_refused_and_the_server_keeps_running(work_site, link_t
     assert ws.proc.poll() is None
     before = link.robot_state.seq
     assert wait_until(lambda: (link.poll(), link.robot_state.seq > before + 10)[1], 5.0)
-    assert "refused a program" in ws.log()
+    assert "malformed program" in ws.log()
 
 
 def test_sigterm_stops_the_server_cleanly(work_site, link_to) -> None:
@@ -395,9 +395,10 @@ def _read_lines(proc: subprocess.Popen, until, timeout_s: float) -> list[dict]:
 
 
 def test_an_operator_killed_mid_program_and_restarted_loses_nothing(work_site) -> None:
-    """The operator's process dies (SIGKILL) while its program runs; a new process sends the
-    same program id: the work site runs it once, and the new process gets every report in
-    order through the end."""
+    """The operator's process dies (SIGKILL) while its program runs: its heartbeats stop and
+    the work site's dead-man stops the program. A new process sends the same program id: the
+    work site does not run it again, and the new process gets every report in order through
+    the end."""
     ws = work_site("--no-camera")
     points = ("0.40,-0.1,0.15", "0.45,-0.1,0.12", "0.45,0.0,0.12", "0.40,0.05,0.15")
     first = _operator_process(ws, "relay", *points)
@@ -411,9 +412,9 @@ def test_an_operator_killed_mid_program_and_restarted_loses_nothing(work_site) -
             first.kill()
             first.wait()
         first.stdout.close()
-    # The new process sends once it has heard a live report of the program, the worst case:
-    # the work site's replay of the earlier reports then arrives after a newer one.
-    second = _operator_process(ws, "relay", "--send-after-a-report", *points)
+    # The dead-man ends the program; a new process asking after that gets the replay.
+    assert wait_until(lambda: "no heartbeat from the operator" in ws.log(), 5), ws.log()
+    second = _operator_process(ws, "relay", *points)
     try:
         lines = _read_lines(second, lambda ln: "end" in ln or "error" in ln, 120)
     finally:
@@ -422,12 +423,10 @@ def test_an_operator_killed_mid_program_and_restarted_loses_nothing(work_site) -
         second.wait()
         second.stdout.close()
     assert lines and lines[-1].get("end"), (lines, ws.log())
-    expected = [[-1, "accepted"]]
-    for i in range(len(points)):
-        expected += [[i, "started"], [i, "done"]]
-    expected.append([-1, "done"])
+    expected = [[-1, "accepted"], [0, "started"], [0, "done"], [1, "started"], [-1, "stopped"]]
     assert lines[-1]["reports"] == expected, (lines, ws.log())
     assert lines[-1]["pending"] == []
+    assert "no heartbeat from the operator" in lines[-2]["message"], lines[-2]
     # Every report arrived in the new process, none twice.
     received = [[ln["i"], ln["status"]] for ln in lines[:-1]]
     assert sorted(received) == sorted(expected)

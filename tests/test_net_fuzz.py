@@ -1,12 +1,12 @@
 """Fuzzing the work site's decoder and command handling: ≥ 10,000 generated payloads.
 
 Every payload goes (1) into ``protocol.decode``, which may only raise ``ProtocolError``, and
-(2) into the real :class:`WorkSiteServer`'s inbox handler (``_handle_inbox``, the code that
-takes program and stop samples off zenoh) both as a program and as a stop, in-process against a
-real pybullet world and task controller; only the zenoh subscriber rings and the report publisher
-are stand-ins. An invalid payload must be refused (counted, answered with a "refused" report when
-it came as a program) and must start no motion: no execution, no controller move, the joint
-targets unchanged.
+(2) into the real :class:`WorkSiteServer`'s command handling (``_handle_programs``, and the
+stop inbox that validates stops as they arrive, then ``_handle_stops``) both as a program and as
+a stop, in-process against a real pybullet world and task controller; only the zenoh program
+ring and the report publisher are stand-ins. An invalid payload must be refused (counted,
+answered with a "refused" report when it came as a program) and must start no motion: no
+execution, no controller move, the joint targets unchanged.
 """
 
 from __future__ import annotations
@@ -34,7 +34,8 @@ from protocol import (
 )
 from tests.conftest import examples, one_move_program
 from work_site.control.controller import TaskController
-from work_site.server import ServerOptions, WorkSiteServer
+from work_site.inbox import stop_inbox
+from work_site.server import INVALID_REPORTS_PER_S, ServerOptions, WorkSiteServer
 from work_site.world import World
 
 EXAMPLES_PER_STRATEGY = 2600
@@ -101,22 +102,29 @@ class Harness:
         self.server._controller = self.controller
         self.publisher = _ReportPublisher()
         self.server._pub_report = self.publisher
-        self.programs, self.stops = _Inbox(), _Inbox()
+        self.programs, self.stops = _Inbox(), stop_inbox(None, "stop")
         self.q_target0 = np.array(self.world.q_target, copy=True)
 
     def reset(self) -> None:
         self.server._execution = None
         self.server._reports.clear()
+        self.server._seen.clear()
+        self.server._ids.clear()
+        self.server._busy = None
+        self.server._ready.clear()
         self.controller.move = None
         self.world.q_target = self.q_target0.copy()
         self.publisher.reports.clear()
+        self.server._invalid_report_budget = INVALID_REPORTS_PER_S  # one report each here
 
     def handle(self, program: bytes | None = None, stop: bytes | None = None) -> None:
         if program is not None:
             self.programs.push(program)
         if stop is not None:
-            self.stops.push(stop)
-        self.server._handle_inbox(self.programs, self.stops, self.world)
+            self.stops.offer(stop)
+        self.server._handle_stops(self.stops.drain())
+        self.server._handle_programs(self.programs)  # the checking thread's part
+        self.server._start_ready()  # the control loop's
 
     def moving(self) -> bool:
         return (
@@ -165,10 +173,10 @@ def check_payload(harness: Harness, payload: bytes) -> None:
         assert reports and reports[0].status in ("accepted", "refused")
 
     harness.reset()
-    refused = harness.server.stats["refused"]
+    dropped = harness.stops.dropped.total
     harness.handle(stop=payload)
     assert not harness.moving()  # a stop never moves, valid or not
-    assert harness.server.stats["refused"] == refused + (0 if valid_stop else 1)
+    assert harness.stops.dropped.total == dropped + (0 if valid_stop else 1)
     assert harness.publisher.reports == []
 
 
@@ -292,6 +300,7 @@ def test_the_harness_can_see_motion(harness: Harness) -> None:
     assert harness.moving()
     harness.handle(stop=VALID_STOP)
     assert harness.server._execution.finished
+    harness.server._release_finished()
     harness.server._execution = None
     before = len(harness.publisher.reports)
     harness.handle(program=VALID_PROGRAM)  # the same id again: replayed, never run again

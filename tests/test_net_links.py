@@ -14,7 +14,15 @@ import pytest
 import zenoh
 
 from operator_site.link import WorkSiteLink
-from protocol import MotionCommand, MotionProgram, ProtocolError, key, make_config
+from protocol import (
+    Heartbeat,
+    MotionCommand,
+    MotionProgram,
+    ProtocolError,
+    decode,
+    key,
+    make_config,
+)
 from protocol.session import (
     derive_split,
     link_endpoints,
@@ -159,11 +167,17 @@ def test_real_work_site_listens_on_two_links_with_frames_on_the_low_one(work_sit
     link = WorkSiteLink(make_config(connect=link_endpoints([ws.endpoint])[0]), ws.site_id)
     try:
         seen: queue.Queue[tuple[str, zenoh.Priority]] = queue.Queue()
+
+        def on_sample(s: zenoh.Sample) -> None:
+            topic = str(s.key_expr).rsplit("/", 1)[1]
+            # The operator's own heartbeats (its dead-man signal, at command priority) go the
+            # other way: only the work site's are telemetry.
+            if topic == "heartbeat" and decode(s.payload.to_bytes(), Heartbeat).role != "work_site":
+                return
+            seen.put_nowait((topic, s.priority))
+
         for topic in ("camera", "robot_state", "report", "heartbeat"):
-            link.session.declare_subscriber(
-                key(ws.site_id, topic),
-                lambda s: seen.put_nowait((str(s.key_expr).rsplit("/", 1)[1], s.priority)),
-            )
+            link.session.declare_subscriber(key(ws.site_id, topic), on_sample)
 
         def connected() -> bool:
             link.poll()

@@ -205,7 +205,8 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=1000.0,
         metavar="HZ",
-        help="physics steps per second of real time (default: %(default)s)",
+        help="physics steps per second of real time, 500..2000 and a multiple of 100 "
+        "(default: %(default)s)",
     )
     parser.add_argument(
         "--journal",
@@ -239,16 +240,26 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="HZ",
         help="robot-state messages per second (default: %(default)s)",
     )
+    parser.add_argument(
+        "--deadman-s",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="stop a running program when its operator's heartbeats have not come for S "
+        "seconds, 0.2..5 (default: %(default)s)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="log more")
 
 
 def serve(args: argparse.Namespace) -> int:
     """Run the server with parsed ``args`` until SIGINT/SIGTERM; returns the exit code."""
     from work_site.server import ServerOptions, WorkSiteServer  # heavy imports after parsing
+    from work_site.world import check_scene
 
     try:
         check_site_id(args.site_id)
         scene = load_scene(args.scene)
+        check_scene(scene)
         camera_X_WC = None
         if args.seed is not None:
             layout = random_layout(scene, args.seed)
@@ -271,6 +282,7 @@ def serve(args: argparse.Namespace) -> int:
             site_id=args.site_id,
             physics_rate_hz=args.physics_rate,
             state_rate_hz=args.state_rate,
+            deadman_s=args.deadman_s,
             camera=not args.no_camera,
             camera_supersample=args.camera_supersample,
             camera_noise_grey=args.camera_noise,

@@ -2,15 +2,18 @@
 
 Publishes robot state (≥ 100 Hz), grey camera frames (at the camera's rate), the objects vision
 recognises in them (at ``vision_rate_hz`` or as fast as vision keeps up) and a heartbeat;
-declares a liveliness token; takes programs and stops from the wire. Whatever arrives is decoded
-and validated first, and nothing that arrives can stop this loop.
+declares a liveliness token; takes programs, stops and operator heartbeats from the wire, each
+key on its own inbox (``work_site/inbox.py``). Whatever arrives is decoded and validated first,
+and nothing that arrives can stop this loop: programs are checked on a thread of their own, the
+journal is written by another, and a running program stops when its operator falls silent for
+``deadman_s`` (the dead-man).
 """
 
 from __future__ import annotations
 
 import collections
-import json
 import logging
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -47,7 +50,9 @@ from work_site.control.controller import (
     Impedance,
     TaskController,
 )
-from work_site.control.executor import Execution, program_refusal
+from work_site.control.executor import CheckCancelledError, Execution, program_refusal
+from work_site.inbox import DropCounter, heartbeat_inbox, stop_inbox
+from work_site.journal import JournalWriter, journal_line, load_journal
 from work_site.recognition import VisionProcess
 from work_site.world import World
 
@@ -61,68 +66,41 @@ LATE_WARNING_PERIOD_S = 10.0
 behind changes no physics (every control period still runs its 10 steps), only how fast
 simulated time passes: a user watching the robot, or a benchmark's timing, must know."""
 INBOX_CAPACITY = 64
+"""Program samples waiting to be decoded; beyond it the oldest are dropped (and counted)."""
+INVALID_REPORTS_PER_S = 10.0
+"""Undecodable programs answered with a "refused" report at most this often: a flood of
+garbage must not turn into a flood of reports; the rest are counted and summed up in the log."""
 REMEMBERED_PROGRAMS = 100
-"""Program ids (and their reports) kept to answer re-sends."""
+"""Programs whose reports are kept to replay to a re-send; every id is remembered (and never
+run again), these with their reports."""
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
+SWITCH_INTERVAL_S = 0.001
+"""The interpreter's thread switch interval while serving: a program being checked on the
+checking thread hands the control loop the GIL back within this (Python's default is 5 ms)."""
+PHYSICS_RATE_RANGE_HZ = (500.0, 2000.0)
+"""Physics rates a work site accepts (Hz): within the range where grasping and placing were
+verified, with a margin (too slow, the held block slips; too fast, the grasp's descent reads a
+touch)."""
+MAX_CAMERA_SUPERSAMPLE = 4
+"""Rendering cost grows with its square: beyond it a frame takes seconds."""
+DEADMAN_RANGE_S = (0.2, 5.0)
+"""Accepted dead-man timeouts (s): above two heartbeat periods of the operator's link (0.1 s),
+so that one late beat stops nothing; at most a few seconds of motion nobody watches."""
+DEADMAN_STALL_S = 0.05
+"""A loop iteration this long after the last one means this process was starved (s)."""
+CHECK_IDLE_S = 0.002
+"""The checking thread looks for new programs this often when there are none (s)."""
+CHECK_YIELD_S = 1e-4
+"""The checking thread sleeps this long before each command it checks (s)."""
 
 
 def read_journal(
     path: Path,
 ) -> tuple[collections.OrderedDict[str, list[bytes]], list[tuple[str, bytes]]]:
-    """The programs and reports of a journal (the newest REMEMBERED_PROGRAMS), and the closing
-    "failed" reports added for programs a restart interrupted. Unreadable lines are skipped (a
-    crash may leave the last one half written). A report an older schema wrote cannot be
-    replayed to today's operators, but its program id is still remembered, so that a re-send
-    never runs that program again."""
-    reports: collections.OrderedDict[str, list[bytes]] = collections.OrderedDict()
-    last: dict[str, ExecutionReport | None] = {}
-    added: list[tuple[str, bytes]] = []
-    if not path.exists():
-        return reports, added
-    for line in path.read_text(errors="replace").splitlines():
-        try:
-            entry = json.loads(line)
-            pid, payload = str(entry["program_id"]), bytes.fromhex(entry["report"])
-        except (ValueError, KeyError, TypeError):
-            continue
-        payloads = reports.setdefault(pid, [])
-        reports.move_to_end(pid)
-        try:
-            last[pid] = decode(payload, expected=ExecutionReport)
-        except ProtocolError:
-            last.setdefault(pid, None)
-            continue
-        payloads.append(payload)
-    while len(reports) > REMEMBERED_PROGRAMS:
-        reports.popitem(last=False)
-    for pid, payloads in reports.items():
-        final = last[pid]
-        if final is not None and final.command_index == -1 and final.status in FINAL_STATUSES:
-            continue
-        message = (
-            "interrupted: the work site restarted during this program"
-            if final is not None
-            else "run by an earlier version of the work site, whose reports cannot be "
-            "replayed; not run again"
-        )
-        closing = encode(
-            ExecutionReport(
-                program_id=pid,
-                command_index=-1,
-                status="failed",
-                wrench_S=np.zeros(6),
-                message=message,
-                stamp_s=time.time(),
-                seq=len(payloads),
-            )
-        )
-        payloads.append(closing)
-        added.append((pid, closing))
-    return reports, added
-
-
-def _journal_line(program_id: str, payload: bytes) -> str:
-    return json.dumps({"program_id": program_id, "report": payload.hex()}) + "\n"
+    """The reports of a journal's newest REMEMBERED_PROGRAMS programs, and the closing "failed"
+    reports added for programs a restart interrupted (:func:`work_site.journal.load_journal`)."""
+    state = load_journal(path, REMEMBERED_PROGRAMS)
+    return state.reports, state.added
 
 
 @dataclass(frozen=True)
@@ -166,18 +144,41 @@ class ServerOptions:
     per frame, less accuracy (docs/benchmarks.md, vision's resolution sweep)."""
     vision_index_views: int | None = None
     """Viewing directions sampled for vision's model index (None: its default)."""
+    deadman_s: float = 0.5
+    """A running program is stopped when the operator's heartbeats have not come for this
+    long (s; :data:`DEADMAN_RANGE_S`): its process died, or the link to it was cut."""
 
     def __post_init__(self) -> None:
-        if not 100.0 <= self.physics_rate_hz <= 10000.0:
-            raise ValueError(f"physics_rate_hz must be in [100, 10000], got {self.physics_rate_hz}")
+        low, high = DEADMAN_RANGE_S
+        if not low <= self.deadman_s <= high:
+            raise ValueError(
+                f"deadman_s must be in [{low:g}, {high:g}] s (the dead-man's timeout), "
+                f"got {self.deadman_s}"
+            )
+        low, high = PHYSICS_RATE_RANGE_HZ
+        rate = self.physics_rate_hz
+        if not low <= rate <= high:
+            raise ValueError(
+                f"physics_rate_hz must be in [{low:g}, {high:g}] Hz (where grasping works), "
+                f"got {rate}"
+            )
+        steps = rate * CONTROL_PERIOD_S
+        if abs(steps - round(steps)) > 1e-9:
+            raise ValueError(
+                f"physics_rate_hz must be a whole number of steps per {CONTROL_PERIOD_S} s "
+                f"control period (a multiple of {1 / CONTROL_PERIOD_S:g} Hz), got {rate}"
+            )
         if not 0 < self.state_rate_hz <= 1.0 / CONTROL_PERIOD_S:
             raise ValueError(
                 f"state_rate_hz must be in (0, {1.0 / CONTROL_PERIOD_S:g}] (the control rate)"
             )
         if not 0 < self.heartbeat_rate_hz <= 100:
             raise ValueError("heartbeat_rate_hz must be in (0, 100]")
-        if self.camera_supersample < 1:
-            raise ValueError("camera_supersample must be ≥ 1")
+        if not 1 <= self.camera_supersample <= MAX_CAMERA_SUPERSAMPLE:
+            raise ValueError(
+                f"camera_supersample must be in 1..{MAX_CAMERA_SUPERSAMPLE}, "
+                f"got {self.camera_supersample}"
+            )
         if self.camera_encoding not in IMAGE_ENCODINGS:
             raise ValueError(
                 f"camera_encoding must be one of {IMAGE_ENCODINGS}, got {self.camera_encoding!r}"
@@ -216,14 +217,42 @@ class WorkSiteServer:
         self._reports: collections.OrderedDict[str, list[bytes]] = collections.OrderedDict()
         """Every report sent for each program id received (the newest REMEMBERED_PROGRAMS),
         encoded: a program re-sent with the same id is not run again, its reports are."""
-        self._journal = None
+        self._ids: list[str] = []
+        """Every program id ever received, in order (append only)."""
+        self._seen: set[str] = set()
+        """The same ids, to look up: a program id is run at most once, ever."""
+        self._lock = threading.Lock()
+        """Guards what the checking thread and the control loop share: the reports, the
+        program being checked or run (``_busy``) and the programs ready to start."""
+        self._busy: str | None = None
+        """The id of the program being checked, waiting to start or running."""
+        self._stops_seen = 0
+        """Stops acted on so far: a program whose check began before the latest one is cancelled."""
+        self._ready: collections.deque[tuple[MotionProgram, int]] = collections.deque()
+        """Programs that passed their check, with ``_stops_seen`` when their check began."""
+        self._last_stop_reason = ""
+        self._execution_started_s = 0.0
+        self._deadman_checked_s = 0.0
+        self._wrench_S = np.zeros(6)
+        """The wrist wrench of the last control period, for reports sent off the loop's thread."""
+        self._journal: JournalWriter | None = None
         if self.options.journal is not None:
-            self.options.journal.parent.mkdir(parents=True, exist_ok=True)
-            self._reports, added = read_journal(self.options.journal)
-            self._journal = self.options.journal.open("a")
-            self._journal.writelines(_journal_line(pid, payload) for pid, payload in added)
-            self._journal.flush()
+            path = self.options.journal
+            path.parent.mkdir(parents=True, exist_ok=True)
+            state = load_journal(path, REMEMBERED_PROGRAMS)
+            self._reports, self._ids, self._seen = state.reports, state.ids, state.seen
+            with path.open("a") as f:
+                f.writelines(journal_line(pid, payload) for pid, payload in state.added)
+            self._journal = JournalWriter(
+                path,
+                self._ids,
+                self._journal_snapshot,
+                self._lock,
+                report_lines=state.report_lines + len(state.added),
+            )
         self._faults_logged: set[str] = set()
+        self._invalid_programs = DropCounter("program")
+        self._invalid_report_budget, self._invalid_report_s = INVALID_REPORTS_PER_S, 0.0
 
     def run(self, stop: threading.Event, ready: threading.Event | None = None) -> None:
         """Serve until ``stop`` is set; ``ready`` is set once publishing has started."""
@@ -245,10 +274,13 @@ class WorkSiteServer:
             if opts.vision_rate_hz > 0
             else None
         )
+        switch_interval_s = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         try:
             with zenoh.open(self._zenoh_config) as session:
                 self._serve(session, world, camera, stop, ready)
         finally:
+            sys.setswitchinterval(switch_interval_s)
             if self._vision is not None:
                 self._vision.close()
             if camera is not None:
@@ -268,15 +300,24 @@ class WorkSiteServer:
         opts, site = self.options, self.options.site_id
         token = session.liveliness().declare_token(alive_key(site, "work_site"))
         self._declare_publishers(session)
-        # Never block inside zenoh's callbacks: samples go to bounded rings read by this loop.
+        # Each key its own inbox: stops are validated as they arrive and only valid ones
+        # queued (no flood can push one out), and a stop wakes this loop at once.
+        wake = threading.Event()
+        inbox_stop = stop_inbox(session, key(site, "stop"), wake)
+        inbox_heartbeat = heartbeat_inbox(session, key(site, "heartbeat"), site)
         inbox_program = session.declare_subscriber(
             key(site, "program"), zenoh.handlers.RingChannel(INBOX_CAPACITY)
         )
-        inbox_stop = session.declare_subscriber(
-            key(site, "stop"), zenoh.handlers.RingChannel(INBOX_CAPACITY)
-        )
         controller = TaskController(world, load_robot(self.scene.robot.urdf_path))
         self._controller = controller
+        self._wake = wake
+        # Programs are decoded and checked whole on a thread of their own: a long one must
+        # not hold this loop (its states, its stops) up.
+        checking_done = threading.Event()
+        checker = threading.Thread(
+            target=self._check_programs, args=(inbox_program, checking_done), name="checker"
+        )
+        checker.start()
         tick_s = controller.steps_per_tick * world.time_step_s
         wall_tick_s = tick_s / opts.time_scale
         state_every = max(1, round(1.0 / (tick_s * opts.state_rate_hz)))
@@ -293,6 +334,9 @@ class WorkSiteServer:
             ready.set()
         try:
             while not stop.is_set():
+                wake.clear()
+                self._handle_stops(inbox_stop.drain())  # first, before any motion this period
+                self._check_deadman(inbox_heartbeat)
                 elapsed = time.monotonic() - t0
                 due = int(elapsed / wall_tick_s) - ticks
                 if due > MAX_CATCH_UP_TICKS:
@@ -309,7 +353,11 @@ class WorkSiteServer:
                     except Exception as e:  # a fault of ours: stop safely, keep serving
                         ticks += 1
                         self._fault(e)
-                self._handle_inbox(inbox_program, inbox_stop, world)
+                self._handle_stops(inbox_stop.drain())
+                self._start_ready()
+                inbox_stop.dropped.summarize(elapsed)
+                inbox_heartbeat.dropped.summarize(elapsed)
+                self._invalid_programs.summarize(elapsed)
                 if camera is not None:
                     self._publish_camera(camera, elapsed)
                     self._request_frame(camera, world, elapsed)
@@ -318,10 +366,13 @@ class WorkSiteServer:
                 self._publish_heartbeat(elapsed)
                 sleep_s = t0 + (ticks + 1) * wall_tick_s - time.monotonic()
                 if sleep_s > 0:
-                    time.sleep(sleep_s)
+                    wake.wait(sleep_s)
         finally:
+            checking_done.set()
+            checker.join()
             inbox_program.undeclare()
             inbox_stop.undeclare()
+            inbox_heartbeat.undeclare()
             token.undeclare()
             log.info("work site %r stopped: %s", site, self.stats)
 
@@ -352,9 +403,20 @@ class WorkSiteServer:
             self._execution.tick()
         else:
             self._controller.tick()
+        self._release_finished()
+
+    def _release_finished(self) -> None:
+        """Once the running program has finished, the next may be checked."""
+        execution = self._execution
+        if execution is not None and execution.finished:
+            with self._lock:
+                if self._busy == execution.program.program_id:
+                    self._busy = None
 
     def _publish_robot_state(self, world: World) -> None:
-        self._pub_state.put(encode(self._robot_state(world, self._seq_state)))
+        state = self._robot_state(world, self._seq_state)
+        self._wrench_S = state.wrench_S
+        self._pub_state.put(encode(state))
         self._seq_state += 1
         self.stats["states"] += 1
 
@@ -478,84 +540,207 @@ class WorkSiteServer:
                 self._execution.stop(f"work-site fault: {kind}: {error}")
             else:
                 self._controller.stop()
+            self._release_finished()
         except Exception:
             log.exception("could not stop cleanly after the fault")
 
-    def _report(self, program_id: str, command_index: int, status: str, message: str) -> None:
-        payload = encode(
-            ExecutionReport(
-                program_id=program_id,
-                command_index=command_index,
-                status=status,
-                wrench_S=self._controller.world.robot_snapshot().wrench_S,
-                message=message[:4096],
-                stamp_s=time.time(),
-                seq=len(self._reports.get(program_id, ())),
+    def _report(
+        self, program_id: str, command_index: int, status: str, message: str, fresh: bool = True
+    ) -> None:
+        """Send (and journal) a report; ``fresh``: with the wrench read now (the control
+        loop's thread only), else the last control period's."""
+        wrench_S = self._controller.world.robot_snapshot().wrench_S if fresh else self._wrench_S
+        with self._lock:
+            payload = encode(
+                ExecutionReport(
+                    program_id=program_id,
+                    command_index=command_index,
+                    status=status,
+                    wrench_S=wrench_S,
+                    message=message[:4096],
+                    stamp_s=time.time(),
+                    seq=len(self._reports.get(program_id, ())),
+                )
             )
-        )
-        if program_id in self._reports:
-            self._reports[program_id].append(payload)
-            if self._journal is not None:
-                self._journal.write(_journal_line(program_id, payload))
-                self._journal.flush()
-        self._pub_report.put(payload)
+            if program_id in self._reports:
+                self._reports[program_id].append(payload)
+                if self._journal is not None:
+                    self._journal.append(program_id, payload)
+            self._pub_report.put(payload)
         log.info("program %s command %d: %s %s", program_id, command_index, status, message)
 
     def _remember(self, program_id: str) -> None:
+        """(With the lock held.)"""
         self._reports[program_id] = []
         while len(self._reports) > REMEMBERED_PROGRAMS:
             self._reports.popitem(last=False)
+        if program_id not in self._seen:
+            self._seen.add(program_id)
+            self._ids.append(program_id)
 
-    def _handle_inbox(
-        self, inbox_program: zenoh.Subscriber, inbox_stop: zenoh.Subscriber, world: World
-    ) -> None:
-        running = self._execution is not None and not self._execution.finished
-        while (sample := inbox_stop.try_recv()) is not None:
-            try:
-                msg = decode(sample.payload.to_bytes(), expected=Stop)
-            except ProtocolError as e:
-                self.stats["refused"] += 1
-                log.warning("refused a stop message: %s", e)
-                continue
-            # Stops act even when malformed programs flood the inbox: they are read first.
-            if running:
+    def _journal_snapshot(self) -> tuple[int, list[tuple[str, list[bytes]]]]:
+        """(Called by the journal's writer with the lock held.) The ids journaled, and the
+        kept programs' reports."""
+        return len(self._ids), [(pid, list(p)) for pid, p in self._reports.items()]
+
+    def _handle_stops(self, stops: list[Stop]) -> None:
+        """Act on the valid stops received: end the running program, or hold the arm; a
+        program being checked or waiting to start is cancelled."""
+        for msg in stops:
+            self._stops_seen += 1
+            self._last_stop_reason = msg.reason
+            if self._execution is not None and not self._execution.finished:
                 self._execution.stop(f"stop: {msg.reason}")
-                running = False
             else:
-                self._controller.stop()
+                self._controller.stop(ease=True)
             log.info("stop: %s", msg.reason)
-        while (sample := inbox_program.try_recv()) is not None:
+
+    def _refuse_invalid(self, error: ProtocolError) -> None:
+        """Count an undecodable program; answer it while the report budget lasts."""
+        self.stats["refused"] += 1
+        self._invalid_programs.add(str(error))
+        now = time.monotonic()
+        self._invalid_report_budget = min(
+            INVALID_REPORTS_PER_S,
+            self._invalid_report_budget + (now - self._invalid_report_s) * INVALID_REPORTS_PER_S,
+        )
+        self._invalid_report_s = now
+        if self._invalid_report_budget >= 1.0:
+            self._invalid_report_budget -= 1.0
+            self._report("invalid", -1, "refused", f"program refused: {error}", fresh=False)
+
+    def _check_programs(self, inbox_program, done: threading.Event) -> None:
+        """The checking thread: take programs off the wire until ``done``."""
+        while not done.is_set():
+            try:
+                if not self._handle_programs(inbox_program):
+                    time.sleep(CHECK_IDLE_S)
+            except Exception:  # a fault of ours: log it, keep checking
+                log.exception("internal fault while checking a program")
+                with self._lock:
+                    self._busy = None
+
+    def _handle_programs(self, inbox_program) -> int:
+        """Decode and check the programs received (at most a ring's worth); how many."""
+        for n in range(INBOX_CAPACITY):
+            sample = inbox_program.try_recv()
+            if sample is None:
+                return n
             try:
                 program = decode(sample.payload.to_bytes(), expected=MotionProgram)
             except ProtocolError as e:
-                self.stats["refused"] += 1
-                log.warning("refused a program: %s", e)
-                self._report("invalid", -1, "refused", f"program refused: {e}")
+                self._refuse_invalid(e)
                 continue
-            pid = program.program_id
-            if pid in self._reports:
-                # A re-send (the operator missed our answer, or reconnected): never run twice;
-                # replay every report so far, in order.
-                for payload in self._reports[pid]:
-                    self._pub_report.put(payload)
-                self.stats["duplicates"] = self.stats.get("duplicates", 0) + 1
-                log.info(
-                    "program %s received again: %d reports replayed", pid, len(self._reports[pid])
+            self._take_program(program)
+        return INBOX_CAPACITY
+
+    def _take_program(self, program: MotionProgram) -> None:
+        """Answer a re-send from the reports kept, refuse a program while another is checked
+        or runs, else check it whole and hand it to the control loop."""
+        pid = program.program_id
+        with self._lock:
+            replay = list(self._reports.get(pid, ())) if pid in self._reports else None
+            forgotten = replay is None and pid in self._seen
+            busy = self._busy
+            if replay is None and not forgotten:
+                self._remember(pid)
+                if busy is None:
+                    self._busy, stops_seen = pid, self._stops_seen
+        if forgotten:
+            # Received long ago: its reports are no longer kept, but it never runs again.
+            self.stats["duplicates"] = self.stats.get("duplicates", 0) + 1
+            self._pub_report.put(
+                encode(
+                    ExecutionReport(
+                        program_id=pid,
+                        command_index=-1,
+                        status="refused",
+                        wrench_S=self._wrench_S,
+                        message="received before (its reports are no longer kept): "
+                        "a program id runs at most once",
+                        stamp_s=time.time(),
+                    )
                 )
-                continue
-            if running:
-                reason = f"busy with program {self._execution.program.program_id}"
-            else:
-                reason = program_refusal(program, self._controller)
-            self._remember(pid)
-            if reason:
-                self.stats["refused"] += 1
-                self._report(pid, -1, "refused", reason)
-                continue
-            self._report(pid, -1, "accepted", f"{len(program.commands)} commands")
-            surface = self.options.surface_stiffness_n_per_m
-            impedance = Impedance(tangential_stiffness_n_per_m=surface)
-            self._execution = Execution(
-                program, self._controller, self._report, impedance=impedance
             )
-            running = True
+            log.info("program %s received again, long after: refused", pid)
+            return
+        if replay is not None:
+            # A re-send (the operator missed our answer, or reconnected): never run twice;
+            # replay every report so far, in order.
+            for payload in replay:
+                self._pub_report.put(payload)
+            self.stats["duplicates"] = self.stats.get("duplicates", 0) + 1
+            log.info("program %s received again: %d reports replayed", pid, len(replay))
+            return
+        if busy is not None:
+            self.stats["refused"] += 1
+            self._report(pid, -1, "refused", f"busy with program {busy}", fresh=False)
+            return
+        try:
+
+            def cancelled() -> bool:
+                # Between commands, let the control loop have the interpreter if it waits for
+                # it: the switch interval alone has let a check hold it up for periods.
+                time.sleep(CHECK_YIELD_S)
+                return self._stops_seen != stops_seen
+
+            reason = program_refusal(program, self._controller, cancelled=cancelled)
+        except CheckCancelledError:
+            self._cancel(pid, "while it was being checked")
+            return
+        if reason:
+            self.stats["refused"] += 1
+            self._report(pid, -1, "refused", reason, fresh=False)
+            with self._lock:
+                self._busy = None
+            return
+        self._report(pid, -1, "accepted", f"{len(program.commands)} commands", fresh=False)
+        with self._lock:
+            self._ready.append((program, stops_seen))
+        wake = getattr(self, "_wake", None)
+        if wake is not None:
+            wake.set()
+
+    def _cancel(self, program_id: str, when: str) -> None:
+        """A stop came for a program that had not started: it never will."""
+        reason = self._last_stop_reason
+        self._report(program_id, -1, "stopped", f"stop: {reason} ({when})", fresh=False)
+        with self._lock:
+            if self._busy == program_id:
+                self._busy = None
+
+    def _start_ready(self) -> None:
+        """Start the program that passed its check, unless a stop came since its check began
+        (control loop's thread)."""
+        with self._lock:
+            item = self._ready.popleft() if self._ready else None
+        if item is None:
+            return
+        program, stops_seen = item
+        if stops_seen != self._stops_seen:
+            self._cancel(program.program_id, "before it started")
+            return
+        surface = self.options.surface_stiffness_n_per_m
+        impedance = Impedance(tangential_stiffness_n_per_m=surface)
+        self._execution = Execution(program, self._controller, self._report, impedance=impedance)
+        self._execution_started_s = time.monotonic()
+
+    def _check_deadman(self, inbox_heartbeat) -> None:
+        """Stop the running program when the operator's heartbeats stopped coming: the newest
+        beat, or the program's start if later, is more than ``deadman_s`` ago."""
+        now = time.monotonic()
+        stalled = now - self._deadman_checked_s > DEADMAN_STALL_S
+        self._deadman_checked_s = now
+        execution = self._execution
+        if execution is None or execution.finished:
+            return
+        inbox_heartbeat.drain()  # only when the newest came matters
+        last_s = max(inbox_heartbeat.last_s or 0.0, self._execution_started_s)
+        # After a stall of this process, beats that came meanwhile may still wait for their
+        # callback: judge at the next iteration (unless silence is long past doubt).
+        silent_s = now - last_s
+        deadman_s = self.options.deadman_s
+        if silent_s > deadman_s and (not stalled or silent_s > 2 * deadman_s):
+            execution.stop(f"no heartbeat from the operator for {self.options.deadman_s:g} s")
+            self.stats["deadman"] = self.stats.get("deadman", 0) + 1
+            self._release_finished()

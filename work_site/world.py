@@ -34,6 +34,9 @@ ARM_MAX_FORCE_N = 300.0
 FINGER_MAX_FORCE_N = 40.0
 FINGER_COUPLING_MAX_FORCE_N = 200.0
 FINGER_LOCK_MAX_FORCE_N = 200.0
+MOVABLE_MASS_RANGE_KG = (0.005, 1.0)
+"""Masses of movable objects a scene may give (kg): what the gripper holds and the wrist weighs
+well within the hard force limit; lighter bodies, against the arm's, make the solver stiff."""
 FINGER_PAD_FRICTION = 2.0
 """Rubber finger pads: pybullet multiplies it with the wood's default 0.5, at which a carried
 block slides in the grip."""
@@ -92,6 +95,24 @@ class RobotSnapshot:
     wrench_S: np.ndarray
 
 
+def check_object_mass(obj: SceneObject) -> None:
+    """ValueError naming the range when movable ``obj``'s mass is outside
+    :data:`MOVABLE_MASS_RANGE_KG`."""
+    low, high = MOVABLE_MASS_RANGE_KG
+    mass = obj.model.mass_kg
+    if not obj.fixed and not low <= mass <= high:
+        raise ValueError(
+            f"object {obj.name!r}: mass {mass} kg is not in [{low}, {high}] kg, the movable "
+            "masses this work site grasps and weighs"
+        )
+
+
+def check_scene(scene: Scene) -> None:
+    """ValueError naming the object and the limit when a scene's values are out of range."""
+    for obj in scene.objects:
+        check_object_mass(obj)
+
+
 class World:
     """A pybullet simulation of a scene, stepped explicitly (no real-time mode).
 
@@ -122,6 +143,7 @@ class World:
         self.robot = self._load_robot()
 
     def _create_body(self, obj: SceneObject, tmp: Path) -> int:
+        check_object_mass(obj)
         """A pybullet body whose collision shape is the model's convex parts, exactly.
 
         With polyhedral (SAT) features pybullet clips the polyhedra themselves and leaves out

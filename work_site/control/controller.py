@@ -44,6 +44,16 @@ LIMIT_WINDOW_STEPS = 10
 about a sustained force, and in contact the stiff 1 kHz servo makes the readings chatter from
 step to step at more than period 2, which the guards' shorter window lets through."""
 
+EASE_M = 0.003
+"""A safety stop in contact holds the hand this far back from it, along the contact force (m)."""
+EASE_S = 0.1
+"""How long the hand takes to ease off (s)."""
+EASE_WEIGHT_COS = 0.7
+"""A force within about 45° of straight down is taken for a payload's weight: no easing off."""
+EASE_FROM_N = 1.5
+"""A safety stop eases off when the external force exceeds this (N): above a resting block's
+weight, which the table carries once the block is set down."""
+
 
 @dataclass(frozen=True)
 class Guard:
@@ -154,6 +164,9 @@ class TaskController:
         self._window: list[np.ndarray] = []
         self._offsets: list[np.ndarray] = []
         self._settle_s = 0.0
+        self._ease_q: np.ndarray | None = None
+        """Where a safety stop eases the arm to, over ``_ease_ticks`` more periods."""
+        self._ease_ticks = 0
 
     def commanded_tcp_W(self) -> np.ndarray:
         """The TCP pose the joint targets command (``X_WG``)."""
@@ -185,6 +198,7 @@ class TaskController:
         if not goal.ok:
             raise ValueError(f"target cannot be reached: {goal.reason}")
         start = self.commanded_tcp_W()
+        self._ease_q, self._ease_ticks = None, 0
         if impedance is None:
             self.offset_W = np.zeros(3)
         else:  # compliant moves chain: the path goes on from where the hand is commanded
@@ -199,9 +213,21 @@ class TaskController:
         self.force_peak_n = 0.0
         self._offsets, self._settle_s = [], 0.0
 
-    def stop(self) -> None:
-        """Hold where the arm is now (within one control period)."""
-        self.world.q_target = self.world.robot_joint_positions()[0]
+    def stop(self, ease: bool = False) -> None:
+        """Hold where the arm is now (within one control period). ``ease`` (a safety stop):
+        in contact, hold :data:`EASE_M` back along the contact force instead, so that the hand
+        does not go on pressing (a position servo holding the measured pose leans on it)."""
+        q = self.world.robot_joint_positions()[0]
+        self._ease_q, self._ease_ticks = None, 0
+        size_n = float(np.linalg.norm(self.force_W))
+        # A force pointing mostly down is a held block's weight, not a contact pushing back.
+        if ease and size_n > EASE_FROM_N and self.force_W[2] > -EASE_WEIGHT_COS * size_n:
+            X_WG = self.robot.tcp_pose_W(q, self.X_WB)
+            X_WG[:3, 3] += EASE_M * self.force_W / size_n
+            eased = ik_tcp(X_WG, q, self.robot, self.X_WB, self.geometry)
+            if eased.ok:  # reached over EASE_S: a jump would jolt the hand
+                self._ease_q, self._ease_ticks = eased.q, max(1, round(EASE_S / CONTROL_PERIOD_S))
+        self.world.q_target = q
         self.world.q_dot_target = np.zeros(6)
         self.move = None
         self.guard = self.impedance = None
@@ -287,7 +313,13 @@ class TaskController:
     def tick(self) -> TickResult:
         """One control period: the next setpoint, then the physics steps of the period."""
         if self.move is None:
-            self._physics()
+            if self._ease_q is not None and self._ease_ticks > 0:
+                q = self.world.q_target
+                q_goal = q + (self._ease_q - q) / self._ease_ticks
+                self._ease_ticks -= 1
+                self._physics(q_goal, np.zeros(6))
+            else:
+                self._physics()
             return TickResult("idle")
         self.t_s += CONTROL_PERIOD_S
         X = self.move.pose_at(self.t_s)

@@ -45,6 +45,15 @@ below the TCP, so 0.02 m keeps them 5 mm above the table."""
 WORKSPACE_MAX_W = np.array([0.75, 0.45, 0.50])
 GRIPPER_OPEN_M = 0.08
 MAX_CONTACT_SPEED_MPS = 0.02
+MIN_TCP_SPEED_MPS = 0.005
+"""No command may be slower (m/s): half the speed asked in contact; slower ones only tie the
+robot up."""
+MAX_PROGRAM_DURATION_S = 600.0
+"""A program whose moves, at their speeds, take longer than this is refused (s): it would tie
+the robot up."""
+MIN_FORCE_LIMIT_N = 1.0
+"""No force limit may be lower (N): the contact verification threshold, below which no contact
+could be verified nor a block carried."""
 """Moves in contact (guarded and contact moves) are no faster than this (§VI-B)."""
 TARGET_BIAS_M = 0.005
 """d of §VI-B: how far past each contact a contact move aims (the paper's ≈ 5 mm)."""
@@ -77,16 +86,30 @@ def contact_forces_n(force_W: np.ndarray, normals_W: np.ndarray) -> np.ndarray:
     return nnls(N.T, np.asarray(force_W, dtype=np.float64))[0]
 
 
-def program_refusal(program: MotionProgram, controller: TaskController) -> str:
+class CheckCancelledError(Exception):
+    """A program's check was abandoned (a stop came meanwhile)."""
+
+
+def program_refusal(
+    program: MotionProgram,
+    controller: TaskController,
+    cancelled: Callable[[], bool] | None = None,
+) -> str:
     """Why ``program`` must not run ("" if it may): a contact move with nothing held, targets
     outside the workspace or unreachable, speeds or force limits beyond the work site's.
-    Checked whole, before any motion."""
+    Checked whole, before any motion; raises :class:`CheckCancelledError` as soon as ``cancelled()``
+    (asked before each command) holds. Reads the controller's joint targets and kinematics
+    only, so it may run on another thread while the arm holds still."""
     if not program.commands:
         return "empty program"
     X_PG = invert_pose(program.X_GP)
-    q = controller.world.q_target.copy()
+    q = np.array(controller.world.q_target, copy=True)
+    X_WG_before = controller.robot.tcp_pose_W(q, controller.X_WB)
+    duration_s = 0.0
     holding = False
     for i, cmd in enumerate(program.commands):
+        if cancelled is not None and cancelled():
+            raise CheckCancelledError(f"cancelled at command {i}")
         where = f"command {i} ({cmd.kind})"
         if cmd.kind in ("open_gripper", "release"):
             holding = False
@@ -97,17 +120,23 @@ def program_refusal(program: MotionProgram, controller: TaskController) -> str:
             return f"{where}: nothing is held (a guarded_grasp must come first)"
         if not np.all(np.isfinite(cmd.X_WP)):
             return f"{where}: target pose has NaN or infinite entries"
-        if not (math.isfinite(cmd.speed_mps) and 0 < cmd.speed_mps <= MAX_TCP_SPEED_MPS):
-            return f"{where}: speed {cmd.speed_mps} m/s not in (0, {MAX_TCP_SPEED_MPS}] m/s"
+        if not (
+            math.isfinite(cmd.speed_mps) and MIN_TCP_SPEED_MPS <= cmd.speed_mps <= MAX_TCP_SPEED_MPS
+        ):
+            return (
+                f"{where}: speed {cmd.speed_mps} m/s not in [{MIN_TCP_SPEED_MPS}, "
+                f"{MAX_TCP_SPEED_MPS}] m/s"
+            )
         if cmd.kind in ("guarded_move", "contact_move") and cmd.speed_mps > MAX_CONTACT_SPEED_MPS:
             return (
                 f"{where}: speed {cmd.speed_mps} m/s is above {MAX_CONTACT_SPEED_MPS} m/s, "
                 "the limit for moves into contact"
             )
-        if not (math.isfinite(cmd.force_limit_n) and 0 < cmd.force_limit_n <= HARD_FORCE_LIMIT_N):
+        limit_n = cmd.force_limit_n
+        if not (math.isfinite(limit_n) and MIN_FORCE_LIMIT_N <= limit_n <= HARD_FORCE_LIMIT_N):
             return (
-                f"{where}: force limit {cmd.force_limit_n} N not in (0, {HARD_FORCE_LIMIT_N}] N "
-                "(the work site's own limit)"
+                f"{where}: force limit {limit_n} N not in [{MIN_FORCE_LIMIT_N}, "
+                f"{HARD_FORCE_LIMIT_N}] N (the work site's own limits)"
             )
         if cmd.kind == "contact_move":
             if not cmd.contacts:
@@ -135,6 +164,15 @@ def program_refusal(program: MotionProgram, controller: TaskController) -> str:
                 if not result.ok:
                     return f"{where}: {result.reason}"
                 q = result.q
+                # At least the translation at the command's speed (a lower bound: cheap).
+                step_m = math.dist(action.X_WG[:3, 3].tolist(), X_WG_before[:3, 3].tolist())
+                duration_s += step_m / action.speed_mps
+                X_WG_before = action.X_WG
+                if duration_s > MAX_PROGRAM_DURATION_S:
+                    return (
+                        f"{where}: the program's moves would take more than "
+                        f"{MAX_PROGRAM_DURATION_S:g} s, the longest this work site runs"
+                    )
     return ""
 
 
@@ -453,9 +491,9 @@ class Execution:
         return ""
 
     def stop(self, reason: str) -> None:
-        """Stop now: hold the arm where it is."""
+        """Stop now: hold the arm where it is, eased off any contact it presses."""
         if not self.finished:
-            self.controller.stop()
+            self.controller.stop(ease=True)
             self._finish("stopped", reason)
 
     def _finish(self, status: str, message: str) -> None:

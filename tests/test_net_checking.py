@@ -1,0 +1,93 @@
+"""The control loop never waits for a program's check: a real work site process checking a
+1,000-command program keeps its state rate and acts on a stop at once."""
+
+from __future__ import annotations
+
+import itertools
+import time
+
+import numpy as np
+import pytest
+
+from models.transforms import make_pose
+from operator_site.link import WorkSiteLink
+from protocol import MotionCommand, MotionProgram, make_config
+from protocol.messages import MAX_COMMANDS
+from tests.conftest import GRIPPER_DOWN, wait_until
+
+pytestmark = pytest.mark.integration
+
+MIN_STATE_RATE_HZ = 95.0
+MAX_STATE_GAP_S = 0.05
+STOP_WITHIN_S = 0.05
+STOP_AFTER_SEND_S = 0.02
+
+
+def long_program(program_id: str) -> MotionProgram:
+    """MAX_COMMANDS valid moves back and forth: checked whole, each target through the IK."""
+    points = [(0.40, -0.1, 0.15), (0.41, -0.1, 0.15)]
+    commands = tuple(
+        MotionCommand(
+            kind="move",
+            X_WP=make_pose(GRIPPER_DOWN, points[i % 2]),
+            speed_mps=0.1,
+            force_limit_n=10.0,
+            contacts=(),
+        )
+        for i in range(MAX_COMMANDS)
+    )
+    return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=commands)
+
+
+def test_state_keeps_its_rate_and_a_stop_acts_while_a_long_program_is_checked(work_site):
+    ws = work_site("--no-camera")
+    link = WorkSiteLink(make_config(connect=[ws.endpoint]), ws.site_id)
+    states: dict[int, float] = {}
+
+    def poll() -> None:
+        if link.poll()[0]:
+            states[link.robot_state.seq] = link.robot_state.stamp_s
+
+    def reports(pid: str) -> list:
+        return [r for r in link.status.reports if r.program_id == pid]
+
+    try:
+        assert wait_until(lambda: (poll(), link.status.label == "connected")[1], 20), ws.log()
+        # 1. The check of a long program: robot state keeps coming at its rate meanwhile.
+        sent = time.time()
+        link.send_program(long_program("long"))
+        assert wait_until(lambda: (poll(), bool(reports("long")))[1], 30, poll_s=0.002)
+        answered = reports("long")[0].stamp_s
+        assert [r.status for r in reports("long")] == ["accepted"], reports("long")
+        # The states the work site stamped while it checked: their rate, and the longest gap.
+        during = sorted((seq, t) for seq, t in states.items() if sent <= t <= answered)
+        rate_hz = (during[-1][0] - during[0][0]) / (during[-1][1] - during[0][1])
+        gap_s = max(b[1] - a[1] for a, b in itertools.pairwise(during))
+        check_s = answered - sent
+        link.send_stop("enough")
+        assert wait_until(lambda: (poll(), reports("long")[-1].status == "stopped")[1], 5)
+        # 2. A stop 20 ms after a long program is sent: it acts at once, and the program,
+        # still being checked, never starts.
+        link.send_program(long_program("cancelled"))
+        time.sleep(STOP_AFTER_SEND_S)
+        stop_sent_s = time.time()
+        link.send_stop("changed my mind")
+        assert wait_until(lambda: (poll(), bool(reports("cancelled")))[1], 5, poll_s=0.002)
+        answer = reports("cancelled")
+        latency_s = answer[0].stamp_s - stop_sent_s
+        time.sleep(0.5)
+        poll()
+        answer = reports("cancelled")
+    finally:
+        link.close()
+    print(
+        f"check of {MAX_COMMANDS} commands {check_s:.2f} s; state rate meanwhile "
+        f"{rate_hz:.1f} Hz, longest gap {1e3 * gap_s:.0f} ms; stop during a check answered in "
+        f"{1e3 * latency_s:.1f} ms"
+    )
+    assert check_s > 0.1  # a check long enough to matter
+    assert rate_hz >= MIN_STATE_RATE_HZ, rate_hz
+    assert gap_s <= MAX_STATE_GAP_S, gap_s
+    assert [(r.command_index, r.status) for r in answer] == [(-1, "stopped")], answer
+    assert "being checked" in answer[0].message
+    assert latency_s <= STOP_WITHIN_S, latency_s

@@ -1,0 +1,150 @@
+"""The work site's command inboxes: what it reads off the wire (stops, operator heartbeats,
+programs), each on its own subscriber, so that no flood on one key can delay or drop another.
+
+Stops and heartbeats are small: each sample is size-checked and decoded in zenoh's callback
+(bounded work of microseconds, nothing that blocks), and only valid messages are queued. Garbage
+therefore never takes a valid stop's place, however fast it comes. Programs may be megabytes:
+their samples go to a bounded ring and are decoded by whoever drains it. Every dropped sample is
+counted; the log gets one summary line per key and interval, never one line per sample.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+import zenoh
+
+from protocol import Heartbeat, Message, ProtocolError, Stop, decode
+from protocol.messages import MAX_NAME_LEN, MAX_TEXT_LEN
+
+log = logging.getLogger("work-site")
+
+ENVELOPE_BYTES = 512
+"""Room for the msgpack envelope and the fixed fields of a small message (bytes)."""
+MAX_STOP_BYTES = ENVELOPE_BYTES + 4 * MAX_TEXT_LEN
+"""Largest valid stop: its reason is at most MAX_TEXT_LEN characters of ≤ 4 UTF-8 bytes."""
+MAX_HEARTBEAT_BYTES = ENVELOPE_BYTES + 4 * MAX_NAME_LEN
+DROP_SUMMARY_PERIOD_S = 5.0
+"""Dropped samples are summed up in the log at most this often, per key (s)."""
+KEPT_STOPS = 16
+"""Valid stops waiting for the control loop; any one of them stops the arm."""
+
+
+class DropCounter:
+    """Samples dropped on one key: a total, and a log line per interval with the newest reason."""
+
+    def __init__(self, what: str) -> None:
+        self.what = what
+        self.total = 0
+        self._reported = 0
+        self._last_reason = ""
+        self._next_summary_s = 0.0
+
+    def add(self, reason: str) -> None:
+        self.total += 1
+        self._last_reason = reason
+
+    def summarize(self, now_s: float) -> None:
+        """Log the drops since the last summary, at most every :data:`DROP_SUMMARY_PERIOD_S`."""
+        if now_s < self._next_summary_s or self.total == self._reported:
+            return
+        new, self._reported = self.total - self._reported, self.total
+        self._next_summary_s = now_s + DROP_SUMMARY_PERIOD_S
+        log.warning(
+            "dropped %d malformed %s message(s) (%d in all; the last: %s)",
+            new,
+            self.what,
+            self.total,
+            self._last_reason[:200],
+        )
+
+
+class ValidatedInbox:
+    """Valid messages of one small type from one key, newest ``keep`` of them; ``accept`` may
+    filter them further (it runs in zenoh's callback too: keep it cheap). ``wake`` is set
+    whenever one is queued, so that the control loop can act before its next period."""
+
+    def __init__(
+        self,
+        session: zenoh.Session | None,
+        key_expr: str,
+        expected: type[Message],
+        max_bytes: int,
+        keep: int,
+        wake: threading.Event | None = None,
+        accept: Callable[[Message], bool] | None = None,
+    ) -> None:
+        self.expected, self.max_bytes = expected, max_bytes
+        self.dropped = DropCounter(expected.TYPE)
+        self.last_s: float | None = None
+        """When the newest valid message arrived (time.monotonic())."""
+        self._queue: collections.deque = collections.deque(maxlen=keep)
+        self._wake, self._accept = wake, accept
+        self._sub = (
+            None if session is None else session.declare_subscriber(key_expr, self._on_sample)
+        )
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        # zenoh's thread: check the size before reading or decoding, never block.
+        payload = sample.payload
+        size = len(payload)
+        if size > self.max_bytes:
+            self.dropped.add(f"{size} bytes, more than the {self.max_bytes} a valid one takes")
+            return
+        self.offer(payload.to_bytes())
+
+    def offer(self, payload: bytes) -> bool:
+        """Queue ``payload`` if it is a valid message that ``accept`` takes; whether it was.
+        (A session of None feeds the inbox through this only.)"""
+        if len(payload) > self.max_bytes:
+            self.dropped.add(f"{len(payload)} bytes, more than the {self.max_bytes} allowed")
+            return False
+        try:
+            msg = decode(payload, expected=self.expected)
+        except ProtocolError as e:
+            self.dropped.add(str(e))
+            return False
+        if self._accept is not None and not self._accept(msg):
+            return False
+        self._queue.append(msg)
+        self.last_s = time.monotonic()
+        if self._wake is not None:
+            self._wake.set()
+        return True
+
+    def drain(self) -> list[Message]:
+        """The messages queued since the last drain, oldest first (at most ``keep``)."""
+        out = []
+        for _ in range(self._queue.maxlen or 0):
+            try:
+                out.append(self._queue.popleft())
+            except IndexError:
+                break
+        return out
+
+    def undeclare(self) -> None:
+        if self._sub is not None:
+            self._sub.undeclare()
+
+
+def stop_inbox(
+    session: zenoh.Session | None, key_expr: str, wake: threading.Event | None = None
+) -> ValidatedInbox:
+    """Valid stops from ``key_expr``."""
+    return ValidatedInbox(session, key_expr, Stop, MAX_STOP_BYTES, KEPT_STOPS, wake)
+
+
+def heartbeat_inbox(session: zenoh.Session, key_expr: str, site_id: str) -> ValidatedInbox:
+    """Valid heartbeats of operator sites of ``site_id`` (a work site hears its own too: those
+    are left out)."""
+
+    def from_operator(beat: Message) -> bool:
+        return beat.role == "operator_site" and beat.site_id == site_id
+
+    return ValidatedInbox(
+        session, key_expr, Heartbeat, MAX_HEARTBEAT_BYTES, 1, accept=from_operator
+    )
