@@ -15,7 +15,7 @@ from models.transforms import make_pose, rpy_to_R, so3_log
 from protocol import ContactState, MotionCommand, MotionProgram, ProtocolError
 from work_site.control.controller import TaskController
 from work_site.control.executor import Execution, program_refusal
-from work_site.server import PHYSICS_RATE_RANGE_HZ
+from work_site.options import PHYSICS_RATE_RANGE_HZ
 from work_site.world import World, check_scene
 
 CUBE_HALF = 0.025
@@ -208,7 +208,8 @@ def test_a_work_site_falling_behind_its_time_scale_says_so(caplog) -> None:
     import time
 
     from protocol import make_config
-    from work_site.server import LATE_WARNING_PERIOD_S, ServerOptions, WorkSiteServer
+    from work_site.options import ServerOptions
+    from work_site.server import LATE_WARNING_PERIOD_S, WorkSiteServer
 
     server = WorkSiteServer(load_scene(), make_config(), ServerOptions(time_scale=4.0))
     tick_s = 0.01

@@ -16,8 +16,10 @@ from protocol import ExecutionReport, MotionCommand, MotionProgram, decode, enco
 from tests.conftest import one_move_program
 from work_site import journal
 from work_site.control.controller import TaskController
+from work_site.intake import REMEMBERED_PROGRAMS
 from work_site.journal import load_journal, write_journal
-from work_site.server import REMEMBERED_PROGRAMS, ServerOptions, WorkSiteServer
+from work_site.options import ServerOptions
+from work_site.server import WorkSiteServer
 from work_site.world import World
 
 COMPACT_AFTER = 1_000

@@ -35,7 +35,9 @@ from protocol import (
 from tests.conftest import examples, one_move_program
 from work_site.control.controller import TaskController
 from work_site.inbox import stop_inbox
-from work_site.server import INVALID_REPORTS_PER_S, ServerOptions, WorkSiteServer
+from work_site.intake import INVALID_REPORTS_PER_S
+from work_site.options import ServerOptions
+from work_site.server import WorkSiteServer
 from work_site.world import World
 
 EXAMPLES_PER_STRATEGY = 2600

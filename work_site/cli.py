@@ -253,7 +253,8 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
 
 def serve(args: argparse.Namespace) -> int:
     """Run the server with parsed ``args`` until SIGINT/SIGTERM; returns the exit code."""
-    from work_site.server import ServerOptions, WorkSiteServer  # heavy imports after parsing
+    from work_site.options import ServerOptions
+    from work_site.server import WorkSiteServer  # heavy imports after parsing
     from work_site.world import check_scene
 
     try:

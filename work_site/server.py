@@ -16,7 +16,6 @@ import logging
 import sys
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,34 +24,34 @@ import zenoh
 from models.robot import load_robot
 from models.scene import Scene
 from protocol import (
-    DEFAULT_SITE_ID,
-    IMAGE_ENCODINGS,
     ExecutionReport,
     Heartbeat,
     MotionProgram,
     ObjectPose,
-    ProtocolError,
     Recognition,
     Recognitions,
     RobotState,
     Stop,
     TruthPoses,
     alive_key,
-    decode,
     encode,
     key,
 )
-from protocol.images import DEFAULT_JPEG_QUALITY
 from work_site.camera import CameraProcess, FrameEncoding, RenderRequest
 from work_site.control.controller import (
-    CONTROL_PERIOD_S,
-    DEFAULT_SURFACE_STIFFNESS_N_PER_M,
     Impedance,
     TaskController,
 )
-from work_site.control.executor import CheckCancelledError, Execution, program_refusal
+from work_site.control.executor import Execution
 from work_site.inbox import DropCounter, heartbeat_inbox, stop_inbox
+from work_site.intake import (
+    INBOX_CAPACITY,
+    INVALID_REPORTS_PER_S,
+    REMEMBERED_PROGRAMS,
+    ProgramIntake,
+)
 from work_site.journal import JournalWriter, journal_line, load_journal
+from work_site.options import ServerOptions
 from work_site.recognition import VisionProcess
 from work_site.world import World
 
@@ -65,33 +64,12 @@ LATE_WARNING_PERIOD_S = 10.0
 """While the loop falls behind its time scale it says so at most this often (wall s). Falling
 behind changes no physics (every control period still runs its 10 steps), only how fast
 simulated time passes: a user watching the robot, or a benchmark's timing, must know."""
-INBOX_CAPACITY = 64
-"""Program samples waiting to be decoded; beyond it the oldest are dropped (and counted)."""
-INVALID_REPORTS_PER_S = 10.0
-"""Undecodable programs answered with a "refused" report at most this often: a flood of
-garbage must not turn into a flood of reports; the rest are counted and summed up in the log."""
-REMEMBERED_PROGRAMS = 100
-"""Programs whose reports are kept to replay to a re-send; every id is remembered (and never
-run again), these with their reports."""
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
 SWITCH_INTERVAL_S = 0.001
 """The interpreter's thread switch interval while serving: a program being checked on the
 checking thread hands the control loop the GIL back within this (Python's default is 5 ms)."""
-PHYSICS_RATE_RANGE_HZ = (500.0, 2000.0)
-"""Physics rates a work site accepts (Hz): within the range where grasping and placing were
-verified, with a margin (too slow, the held block slips; too fast, the grasp's descent reads a
-touch)."""
-MAX_CAMERA_SUPERSAMPLE = 4
-"""Rendering cost grows with its square: beyond it a frame takes seconds."""
-DEADMAN_RANGE_S = (0.2, 5.0)
-"""Accepted dead-man timeouts (s): above two heartbeat periods of the operator's link (0.1 s),
-so that one late beat stops nothing; at most a few seconds of motion nobody watches."""
 DEADMAN_STALL_S = 0.05
 """A loop iteration this long after the last one means this process was starved (s)."""
-CHECK_IDLE_S = 0.002
-"""The checking thread looks for new programs this often when there are none (s)."""
-CHECK_YIELD_S = 1e-4
-"""The checking thread sleeps this long before each command it checks (s)."""
 
 
 def read_journal(
@@ -103,107 +81,7 @@ def read_journal(
     return state.reports, state.added
 
 
-@dataclass(frozen=True)
-class ServerOptions:
-    """Rates and switches of the work-site server (Hz, SI)."""
-
-    site_id: str = DEFAULT_SITE_ID
-    physics_rate_hz: float = 1000.0
-    state_rate_hz: float = 100.0
-    heartbeat_rate_hz: float = 1.0
-    camera: bool = True
-    camera_supersample: int = 2
-    """Render this many times larger and average down: a real camera's anti-aliased edges
-    (vision finds nothing in aliased 1× renders; see docs/benchmarks.md)."""
-    camera_noise_grey: float = 1.0
-    """Sensor noise added to each pixel (standard deviation, grey levels)."""
-    camera_encoding: str = "jpeg"
-    """How camera frames travel to operators: ``raw``, ``png`` or ``jpeg`` (protocol/images.py).
-    Vision always works on the uncompressed frame, here. JPEG by default: far smaller than raw
-    and faster to an operator, and it differs from raw by less than the sensor's own noise
-    (docs/benchmarks.md, "Camera frames on the wire")."""
-    camera_quality: int = DEFAULT_JPEG_QUALITY
-    """JPEG quality 1..100 (with ``camera_encoding="jpeg"``)."""
-    camera_X_WC: tuple | None = None
-    """Where the camera really is (4×4 nested tuples), when not where its calibration says:
-    frames are rendered from here, vision still uses the calibrated model."""
-    time_scale: float = 1.0
-    """Simulated seconds per second of wall time: 1 is real time; more runs programs faster
-    (for benchmarks), as far as the machine keeps up."""
-    surface_stiffness_n_per_m: float = DEFAULT_SURFACE_STIFFNESS_N_PER_M
-    """Contact moves' impedance stiffness along the contact surfaces (N/m; along the normals
-    it is §VI-B's 1,000); see :class:`~work_site.control.controller.Impedance`."""
-    journal: Path | None = None
-    """Where every program id and its reports are appended (JSON lines), so that a program
-    re-sent after a restart of this server is not run again; None keeps them in memory."""
-    vision_rate_hz: float = 0.0
-    """Frames recognised per second at most (0: no vision). Vision runs in its own process,
-    on the newest frame whenever it is idle."""
-    vision_scale: float = 1.0
-    """Vision works on the frame resized by this factor (0.5: 320×240 from 640×480): less time
-    per frame, less accuracy (docs/benchmarks.md, vision's resolution sweep)."""
-    vision_index_views: int | None = None
-    """Viewing directions sampled for vision's model index (None: its default)."""
-    deadman_s: float = 0.5
-    """A running program is stopped when the operator's heartbeats have not come for this
-    long (s; :data:`DEADMAN_RANGE_S`): its process died, or the link to it was cut."""
-
-    def __post_init__(self) -> None:
-        low, high = DEADMAN_RANGE_S
-        if not low <= self.deadman_s <= high:
-            raise ValueError(
-                f"deadman_s must be in [{low:g}, {high:g}] s (the dead-man's timeout), "
-                f"got {self.deadman_s}"
-            )
-        low, high = PHYSICS_RATE_RANGE_HZ
-        rate = self.physics_rate_hz
-        if not low <= rate <= high:
-            raise ValueError(
-                f"physics_rate_hz must be in [{low:g}, {high:g}] Hz (where grasping works), "
-                f"got {rate}"
-            )
-        steps = rate * CONTROL_PERIOD_S
-        if abs(steps - round(steps)) > 1e-9:
-            raise ValueError(
-                f"physics_rate_hz must be a whole number of steps per {CONTROL_PERIOD_S} s "
-                f"control period (a multiple of {1 / CONTROL_PERIOD_S:g} Hz), got {rate}"
-            )
-        if not 0 < self.state_rate_hz <= 1.0 / CONTROL_PERIOD_S:
-            raise ValueError(
-                f"state_rate_hz must be in (0, {1.0 / CONTROL_PERIOD_S:g}] (the control rate)"
-            )
-        if not 0 < self.heartbeat_rate_hz <= 100:
-            raise ValueError("heartbeat_rate_hz must be in (0, 100]")
-        if not 1 <= self.camera_supersample <= MAX_CAMERA_SUPERSAMPLE:
-            raise ValueError(
-                f"camera_supersample must be in 1..{MAX_CAMERA_SUPERSAMPLE}, "
-                f"got {self.camera_supersample}"
-            )
-        if self.camera_encoding not in IMAGE_ENCODINGS:
-            raise ValueError(
-                f"camera_encoding must be one of {IMAGE_ENCODINGS}, got {self.camera_encoding!r}"
-            )
-        if not 1 <= self.camera_quality <= 100:
-            raise ValueError(f"camera_quality must be in 1..100, got {self.camera_quality}")
-        if not 0.0 <= self.camera_noise_grey <= 64.0:
-            raise ValueError(f"camera_noise_grey must be in [0, 64], got {self.camera_noise_grey}")
-        k = self.surface_stiffness_n_per_m
-        if not 100.0 <= k <= 1e5:
-            raise ValueError(f"surface_stiffness_n_per_m must be in [100, 1e5] N/m, got {k}")
-        if not 0.1 <= self.time_scale <= 100.0:
-            raise ValueError(f"time_scale must be in [0.1, 100], got {self.time_scale}")
-        if not 0.0 <= self.vision_rate_hz <= 100.0:
-            raise ValueError(f"vision_rate_hz must be in [0, 100], got {self.vision_rate_hz}")
-        if self.vision_rate_hz > 0 and not self.camera:
-            raise ValueError("vision needs the camera")
-        if not 0.25 <= self.vision_scale <= 2.0:
-            raise ValueError(f"vision_scale must be in [0.25, 2], got {self.vision_scale}")
-        views = self.vision_index_views
-        if views is not None and not 50 <= views <= 20000:
-            raise ValueError(f"vision_index_views must be in [50, 20000], got {views}")
-
-
-class WorkSiteServer:
+class WorkSiteServer(ProgramIntake):
     """Owns the world, the camera process and the zenoh session while :meth:`run` runs."""
 
     def __init__(
@@ -569,20 +447,6 @@ class WorkSiteServer:
             self._pub_report.put(payload)
         log.info("program %s command %d: %s %s", program_id, command_index, status, message)
 
-    def _remember(self, program_id: str) -> None:
-        """(With the lock held.)"""
-        self._reports[program_id] = []
-        while len(self._reports) > REMEMBERED_PROGRAMS:
-            self._reports.popitem(last=False)
-        if program_id not in self._seen:
-            self._seen.add(program_id)
-            self._ids.append(program_id)
-
-    def _journal_snapshot(self) -> tuple[int, list[tuple[str, list[bytes]]]]:
-        """(Called by the journal's writer with the lock held.) The ids journaled, and the
-        kept programs' reports."""
-        return len(self._ids), [(pid, list(p)) for pid, p in self._reports.items()]
-
     def _handle_stops(self, stops: list[Stop]) -> None:
         """Act on the valid stops received: end the running program, or hold the arm; a
         program being checked or waiting to start is cancelled."""
@@ -594,120 +458,6 @@ class WorkSiteServer:
             else:
                 self._controller.stop(ease=True)
             log.info("stop: %s", msg.reason)
-
-    def _refuse_invalid(self, error: ProtocolError) -> None:
-        """Count an undecodable program; answer it while the report budget lasts."""
-        self.stats["refused"] += 1
-        self._invalid_programs.add(str(error))
-        now = time.monotonic()
-        self._invalid_report_budget = min(
-            INVALID_REPORTS_PER_S,
-            self._invalid_report_budget + (now - self._invalid_report_s) * INVALID_REPORTS_PER_S,
-        )
-        self._invalid_report_s = now
-        if self._invalid_report_budget >= 1.0:
-            self._invalid_report_budget -= 1.0
-            self._report("invalid", -1, "refused", f"program refused: {error}", fresh=False)
-
-    def _check_programs(self, inbox_program, done: threading.Event) -> None:
-        """The checking thread: take programs off the wire until ``done``."""
-        while not done.is_set():
-            try:
-                if not self._handle_programs(inbox_program):
-                    time.sleep(CHECK_IDLE_S)
-            except Exception:  # a fault of ours: log it, keep checking
-                log.exception("internal fault while checking a program")
-                with self._lock:
-                    self._busy = None
-
-    def _handle_programs(self, inbox_program) -> int:
-        """Decode and check the programs received (at most a ring's worth); how many."""
-        for n in range(INBOX_CAPACITY):
-            sample = inbox_program.try_recv()
-            if sample is None:
-                return n
-            try:
-                program = decode(sample.payload.to_bytes(), expected=MotionProgram)
-            except ProtocolError as e:
-                self._refuse_invalid(e)
-                continue
-            self._take_program(program)
-        return INBOX_CAPACITY
-
-    def _take_program(self, program: MotionProgram) -> None:
-        """Answer a re-send from the reports kept, refuse a program while another is checked
-        or runs, else check it whole and hand it to the control loop."""
-        pid = program.program_id
-        with self._lock:
-            replay = list(self._reports.get(pid, ())) if pid in self._reports else None
-            forgotten = replay is None and pid in self._seen
-            busy = self._busy
-            if replay is None and not forgotten:
-                self._remember(pid)
-                if busy is None:
-                    self._busy, stops_seen = pid, self._stops_seen
-        if forgotten:
-            # Received long ago: its reports are no longer kept, but it never runs again.
-            self.stats["duplicates"] = self.stats.get("duplicates", 0) + 1
-            self._pub_report.put(
-                encode(
-                    ExecutionReport(
-                        program_id=pid,
-                        command_index=-1,
-                        status="refused",
-                        wrench_S=self._wrench_S,
-                        message="received before (its reports are no longer kept): "
-                        "a program id runs at most once",
-                        stamp_s=time.time(),
-                    )
-                )
-            )
-            log.info("program %s received again, long after: refused", pid)
-            return
-        if replay is not None:
-            # A re-send (the operator missed our answer, or reconnected): never run twice;
-            # replay every report so far, in order.
-            for payload in replay:
-                self._pub_report.put(payload)
-            self.stats["duplicates"] = self.stats.get("duplicates", 0) + 1
-            log.info("program %s received again: %d reports replayed", pid, len(replay))
-            return
-        if busy is not None:
-            self.stats["refused"] += 1
-            self._report(pid, -1, "refused", f"busy with program {busy}", fresh=False)
-            return
-        try:
-
-            def cancelled() -> bool:
-                # Between commands, let the control loop have the interpreter if it waits for
-                # it: the switch interval alone has let a check hold it up for periods.
-                time.sleep(CHECK_YIELD_S)
-                return self._stops_seen != stops_seen
-
-            reason = program_refusal(program, self._controller, cancelled=cancelled)
-        except CheckCancelledError:
-            self._cancel(pid, "while it was being checked")
-            return
-        if reason:
-            self.stats["refused"] += 1
-            self._report(pid, -1, "refused", reason, fresh=False)
-            with self._lock:
-                self._busy = None
-            return
-        self._report(pid, -1, "accepted", f"{len(program.commands)} commands", fresh=False)
-        with self._lock:
-            self._ready.append((program, stops_seen))
-        wake = getattr(self, "_wake", None)
-        if wake is not None:
-            wake.set()
-
-    def _cancel(self, program_id: str, when: str) -> None:
-        """A stop came for a program that had not started: it never will."""
-        reason = self._last_stop_reason
-        self._report(program_id, -1, "stopped", f"stop: {reason} ({when})", fresh=False)
-        with self._lock:
-            if self._busy == program_id:
-                self._busy = None
 
     def _start_ready(self) -> None:
         """Start the program that passed its check, unless a stop came since its check began
