@@ -354,7 +354,6 @@ def _work_site_args(args: argparse.Namespace) -> tuple[str, ...]:
 
 def run_scripted_demo(args: argparse.Namespace, connect_given: bool) -> int:
     """``demo --scripted``: one end-to-end run; exit code 0 on success, 1 otherwise."""
-    import json
 
     from operator_site.scripted import run_scripted
 
@@ -368,7 +367,14 @@ def run_scripted_demo(args: argparse.Namespace, connect_given: bool) -> int:
         time_scale=args.time_scale,
         work_site_args=_work_site_args(args),
     )
-    if args.json:
+    return _print_result(result, args.json)
+
+
+def _print_result(result: dict, as_json: bool) -> int:
+    """Print an end-to-end run's result (one JSON line, or a line a field); its exit code."""
+    import json
+
+    if as_json:
         print(json.dumps(result))
     else:
         for k, v in result.items():
@@ -379,7 +385,6 @@ def run_scripted_demo(args: argparse.Namespace, connect_given: bool) -> int:
 def run_task_file(args: argparse.Namespace) -> int:
     """``run TASK.json``: check the file and the options, then one end-to-end run; exit code
     0 on success, 1 otherwise, 2 (one line on stderr) for what cannot be used."""
-    import json
 
     from operator_site.taskfile import TaskFileError, load_task
 
@@ -409,12 +414,7 @@ def run_task_file(args: argparse.Namespace) -> int:
         label=args.task_file.stem,
     )
     result["task_file"] = str(args.task_file)
-    if args.json:
-        print(json.dumps(result))
-    else:
-        for k, v in result.items():
-            print(f"{k}: {v}")
-    return 0 if result["success"] else 1
+    return _print_result(result, args.json)
 
 
 def run() -> None:
