@@ -103,12 +103,13 @@ def test_two_work_sites_and_an_operator_through_a_router(spawn, links, single_li
     router_ep = f"tcp/127.0.0.1:{free_port_pair()}"
     one = ["--single-link"] if single_link else []
     router_log = spawn("router", [*ROUTER, "--listen", router_ep, *one])
+    # Vision off, as in every other process test: its start-up takes the cores for seconds.
     for site in ("cell-a", "cell-b"):
         spawn(
             site,
             [sys.executable, "-m", "work_site", "serve", "--site-id", site,
              "--listen", f"tcp/127.0.0.1:{free_port_pair()}", "--connect", router_ep, *one,
-             "--journal", str(spawn.tmp_path / f"{site}.jsonl")],
+             "--journal", str(spawn.tmp_path / f"{site}.jsonl"), "--vision-rate", "0"],
         )  # fmt: skip
     # A client's zenoh.open fails rather than retries while its router is not up yet.
     assert wait_until(lambda: "router: up" in router_log.read_text(), 30.0), spawn.texts()
