@@ -24,6 +24,7 @@ from operator_site.program.contact_step import away_normal, held_towards
 from operator_site.program.path import NodeContact, PathNode, WorkpiecePath
 from operator_site.program.poses import interpolate, log_batch
 from protocol import ContactState, MotionCommand, MotionProgram
+from protocol.execution import TARGET_BIAS_M
 from protocol.messages import (
     MAX_CONTACT_NORMALS,
     MAX_CONTACTS,
@@ -80,7 +81,7 @@ class CommandParams:
     exceed: four contact directions would otherwise ask more."""
     departure_m: float = 0.06
     """After the release the gripper rises this far (clears the 30 mm frame bars)."""
-    target_bias_m: float = 0.005
+    target_bias_m: float = TARGET_BIAS_M
     """d of §VI-B: the impedance target is biased this far into each contact normal (the work
     site applies its own d; :func:`program_to_json` shows the bias for reference)."""
 

@@ -37,30 +37,21 @@ from operator_site.grasp import (
     grasp_problem,
     grip_area_m2,
 )
-from operator_site.program.commands import CommandParams
 from operator_site.simulator.world import SimWorld
 from protocol import MotionCommand, MotionProgram
+from protocol.execution import (
+    CONTACT_VERIFY_N,
+    GRASP_APPROACH_M,
+    GRASP_LIFT_M,
+    GUARD_OVERTRAVEL_M,
+    NORMAL_STIFFNESS_N_PER_M,
+    TARGET_BIAS_M,
+    TARGET_BIAS_MAX_M,
+    WORKSPACE_MAX_W,
+    WORKSPACE_MIN_W,
+)
 from protocol.messages import contact_directions, target_bias
 
-# The work site's rules, as its executor and controller state them (tests/test_feasibility.py
-# checks that these equal theirs: the operator site may not import work_site).
-CONTACT_VERIFY_N = 1.0
-"""Force along a contact's normal that verifies it (N)."""
-NORMAL_STIFFNESS_N_PER_M = 1000.0
-"""The contact moves' impedance stiffness along the contact normals (N/m)."""
-TARGET_BIAS_M = CommandParams.target_bias_m
-"""d of §VI-B: how far past each contact a contact move aims (m)."""
-TARGET_BIAS_MAX_M = 2 * TARGET_BIAS_M
-"""Bound on the bias's length (m)."""
-GRASP_APPROACH_M = 0.06
-"""A grasp approaches from this far above the grasp pose (m)."""
-GRASP_LIFT_M = 0.005
-"""After closing, the block is lifted this far (m)."""
-GUARD_OVERTRAVEL_M = 0.01
-"""A guarded move aims this far past its target (m)."""
-WORKSPACE_MIN_W = np.array([0.10, -0.45, 0.02])
-"""Lowest corner of the box every TCP target must lie in (m)."""
-WORKSPACE_MAX_W = np.array([0.75, 0.45, 0.50])
 FROM_ABOVE_COS = float(np.cos(np.pi / 4))
 """A grasp comes from above when the gripper's z is within 45° of straight down: the work site
 descends onto it vertically, and the finger model here measures pads on vertical faces."""

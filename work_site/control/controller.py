@@ -22,6 +22,7 @@ import numpy as np
 
 from models.robot import RobotModel
 from models.transforms import invert_pose
+from protocol.execution import NORMAL_STIFFNESS_N_PER_M
 from work_site.control.kinematics import arm_geometry, geometric_jacobian_W, ik_tcp
 from work_site.control.sensing import WristSensor
 from work_site.control.trajectory import LinearMove
@@ -80,7 +81,7 @@ class Impedance:
     ``damping > (stiffness + k_env)·Δt/2`` with k_env the contacts' stiffness; the default
     damping keeps a margin over it for a cube pressed into a corner (docs/tuning.md)."""
 
-    stiffness_n_per_m: float = 1000.0
+    stiffness_n_per_m: float = NORMAL_STIFFNESS_N_PER_M
     damping_n_s_per_m: float = 200.0
     max_rate_mps: float = 0.02
     """Twice the contact speed (10 mm/s), so that the offset can back away faster than the path

@@ -27,6 +27,16 @@ from scipy.optimize import nnls
 
 from models.transforms import invert_pose
 from protocol import ContactState, MotionProgram
+from protocol.execution import (
+    CONTACT_VERIFY_N,
+    GRASP_APPROACH_M,
+    GRASP_LIFT_M,
+    GUARD_OVERTRAVEL_M,
+    TARGET_BIAS_M,
+    TARGET_BIAS_MAX_M,
+    WORKSPACE_MAX_W,
+    WORKSPACE_MIN_W,
+)
 from protocol.messages import contact_directions, target_bias
 from work_site.control.controller import (
     DEFAULT_SURFACE_STIFFNESS_N_PER_M,
@@ -39,12 +49,9 @@ from work_site.control.controller import (
 )
 from work_site.control.kinematics import ik_tcp
 
-WORKSPACE_MIN_W = np.array([0.10, -0.45, 0.02])
-"""Lowest corner of the box every TCP target must lie in (m). z: the fingertips hang 15 mm
-below the TCP, so 0.02 m keeps them 5 mm above the table."""
-WORKSPACE_MAX_W = np.array([0.75, 0.45, 0.50])
 GRIPPER_OPEN_M = 0.08
 MAX_CONTACT_SPEED_MPS = 0.02
+"""Moves in contact (guarded and contact moves) are no faster than this (§VI-B)."""
 MIN_TCP_SPEED_MPS = 0.005
 """No command may be slower (m/s): half the speed asked in contact; slower ones only tie the
 robot up."""
@@ -54,19 +61,6 @@ the robot up."""
 MIN_FORCE_LIMIT_N = 1.0
 """No force limit may be lower (N): the contact verification threshold, below which no contact
 could be verified nor a block carried."""
-"""Moves in contact (guarded and contact moves) are no faster than this (§VI-B)."""
-TARGET_BIAS_M = 0.005
-"""d of §VI-B: how far past each contact a contact move aims (the paper's ≈ 5 mm)."""
-TARGET_BIAS_MAX_M = 2 * TARGET_BIAS_M
-"""Bound on |Δp|: nearly parallel normals would otherwise ask for a long bias."""
-CONTACT_VERIFY_N = 1.0
-"""A contact is verified when the force along its normal reaches this (N); the impedance
-presses each with about stiffness × d = 5 N when the model is right. Low, so that a wall a vision
-model puts a few millimetres off still verifies, yet above the zero a missing contact reads; a
-larger d instead would turn the block in its grip."""
-GUARD_OVERTRAVEL_M = 0.01
-"""A guarded move aims this far past its target (which is where contact is expected), so that
-the guard, not the target, ends it; a contact further off than this fails the command."""
 
 Report = Callable[[str, int, str, str], None]
 """report(program_id, command_index, status, message)."""
@@ -243,13 +237,9 @@ FINGERS_STILL_M = 2e-6
 """Fingers moving less than this per control period have stopped (m)."""
 FINGERS_STILL_TICKS = 5
 FINGERS_MAX_TICKS = 150
-GRASP_APPROACH_M = 0.06
-"""The grasp approaches from this far above the grasp pose, straight down (m)."""
 GRASP_DESCENT_MPS = 0.03
 GRASP_TOUCH_N = 3.0
 """Descending to grasp, a force this large means the fingers hit something (N)."""
-GRASP_LIFT_M = 0.005
-"""After closing, the block is lifted this far and weighed (m)."""
 WEIGH_TICKS = 20
 LOCK_SETTLE_TICKS = 10
 """After locking the fingers the wrist reads the coupled grip's false force for a few steps

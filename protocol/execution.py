@@ -1,0 +1,31 @@
+"""How the work site executes a program, as far as an operator site must predict it: the rules
+both sites share (the operator site checks a program's feasibility against them before sending,
+the work site executes by them). SI units; frames in names."""
+
+from __future__ import annotations
+
+import numpy as np
+
+WORKSPACE_MIN_W = np.array([0.10, -0.45, 0.02])
+"""Lowest corner of the box every TCP target must lie in (m). z: the fingertips hang 15 mm
+below the TCP, so 0.02 m keeps them 5 mm above the table."""
+WORKSPACE_MAX_W = np.array([0.75, 0.45, 0.50])
+"""Highest corner of that box (m)."""
+TARGET_BIAS_M = 0.005
+"""d of §VI-B: how far past each contact a contact move aims (the paper's ≈ 5 mm)."""
+TARGET_BIAS_MAX_M = 2 * TARGET_BIAS_M
+"""Bound on |Δp|: nearly parallel normals would otherwise ask for a long bias."""
+CONTACT_VERIFY_N = 1.0
+"""A contact is verified when the force along its normal reaches this (N); the impedance
+presses each with about stiffness × d = 5 N when the model is right. Low, so that a wall a vision
+model puts a few millimetres off still verifies, yet above the zero a missing contact reads; a
+larger d instead would turn the block in its grip."""
+NORMAL_STIFFNESS_N_PER_M = 1000.0
+"""The contact moves' impedance stiffness along the contact normals (§VI-B, N/m)."""
+GUARD_OVERTRAVEL_M = 0.01
+"""A guarded move aims this far past its target (which is where contact is expected), so that
+the guard, not the target, ends it; a contact further off than this fails the command."""
+GRASP_APPROACH_M = 0.06
+"""The grasp approaches from this far above the grasp pose, straight down (m)."""
+GRASP_LIFT_M = 0.005
+"""After closing, the block is lifted this far and weighed (m)."""
