@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.e2e import _read_rows, _tree
+from bench.e2e import _read_rows, _tree, add_time_scale_argument
 from operator_site.runner import run_task
 from operator_site.taskfile import TaskFileError, load_task
 
@@ -176,12 +176,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--first-seed", type=int, default=0, metavar="N", help="the first seed (default: 0)"
     )
-    parser.add_argument(
-        "--time-scale",
-        type=float,
-        default=1.0,
-        help="work sites simulate this much faster than real time (default: 1)",
-    )
+    add_time_scale_argument(parser)
     parser.add_argument(
         "--tasks",
         type=Path,
