@@ -131,6 +131,11 @@ def test_bad_payloads_are_refused_and_the_server_keeps_running(work_site, link_t
         ),
     )
     link.send_program(program)
+    # The stop after the program's answer: a stop while it is still being checked cancels it
+    # ("stopped"), which is not what this test is about.
+    assert wait_until(
+        lambda: (link.poll(), any(r.program_id == "p1" for r in link.status.reports))[1], 10.0
+    ), (link.status.reports, ws.log())
     link.send_stop("test")
 
     def reports_arrived() -> bool:
