@@ -30,6 +30,7 @@ from operator_site.chain import (
     generated_program,
     run_chain,
 )
+from operator_site.grasp import Grasp, choose_grasp, grasp_problem, pressed_contacts
 from operator_site.model_editor import WorkSiteModel
 from operator_site.scripted import drag
 from operator_site.simulator.world import SimWorld
@@ -141,16 +142,14 @@ def goal_on_reference_W(task: Task, X_WR: np.ndarray, S_O: np.ndarray) -> np.nda
     return _with_symmetry(X_WR @ task.goal.X_RO, S_O)
 
 
-def drag_task(task: Task, model: WorkSiteModel) -> TaskDemonstration:
-    """Play ``task`` in a new task session of ``model``: select the workpiece, carry it to the
-    first step, then hold each step until the workpiece is there (or stops against something)
-    and make its captures and releases. :class:`RunError` when the workpiece or the
-    reference is not in the model (``not_recognised``) or cannot be held (``no_grasp``)."""
-    if task.workpiece not in model.poses:
-        raise RunError("not_recognised", f"the workpiece {task.workpiece!r} is not in the model")
+def _play(
+    task: Task, model: WorkSiteModel, grasp: Grasp | None, fingers: bool
+) -> TaskDemonstration:
+    """One drag of ``task`` in a new task session, the workpiece held in ``grasp`` (or the
+    block alone, ``fingers=False``)."""
     session = TaskSession(model.scene())
     try:
-        session.select(task.workpiece)
+        session.select(task.workpiece, grasp=grasp, fingers=fingers)
     except ValueError as e:
         raise RunError("no_grasp", f"{task.workpiece!r} cannot be held: {e}") from None
     X_start = session.X_WO[task.workpiece].copy()
@@ -178,6 +177,41 @@ def drag_task(task: Task, model: WorkSiteModel) -> TaskDemonstration:
         captured_after_step=tuple(captured),
         history_after_step=tuple(lengths),
     )
+
+
+def _path_of(session: TaskSession) -> tuple[dict[str, np.ndarray], list[np.ndarray], list]:
+    """A demonstration's start poses (the workpiece where it began), its path and the
+    contacts it presses, as :func:`~operator_site.grasp.choose_grasp` takes them."""
+    path = session.path_history()
+    X_WO = session.X_WO | {session.workpiece: session.start_X_WO}
+    return X_WO, [step.X_WO for step in path], pressed_contacts(path)
+
+
+def drag_task(task: Task, model: WorkSiteModel) -> TaskDemonstration:
+    """Play ``task`` as a person would drag it in a task session of ``model``: select the
+    workpiece, carry it to the first step, then hold each step until the workpiece is there
+    (or stops against something) and make its captures and releases. The grasp is chosen for
+    the task: the block is first dragged alone, the grasp chosen for that path
+    (:func:`~operator_site.grasp.choose_grasp`: no finger between the block and what it
+    presses, none run into anything), and the task dragged again held so. :class:`RunError`
+    when the workpiece or the reference is not in the model (``not_recognised``) or no grasp
+    can do the task (``no_grasp``)."""
+    if task.workpiece not in model.poses:
+        raise RunError("not_recognised", f"the workpiece {task.workpiece!r} is not in the model")
+    alone = _play(task, model, grasp=None, fingers=False)
+    session = alone.session
+    choice = choose_grasp(session.robot, session.scene, task.workpiece, *_path_of(session))
+    if choice.grasp is None:
+        raise RunError("no_grasp", choice.reason)
+    demo = _play(task, model, grasp=choice.grasp, fingers=True)
+    # Held, the block may take another path (the fingers meet what the block alone passed).
+    X_WO, path_X_WO, pressed = _path_of(demo.session)
+    problem = grasp_problem(
+        session.robot, session.scene, task.workpiece, X_WO, choice.grasp, path_X_WO, pressed
+    )
+    if problem:
+        raise RunError("no_grasp", f"no grasp of the {task.workpiece} can do this task: {problem}")
+    return demo
 
 
 def _needs_in_model(task: Task) -> Callable[[WorkSiteModel], bool]:

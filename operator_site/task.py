@@ -54,12 +54,13 @@ class TaskSession:
     def captured(self) -> set[str]:
         return set(self.sim.state.capturable) if self.sim else set()
 
-    def select(self, name: str, grasp: Grasp | None = None) -> None:
+    def select(self, name: str, grasp: Grasp | None = None, fingers: bool = True) -> None:
         """Make movable object ``name`` the workpiece, held by the gripper's fingers in
         ``grasp``, by default a grasp from above, high enough to clear the frame's bars where
         the block is tall enough, on the pair of faces whose open fingers clear the other
         blocks, or where the chooser puts it if that would hold too little of the block (the
-        fingers move with it); its last pose stays in the model."""
+        fingers move with it); its last pose stays in the model. ``fingers=False``: the block
+        moves alone (a demonstration whose grasp is chosen afterwards, for its path)."""
         obj = self.scene.object(name)
         if obj.fixed:
             raise ValueError(f"{name!r} is part of the fixed environment and cannot be moved")
@@ -73,7 +74,9 @@ class TaskSession:
                 grasp = choose_grasp(self.robot, self.scene, name, self.X_WO).grasp
         if grasp is not None:
             self.X_GP, self.opening_m = np.array(grasp.X_GP, dtype=np.float64), grasp.opening_m
-        self.fingers_O = tuple(finger_parts_O(self.robot, self.X_GP, self.opening_m))
+        self.fingers_O = (
+            tuple(finger_parts_O(self.robot, self.X_GP, self.opening_m)) if fingers else ()
+        )
         self.sim = Simulator(
             self.scene, name, self.params, X_WO=self.X_WO, attached_O=self.fingers_O
         )
