@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from models.scene import load_scene
-from operator_site.chain import generated_program
 from operator_site.program import DeformParams
 from operator_site.scripted import TASKS, layout_demonstration
+from operator_site.session import generated_program
 
 CAPS = (10, 20, 30, 45, 100, 300)
 
@@ -57,7 +57,8 @@ def run(seeds: range, caps: tuple[int, ...], repeats: int) -> list[dict]:
                 best = float("inf")
                 for _ in range(repeats):
                     t0 = time.process_time()
-                    programs[cap] = generated_program(demo.session, "p", deform_params=params)
+                    made = generated_program(demo.session, "p", deform_params=params)
+                    programs[cap] = made.program
                     best = min(best, time.process_time() - t0)
                 rows.append({"task": task, "seed": seed, "max_sweeps": cap, "cpu_s": best,
                              "commands": len(programs[cap].commands)})  # fmt: skip

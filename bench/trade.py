@@ -31,9 +31,9 @@ from typing import Any
 import numpy as np
 
 from bench.e2e import add_time_scale_argument
-from operator_site.chain import generated_program
 from operator_site.program import CommandParams, DeformParams
 from operator_site.scripted import TASKS, run_scripted
+from operator_site.session import generated_program
 from operator_site.simulator import SimParams
 from operator_site.task import TaskSession
 from protocol import MotionProgram

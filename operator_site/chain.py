@@ -23,22 +23,16 @@ from pathlib import Path
 import numpy as np
 
 from models.scene import Scene, load_scene
+from operator_site.failures import RunError
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import Correction, WorkSiteModel
-from operator_site.program import (
-    CommandParams,
-    DeformParams,
-    choose_grasp_yaw,
-    generate_program,
-    pick_and_place,
-)
-from operator_site.simulator import SimParams
+from operator_site.program import Generated
+from operator_site.session import ACCEPT_SCORE, OperatorSession, generated_program
 from operator_site.task import TaskSession
-from protocol import MotionProgram, Recognition, Recognitions, TruthPoses, decode, key, make_config
+from protocol import Recognition, Recognitions, TruthPoses, decode, key, make_config
 from protocol.messages import contact_directions
 from protocol.session import free_port_pair, link_endpoints
 
-ACCEPT_SCORE = 0.5
 CONNECT_TIMEOUT_S = 60.0
 VISION_TIMEOUT_S = 120.0
 VISION_FRAMES = 3
@@ -107,37 +101,8 @@ def model_from_frames(
     return RecognisedModel(model, corrections, n, vision_s, model_s)
 
 
-ProgramMaker = Callable[[TaskSession, str], MotionProgram]
-
-
-def pick_and_place_program(session: TaskSession, program_id: str) -> MotionProgram:
-    """The simple program: lift, carry, set down where the task ended (no contacts)."""
-    name = session.workpiece
-    start, goal = session.start_X_WO, session.X_WO[name]
-    return pick_and_place(program_id, start, goal, choose_grasp_yaw(start, session.X_GP))
-
-
-def generated_program(
-    session: TaskSession,
-    program_id: str,
-    sim_params: SimParams | None = None,
-    deform_params: DeformParams | None = None,
-    command_params: CommandParams | None = None,
-) -> MotionProgram:
-    """The program generator's program (§VI): deformed path, contact moves, checked. The
-    parameters default to the session's simulator and the generator's defaults."""
-    return generate_program(
-        program_id,
-        session.scene,
-        session.workpiece,
-        session.path_history(),
-        choose_grasp_yaw(session.start_X_WO, session.X_GP),
-        attached_O=session.fingers_O,
-        sim_params=sim_params or session.params,
-        deform_params=deform_params,
-        command_params=command_params,
-        X_WO=session.X_WO,
-    ).program
+ProgramMaker = Callable[[TaskSession, str], Generated]
+"""Makes the program for a demonstration's task session and a program id."""
 
 
 class _Truth:
@@ -208,27 +173,6 @@ def _recognised_frames(link: WorkSiteLink) -> Iterator[Recognitions]:
     yield seen[-1]
     while _wait(arrived(len(seen), need_objects=False), link, FRAME_TIMEOUT_S):
         yield seen[-1]
-
-
-FAILURES = (
-    "not_recognised",
-    "no_grasp",
-    "infeasible",
-    "program_refused",
-    "execution_failed",
-    "goal_missed",
-)
-"""Why a run did not succeed, as its result's ``failure.kind`` says."""
-
-
-class RunError(RuntimeError):
-    """A run that cannot go on: ``kind`` is one of :data:`FAILURES`, the message says why."""
-
-    def __init__(self, kind: str, message: str) -> None:
-        if kind not in FAILURES:
-            raise ValueError(f"unknown failure kind {kind!r}")
-        super().__init__(message)
-        self.kind = kind
 
 
 @dataclass(frozen=True)
@@ -345,7 +289,7 @@ def run_chain(
 
         t0 = time.monotonic()
         try:
-            program = make_program(session, _program_id(task.program_label, seed))
+            program = make_program(session, _program_id(task.program_label, seed)).program
         except ValueError as e:
             raise RunError("infeasible", f"no program for the demonstration: {e}") from None
         stage_s["program"] = time.monotonic() - t0
@@ -354,14 +298,9 @@ def run_chain(
         t0 = time.monotonic()
         kind = "execution_failed"
         state0 = link.robot_state
-        link.send_program(program)
-
-        def finished() -> bool:
-            return any(
-                r.program_id == program.program_id and r.command_index == -1
-                and r.status in ("done", "failed", "refused", "stopped")
-                for r in link.status.reports
-            )  # fmt: skip
+        operator = OperatorSession(scene, link)
+        program = operator.send(program)
+        finished = lambda: operator.outcome(program.program_id) is not None  # noqa: E731
 
         if not _wait(finished, link, EXECUTE_TIMEOUT_S):
             raise RuntimeError(f"the program did not finish within {EXECUTE_TIMEOUT_S:.0f} s")

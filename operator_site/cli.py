@@ -196,6 +196,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="the started work site simulates X seconds per wall second (default: 1)",
     )
     run.add_argument(
+        "--save-program",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="also write the program sent to the robot to FILE (the page's program files: "
+        "load it there to look at it or send it again)",
+    )
+    run.add_argument(
         "--oracle-vision",
         action="store_true",
         help="take the blocks' poses from the simulated work site's ground truth",
@@ -400,7 +408,15 @@ def run_task_file(args: argparse.Namespace) -> int:
     except (TaskFileError, ModelError, ProtocolError, ValueError) as e:
         print(f"operator-site: {e}", file=sys.stderr)
         return 2
-    from operator_site.runner import run_task  # heavy imports after the checks
+    # Heavy imports after the checks.
+    from operator_site.runner import run_task
+    from operator_site.session import generated_program, save_program
+
+    def make_program(session, program_id: str):
+        made = generated_program(session, program_id)
+        if args.save_program is not None:
+            save_program(args.save_program, made.program)
+        return made
 
     result = run_task(
         task,
@@ -412,6 +428,7 @@ def run_task_file(args: argparse.Namespace) -> int:
         oracle=args.oracle_vision,
         time_scale=args.time_scale,
         label=args.task_file.stem,
+        make_program=make_program,
     )
     result["task_file"] = str(args.task_file)
     return _print_result(result, args.json)

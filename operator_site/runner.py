@@ -1,217 +1,26 @@
-"""The drag of a task file: a :class:`~operator_site.taskfile.Task` played in the task simulator
-(§V) on a work-site model, as a person would drag it.
-
-Every pose of the file is the workpiece's frame O in the reference's frame R; here each becomes a
-dragger target in W through the reference's pose in the model (``X_WD = X_WR @ X_RD``). One
-symmetry rotation S of the workpiece, chosen so that the first step's orientation needs the least
-turn from how the block lies, is applied to every step and to the goal, so that a task that turns
-the block a quarter turn still turns it a quarter turn. Before the first step the block is carried
-as a person would carry it: lifted clear of everything it passes, turned on the way, lowered onto
-the first step.
+"""``operator-site run TASK.json``: a task file through the whole chain
+(:func:`~operator_site.chain.run_chain`). The operator's drag is
+:func:`~operator_site.taskdrag.drag_task`, the one an
+:class:`~operator_site.session.OperatorSession` makes its programs from; the block's end is
+judged on the work site's ground truth.
 """
 
 from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from models.scene import Scene, load_scene
-from models.transforms import make_pose, so3_log
-from operator_site.chain import (
-    ChainTask,
-    Judgement,
-    ProgramMaker,
-    RunError,
-    generated_program,
-    run_chain,
-)
-from operator_site.grasp import Grasp, choose_grasp, grasp_problem, pressed_contacts
+from operator_site.chain import ChainTask, Judgement, ProgramMaker, run_chain
+from operator_site.failures import RunError
 from operator_site.model_editor import WorkSiteModel
-from operator_site.scripted import drag
-from operator_site.simulator.world import SimWorld
-from operator_site.task import TaskSession
+from operator_site.session import generated_program
+from operator_site.taskdrag import TaskDemonstration, drag_task, goal_on_reference_W
 from operator_site.taskfile import Task, pose_error
-
-TRANSIT_CLEARANCE_M = 0.02
-"""The carried workpiece passes this far above the highest object top along its way."""
-TRANSIT_SAMPLE_M = 0.005
-"""The way to the first step is sampled this finely when looking for what it passes over."""
-MAX_TRANSIT_SAMPLES = 2000
-WAYPOINT_REACHED_RAD = 1e-3
-"""A step that turns the workpiece is held until it is turned this close (rad), as well as moved
-within :data:`~operator_site.scripted.WAYPOINT_REACHED_M`."""
-
-
-@dataclass(frozen=True, eq=False)
-class TaskDemonstration:
-    """A task file dragged in a task session: the session (its history is the demonstration),
-    the workpiece, the goal ``ideal_X_WO`` in W with the symmetry ``S_O`` (3×3, in O) applied,
-    the dragger targets in W (the transit's, then the steps'), and, for each of the task's
-    steps, the simulator's captured set and the history's length once that step was reached."""
-
-    session: TaskSession
-    workpiece: str
-    ideal_X_WO: np.ndarray
-    S_O: np.ndarray
-    transit_X_WD: tuple[np.ndarray, ...]
-    steps_X_WD: tuple[np.ndarray, ...]
-    captured_after_step: tuple[frozenset[str], ...]
-    history_after_step: tuple[int, ...]
-
-
-def reference_pose_W(model: WorkSiteModel, name: str) -> np.ndarray:
-    """``X_WR``: where object ``name`` lies in the model (a fixed object, or an accepted
-    block); :class:`RunError` ``not_recognised`` for a block not in the model."""
-    if name in model.poses:
-        return model.poses[name].copy()
-    for obj in model.fixed:
-        if obj.name == name:
-            return obj.X_WO.copy()
-    raise RunError("not_recognised", f"{name!r} is not in the model the vision built")
-
-
-def nearest_symmetry(
-    R_WD_first: np.ndarray, R_WO_now: np.ndarray, symmetries: Sequence[np.ndarray]
-) -> np.ndarray:
-    """Of the workpiece's symmetry rotations S (in O; identity when none are given), the one
-    for which ``R_WD_first @ S`` is nearest ``R_WO_now``."""
-    candidates = list(symmetries) or [np.eye(3)]
-    return min(
-        candidates, key=lambda S: float(np.linalg.norm(so3_log(R_WO_now.T @ R_WD_first @ S)))
-    )
-
-
-def _with_symmetry(X: np.ndarray, S_O: np.ndarray) -> np.ndarray:
-    return X @ make_pose(S_O)
-
-
-def transit_height_m(world: SimWorld, X_WO_start: np.ndarray, X_WD_first: np.ndarray) -> float:
-    """The height (z of O in W, m) at which the workpiece of ``world`` is carried from
-    ``X_WO_start`` to above ``X_WD_first``: :data:`TRANSIT_CLEARANCE_M` above the highest object
-    top within the workpiece's reach of the straight line between them, plus how far the
-    workpiece (fingers included) reaches below O in either orientation."""
-    V_O = world.wp_vertices_O
-    reach_m = float(np.max(np.linalg.norm(V_O, axis=1)))  # any orientation on the way
-    p0, p1 = X_WO_start[:2, 3], X_WD_first[:2, 3]
-    n = int(min(MAX_TRANSIT_SAMPLES, max(2, math.ceil(np.linalg.norm(p1 - p0) / TRANSIT_SAMPLE_M))))
-    line = p0 + np.linspace(0.0, 1.0, n)[:, None] * (p1 - p0)  # (n, 2)
-    # Distance from each sample to each obstacle part's box, in the horizontal plane.
-    gap = np.maximum(world.lo_W[None, :, :2] - line[:, None, :], 0.0) + np.maximum(
-        line[:, None, :] - world.hi_W[None, :, :2], 0.0
-    )
-    passed = np.linalg.norm(gap, axis=2).min(axis=0) <= reach_m + TRANSIT_CLEARANCE_M
-    top_m = float(world.hi_W[passed, 2].max()) if np.any(passed) else 0.0
-    below_m = max(float(-(V_O @ X[:3, :3].T)[:, 2].min()) for X in (X_WO_start, X_WD_first))
-    return max(top_m + TRANSIT_CLEARANCE_M + below_m, X_WO_start[2, 3], X_WD_first[2, 3])
-
-
-def transit_waypoints(
-    world: SimWorld, X_WO_start: np.ndarray, X_WD_first: np.ndarray
-) -> list[np.ndarray]:
-    """The dragger targets before the first step: straight up to :func:`transit_height_m`,
-    across to above the first step turning to its orientation on the way; the first step
-    itself (lowering onto it) is the task's."""
-    z = transit_height_m(world, X_WO_start, X_WD_first)
-    up = X_WO_start.copy()
-    up[2, 3] = z
-    above = X_WD_first.copy()
-    above[2, 3] = z
-    return [up, above]
-
-
-def task_targets_W(
-    task: Task, model: WorkSiteModel, X_WO_start: np.ndarray
-) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
-    """The task's dragger targets and goal in W, with the symmetry S (3×3) chosen for the
-    workpiece lying at ``X_WO_start`` applied to all: ``(steps_X_WD, goal_X_WO, S_O)``."""
-    X_WR = reference_pose_W(model, task.reference)
-    steps = [X_WR @ step.X_RD for step in task.steps]
-    S_O = nearest_symmetry(steps[0][:3, :3], X_WO_start[:3, :3], model.symmetries(task.workpiece))
-    steps = [_with_symmetry(X, S_O) for X in steps]
-    return steps, _with_symmetry(X_WR @ task.goal.X_RO, S_O), S_O
-
-
-def goal_on_reference_W(task: Task, X_WR: np.ndarray, S_O: np.ndarray) -> np.ndarray:
-    """The goal ``X_WO`` with the reference at ``X_WR`` (the work site's true one, say) and the
-    symmetry ``S_O`` the drag chose."""
-    return _with_symmetry(X_WR @ task.goal.X_RO, S_O)
-
-
-def _play(
-    task: Task, model: WorkSiteModel, grasp: Grasp | None, fingers: bool
-) -> TaskDemonstration:
-    """One drag of ``task`` in a new task session, the workpiece held in ``grasp`` (or the
-    block alone, ``fingers=False``)."""
-    session = TaskSession(model.scene())
-    try:
-        session.select(task.workpiece, grasp=grasp, fingers=fingers)
-    except ValueError as e:
-        raise RunError("no_grasp", f"{task.workpiece!r} cannot be held: {e}") from None
-    X_start = session.X_WO[task.workpiece].copy()
-    steps, goal, S_O = task_targets_W(task, model, X_start)
-    transit = transit_waypoints(session.sim.world, X_start, steps[0])
-    drag(session, transit, reached_rad=WAYPOINT_REACHED_RAD)
-    captured, lengths = [], []
-    for step, X_WD in zip(task.steps, steps, strict=True):
-        drag(session, [X_WD], reached_rad=WAYPOINT_REACHED_RAD)
-        for name in step.capture or ():
-            if name not in session.captured:
-                session.toggle_capture(name)
-        for name in step.release or ():
-            if name in session.captured:
-                session.toggle_capture(name)
-        captured.append(frozenset(session.captured))
-        lengths.append(len(session.sim.history))
-    return TaskDemonstration(
-        session=session,
-        workpiece=task.workpiece,
-        ideal_X_WO=goal,
-        S_O=S_O,
-        transit_X_WD=tuple(transit),
-        steps_X_WD=tuple(steps),
-        captured_after_step=tuple(captured),
-        history_after_step=tuple(lengths),
-    )
-
-
-def _path_of(session: TaskSession) -> tuple[dict[str, np.ndarray], list[np.ndarray], list]:
-    """A demonstration's start poses (the workpiece where it began), its path and the
-    contacts it presses, as :func:`~operator_site.grasp.choose_grasp` takes them."""
-    path = session.path_history()
-    X_WO = session.X_WO | {session.workpiece: session.start_X_WO}
-    return X_WO, [step.X_WO for step in path], pressed_contacts(path)
-
-
-def drag_task(task: Task, model: WorkSiteModel) -> TaskDemonstration:
-    """Play ``task`` as a person would drag it in a task session of ``model``: select the
-    workpiece, carry it to the first step, then hold each step until the workpiece is there
-    (or stops against something) and make its captures and releases. The grasp is chosen for
-    the task: the block is first dragged alone, the grasp chosen for that path
-    (:func:`~operator_site.grasp.choose_grasp`: no finger between the block and what it
-    presses, none run into anything), and the task dragged again held so. :class:`RunError`
-    when the workpiece or the reference is not in the model (``not_recognised``) or no grasp
-    can do the task (``no_grasp``)."""
-    if task.workpiece not in model.poses:
-        raise RunError("not_recognised", f"the workpiece {task.workpiece!r} is not in the model")
-    alone = _play(task, model, grasp=None, fingers=False)
-    session = alone.session
-    choice = choose_grasp(session.robot, session.scene, task.workpiece, *_path_of(session))
-    if choice.grasp is None:
-        raise RunError("no_grasp", choice.reason)
-    demo = _play(task, model, grasp=choice.grasp, fingers=True)
-    # Held, the block may take another path (the fingers meet what the block alone passed).
-    X_WO, path_X_WO, pressed = _path_of(demo.session)
-    problem = grasp_problem(
-        session.robot, session.scene, task.workpiece, X_WO, choice.grasp, path_X_WO, pressed
-    )
-    if problem:
-        raise RunError("no_grasp", f"no grasp of the {task.workpiece} can do this task: {problem}")
-    return demo
 
 
 def _needs_in_model(task: Task) -> Callable[[WorkSiteModel], bool]:

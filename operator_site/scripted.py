@@ -21,16 +21,16 @@ import numpy as np
 
 from models.layout import random_layout
 from models.scene import Box2, Scene, frame_bar_height_m, frame_opening_W, frame_outer_W, load_scene
-from models.transforms import make_pose, rpy_to_R, so3_log
-from operator_site.chain import ChainTask, Judgement, ProgramMaker, generated_program, run_chain
+from models.transforms import make_pose, rpy_to_R
+from operator_site.chain import ChainTask, Judgement, ProgramMaker, run_chain
 from operator_site.model_editor import WorkSiteModel
+from operator_site.session import generated_program
 from operator_site.task import TaskSession
+from operator_site.taskdrag import drag, turn_rad
 
 TASKS = ("corner", "around-corner")
 WORKPIECES = ("cube", "tall_block")
 """Blocks the scripted tasks may choose: tall enough to be held above the frame's bars."""
-WAYPOINT_MAX_STEPS = 200
-WAYPOINT_REACHED_M = 0.5e-3
 SUCCESS_MM, SUCCESS_DEG = 1.5, 1.5
 
 
@@ -114,24 +114,6 @@ def around_corner_waypoints(
     end = make_pose(R, (ox0 - half[0] + PRESS_M, end_y, z - PRESS_M))
     goal = make_pose(R, (ox0 - half[0], end_y, z))
     return before, [past, end], goal
-
-
-def drag(session: TaskSession, waypoints: list[np.ndarray], reached_rad: float = math.inf) -> None:
-    """Move the dragger through ``waypoints``, each until the block is there (within
-    :data:`WAYPOINT_REACHED_M`, and turned within ``reached_rad``) or stops."""
-    for X in waypoints:
-        session.set_target(X)
-        for _ in range(WAYPOINT_MAX_STEPS):
-            result = session.step()
-            if result.s_fraction == 0.0 or (
-                np.linalg.norm(result.X_WO[:3, 3] - X[:3, 3]) < WAYPOINT_REACHED_M
-                and _turn_rad(result.X_WO[:3, :3], X[:3, :3]) < reached_rad
-            ):
-                break
-
-
-def _turn_rad(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    return float(np.linalg.norm(so3_log(R_a.T @ R_b)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -229,7 +211,7 @@ def _scripted_task(task: str, rng: np.random.Generator) -> ChainTask:
         error_m = float(np.linalg.norm(X[:3, 3] - goal[:3, 3]))
         # Modulo the block's symmetries: a cube turned a quarter turn is the same cube.
         error_rad = min(
-            _turn_rad(goal[:3, :3] @ S, X[:3, :3]) for S in model.symmetries(demo.workpiece)
+            turn_rad(goal[:3, :3] @ S, X[:3, :3]) for S in model.symmetries(demo.workpiece)
         )
         within = error_m * 1e3 <= SUCCESS_MM and math.degrees(error_rad) <= SUCCESS_DEG
         return Judgement(error_m, error_rad, within)

@@ -35,31 +35,21 @@ SCREENSHOT_DIR = REPO / "out" / "screenshots"
 
 
 def write_cube_task(path: Path) -> None:
-    """A task file: the scene file's model, the cube dragged 6 cm along the table."""
-    import numpy as np
-
+    """A task file: on the scene file's layout, the cube dragged 6 cm along the table, saved
+    as the page saves it (an operator session's recorded task)."""
     from models.scene import load_scene
-    from operator_site.task import TaskSession
-    from operator_site.ui.taskfile import TaskFile, save_task
+    from operator_site.session import OperatorSession
+    from operator_site.taskfile import save_task
 
-    scene = load_scene()
-    session = TaskSession(scene)
-    session.select("cube")
-    target = session.X_WO["cube"].copy()
+    op = OperatorSession(load_scene())
+    op.use_scene_layout()
+    op.select("cube")
+    target = op.task.X_WO["cube"].copy()
     target[:3, 3] += [-0.06, 0.0, -0.003]
-    session.set_target(target)
+    op.set_target(target)
     for _ in range(60):
-        session.step()
-    save_task(
-        path,
-        TaskFile(
-            scene=scene.name,
-            model={o.name: o.X_WO for o in scene.movable},
-            workpiece="cube",
-            path=[np.asarray(r.X_WO) for r in session.sim.history],
-            captured=[],
-        ),
-    )
+        op.step()
+    save_task(op.recorded_task("cube 6 cm along the table"), path)
 
 
 def test_page_shows_scene_camera_and_connected_status(tmp_path: Path) -> None:
@@ -129,7 +119,7 @@ def test_page_shows_scene_camera_and_connected_status(tmp_path: Path) -> None:
                 page.keyboard.press("Enter")
                 page.get_by_role("button", name="load a task").click()
                 try:
-                    page.get_by_text("steps replayed").wait_for(timeout=30_000)
+                    page.get_by_text("cube 6 cm along the table").wait_for(timeout=30_000)
                 finally:
                     page.screenshot(path=str(SCREENSHOT_DIR / "operator_page_task_loaded.png"))
                 page.get_by_role("button", name="make the robot program").click()

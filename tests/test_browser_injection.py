@@ -5,6 +5,7 @@ runs none of it and fetches nothing from outside."""
 
 from __future__ import annotations
 
+import json
 import os
 import threading
 import time
@@ -19,7 +20,6 @@ import pytest
 from models.scene import load_scene
 from operator_site.link import WorkSiteLink
 from operator_site.ui import OperatorPage
-from operator_site.ui.taskfile import TaskFile, save_task
 from protocol import ExecutionReport, encode, key, make_config
 from tests.conftest import free_port, one_move_program, wait_until
 from tests.test_browser import CHROMIUM, CHROMIUM_FLAGS
@@ -41,7 +41,7 @@ PATH_PAYLOAD = "<script>window.__pwned=4<"  # a directory name: the path goes on
 SHOWN = {
     "the work site's refusal": "onerror=window.__pwned=1>",
     "a report's message": "parent.__pwned=2",
-    "a task file's scene": 'onerror="window.__pwned=3"',
+    "a task file's names": 'onerror="window.__pwned=3"',
     "a task file's path": "<script>window.__pwned=4</script>",
 }
 """What each payload shows as text on the page."""
@@ -112,9 +112,16 @@ def test_markup_from_the_wire_and_files_is_shown_as_text(work_site, tmp_path: Pa
             return echoed and REPORT_PAYLOAD in messages
 
         assert wait_until(sent_and_logged, 60, poll_s=1.0), (page.link.status.reports, ws.log())
-        # From files: a task file made for a scene named with markup, and a path with markup.
+        # From files: a task file whose names are markup, and a path with markup.
         task_file = tmp_path / "task.json"
-        save_task(task_file, TaskFile(SCENE_PAYLOAD, {}, None, [], []))
+        pose = {"xyz_m": [0, 0, 0], "rpy_deg": [0, 0, 0]}
+        task_file.write_text(
+            json.dumps(
+                {"task": 1, "name": SCENE_PAYLOAD, "workpiece": SCENE_PAYLOAD,
+                 "reference": "frame", "steps": [pose],
+                 "goal": {**pose, "contacts": []}}
+            )
+        )  # fmt: skip
         page.on_load(str(task_file))
         assert "window.__pwned=3" not in page.task_md.content  # escaped at the source
         with playwright.sync_playwright() as pw:
@@ -139,7 +146,7 @@ def test_markup_from_the_wire_and_files_is_shown_as_text(work_site, tmp_path: Pa
                 tab.keyboard.press("Enter")
                 tab.get_by_role("button", name="load a task").click()
                 tab.get_by_text(SHOWN["a task file's path"]).first.wait_for(timeout=30_000)
-                assert "cannot read it" in tab.inner_text("body")
+                assert "no such file" in tab.inner_text("body")
                 tab.wait_for_timeout(1_000)  # time for anything that did come alive to run
                 tab.screenshot(path=str(tmp_path / "injection.png"))
                 assert tab.evaluate("typeof window.__pwned") == "undefined"

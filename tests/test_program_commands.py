@@ -342,11 +342,11 @@ def test_around_corner_demonstrations_become_programs_that_pass_the_check(seed: 
     corner were refined by halving; seed 57 after the deformation's sweep cap, until a refused
     program was made again from a longer deformation): a program that keeps frame and table to
     the end."""
-    from operator_site.chain import generated_program
     from operator_site.scripted import layout_demonstration
+    from operator_site.session import generated_program
 
     demo = layout_demonstration("around-corner", seed)
-    program = generated_program(demo.session, f"around-{seed}")
+    program = generated_program(demo.session, f"around-{seed}").program
     kinds = [c.kind for c in program.commands]
     assert kinds[0] == "guarded_grasp" and kinds[-2:] == ["release", "move"]
     last = program.commands[-3]

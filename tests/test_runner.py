@@ -18,17 +18,16 @@ import pytest
 from models.layout import random_layout
 from models.scene import frame_bar_height_m, frame_opening_W, frame_outer_W, load_scene
 from models.transforms import make_pose, rpy_to_R, so3_log
-from operator_site.chain import FAILURES, RunError
+from operator_site.failures import FAILURES, RunError
 from operator_site.model_editor import WorkSiteModel
-from operator_site.runner import (
+from operator_site.runner import check_reaches_goal, judge_on_truth
+from operator_site.task import TaskSession
+from operator_site.taskdrag import (
     TRANSIT_CLEARANCE_M,
-    check_reaches_goal,
     drag_task,
-    judge_on_truth,
     nearest_symmetry,
     transit_height_m,
 )
-from operator_site.task import TaskSession
 from operator_site.taskfile import load_task, pose_error
 from tests.conftest import REPO
 

@@ -9,8 +9,9 @@ import pytest
 
 from models.layout import random_layout
 from models.scene import load_scene
-from operator_site.chain import ACCEPT_SCORE, model_from_frames
+from operator_site.chain import model_from_frames
 from operator_site.scripted import workpiece_candidates
+from operator_site.session import ACCEPT_SCORE
 from protocol import Recognition, Recognitions
 
 

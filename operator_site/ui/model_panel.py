@@ -10,7 +10,8 @@ import viser
 from models.scene import Scene
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import WorkSiteModel
-from operator_site.task import TaskSession
+from operator_site.session import ACCEPT_SCORE, OperatorSession
+from operator_site.ui.task_panel import NO_WORKPIECE
 from operator_site.ui.text import plain
 
 MODEL_HELP = (
@@ -18,8 +19,6 @@ MODEL_HELP = (
     "model yet, green: in it). Accept them to build the model the robot will work in; "
     "**remove mode**: click a block in the 3D view to take it out."
 )
-ACCEPT_SCORE = 0.5
-"""Recognitions scoring at least this are accepted by "accept the recognised blocks"."""
 
 
 class ModelPanel:
@@ -29,7 +28,7 @@ class ModelPanel:
     scene: Scene
     link: WorkSiteLink
     model: WorkSiteModel
-    session: TaskSession
+    op: OperatorSession
     _lock: threading.Lock
 
     def _build_model_panel(self, gui: viser.GuiApi) -> None:
@@ -46,12 +45,13 @@ class ModelPanel:
         self.scene_layout_button.on_click(lambda _: self.on_use_scene_layout())
 
     def _model_changed(self, corrections=()) -> None:
-        """The model's objects changed: a new task session over it (the workpiece is let go)."""
-        self.session = TaskSession(self.model.scene(), self.session.params)
+        """The model's objects changed (the session started its task afresh): show it."""
         self.dragger.visible = False
         self._show_fingers(None)
         self._show_path(None, None)
         self._show_model()
+        if self.workpiece_dropdown.value != NO_WORKPIECE:
+            self.workpiece_dropdown.value = NO_WORKPIECE  # nothing is picked any more
         names = ", ".join(sorted(self.model.poses))
         lines = [f"model: {len(self.model.poses)} blocks ({plain(names)})"]
         lines += [
@@ -73,17 +73,12 @@ class ModelPanel:
             )
             return 0
         with self._lock:
-            accepted = 0
-            for r in recs.objects:
-                if r.score >= min_score and r.model in {o.name for o in self.scene.movable}:
-                    self.model.accept(r.model, r.X_WO, r.score)
-                    accepted += 1
             try:
-                corrections = self.model.make_consistent(self.session.params)
+                accepted = self.op.accept_all(recs, min_score)
             except ValueError as e:
-                self.model_md.content = f"⚠ {plain(e)}"
-                return accepted
-            self._model_changed(corrections)
+                self.model_md.content = f"⚠ the model was not changed: {plain(e)}"
+                return 0
+            self._model_changed(self.op.corrections)
         return accepted
 
     def on_accept_one(self, name: str) -> bool:
@@ -95,29 +90,26 @@ class ModelPanel:
             self.model_md.content = f"{plain(name)} is not among the latest recognitions"
             return False
         with self._lock:
-            self.model.accept(name, found[0].X_WO, found[0].score)
             try:
-                corrections = self.model.make_consistent(self.session.params)
+                self.op.accept(name, found[0].X_WO, found[0].score)
             except ValueError as e:
-                self.model.remove(name)
                 self.model_md.content = f"⚠ {plain(name)} not added: {plain(e)}"
                 return False
-            self._model_changed(corrections)
+            self._model_changed(self.op.corrections)
         self._show_recognitions()
         return True
 
     def on_use_scene_layout(self) -> None:
         """The model from the scene file's layout: every block where the file puts it."""
         with self._lock:
-            for obj in self.scene.movable:
-                self.model.accept(obj.name, obj.X_WO)
-            self._model_changed()
+            self.op.use_scene_layout()
+            self._model_changed(self.op.corrections)
 
     def on_remove(self, name: str) -> None:
         """Take ``name`` out of the model."""
         with self._lock:
             if name in self.model.poses:
-                self.model.remove(name)
+                self.op.remove(name)
                 self._model_changed()
 
     def _show_recognitions(self) -> None:

@@ -26,6 +26,7 @@ from models.robot import RobotModel, load_robot
 from models.scene import Scene
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import WorkSiteModel
+from operator_site.session import OperatorSession
 from operator_site.task import TaskSession
 from operator_site.ui.access import (
     PageAccess,
@@ -40,6 +41,7 @@ from operator_site.ui.program_panel import ProgramPanel
 from operator_site.ui.scene_view import SceneView
 from operator_site.ui.status import log_markdown, status_markdown, waiting_image
 from operator_site.ui.task_panel import TaskPanel
+from protocol import MotionProgram
 
 log = logging.getLogger("operator-site")
 
@@ -94,17 +96,15 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
         self.server.initial_camera.position = INITIAL_EYE_W
         self.server.initial_camera.look_at = INITIAL_LOOK_AT_W
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
-        self.model = WorkSiteModel(scene)
+        self.op = OperatorSession(scene, link)
         if initial_model == "scene":
-            for obj in scene.movable:
-                self.model.accept(obj.name, obj.X_WO)
-        self.session = TaskSession(self.model.scene())
+            self.op.use_scene_layout()
         self._lock = threading.Lock()
         self.message = ""  # markdown: any outside text in it already went through plain()
         self.finger_meshes: list = []
         self.path_lines: list = []
-        self.pending_program = None
-        self._programs_made = 0
+        self.pending_program: MotionProgram | None = None
+        self.last_program: MotionProgram | None = None
         self._recognitions_shown: int | None = None
         self._build_gui()
         self._build_scene()
@@ -114,6 +114,16 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
         self._last_drag_s = -math.inf
         self.server.on_client_connect(self._on_client_connect)
         self.server.on_client_disconnect(lambda client: self.access.forget(client.client_id))
+
+    @property
+    def model(self) -> WorkSiteModel:
+        """The operator session's model of the work site."""
+        return self.op.model
+
+    @property
+    def session(self) -> TaskSession:
+        """The operator session's task in the simulator."""
+        return self.op.task
 
     # ------------------------------------------------------------------------------ building
 

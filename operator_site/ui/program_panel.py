@@ -1,17 +1,21 @@
 """The page's program panel: the task made into a robot program, shown for confirmation, sent
-on a second click; and the stop."""
+on a second click, saved, loaded and sent again; and the stop."""
 
 from __future__ import annotations
 
 import threading
-import time
+from pathlib import Path
 
 import viser
 
+from operator_site.failures import RunError
 from operator_site.link import WorkSiteLink
-from operator_site.program import choose_grasp_yaw, generate_program
+from operator_site.session import OperatorSession, load_program, save_program
 from operator_site.task import TaskSession
 from operator_site.ui.text import plain
+from protocol import MotionProgram
+
+DEFAULT_PROGRAM_FILE = "program.msgpack"
 
 
 class ProgramPanel:
@@ -19,8 +23,9 @@ class ProgramPanel:
 
     link: WorkSiteLink
     session: TaskSession
-    pending_program: object
-    _programs_made: int
+    op: OperatorSession
+    pending_program: MotionProgram | None
+    last_program: MotionProgram | None
     _lock: threading.Lock
 
     def _build_program_panel(self, gui: viser.GuiApi) -> None:
@@ -29,6 +34,11 @@ class ProgramPanel:
         self.progress = gui.add_progress_bar(0.0, visible=False, animated=True)
         self.program_md = gui.add_markdown("")
         self.send_button = gui.add_button("send it to the robot", disabled=True)
+        self.program_file = gui.add_text("program file", DEFAULT_PROGRAM_FILE)
+        self.save_program_button = gui.add_button("save the program")
+        self.load_program_button = gui.add_button("load a program")
+        self.save_program_button.on_click(lambda _: self.on_save_program(self.program_file.value))
+        self.load_program_button.on_click(lambda _: self.on_load_program(self.program_file.value))
         # The panel scrolls: a second stop where the operator's eyes are after sending.
         gui.add_button("STOP", color="red").on_click(lambda _: self.on_stop())
         self.program_button.on_click(lambda _: self.on_make_program())
@@ -52,22 +62,9 @@ class ProgramPanel:
                 self.program_md.content = "Pick a block and move it first."
                 self.progress.visible = False
                 return
-            self._programs_made += 1
-            program_id = f"{name}-{int(time.time())}-{self._programs_made}"
-            X_GP = choose_grasp_yaw(self.session.start_X_WO, self.session.X_GP)
             try:
-                made = generate_program(
-                    program_id,
-                    self.session.scene,
-                    name,
-                    self.session.path_history(),
-                    X_GP,
-                    attached_O=self.session.fingers_O,
-                    sim_params=self.session.params,
-                    X_WO=self.session.X_WO,
-                    progress=self._show_progress,
-                )
-            except ValueError as e:  # ProgramRefusedError says which command and why
+                made = self.op.make_program(progress=self._show_progress)
+            except (RunError, ValueError) as e:  # no grasp; refused or infeasible: why
                 self.pending_program = None
                 self.program_md.content = f"⚠ no program: {plain(e)}"
                 self.progress.visible = False
@@ -76,18 +73,12 @@ class ProgramPanel:
         self.progress.value = 100.0
         self._show_path(made.raw.centres_W, made.deformed.path.centres_W)
         lines = [
-            f"**program {plain(program_id)}**, {len(made.program.commands)} commands; path "
+            f"**program {plain(made.program.program_id)}**, {len(made.program.commands)} "
+            "commands; path "
             f"{made.raw.length_m() * 1e3:.0f} → {made.deformed.path.length_m() * 1e3:.0f} mm "
             f"(grey: as dragged, green: as the robot will go):"
         ]
-        for i, c in enumerate(made.program.commands):
-            p = c.X_WP[:3, 3]
-            kept = ", ".join(x.object for x in c.contacts)
-            contacts = f" keeping {plain(kept)}" if c.contacts else ""
-            lines.append(
-                f"{i}. {plain(c.kind)} to ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m at "
-                f"{c.speed_mps * 1000:.0f} mm/s{contacts}"
-            )
+        lines += _command_lines(made.program)
         lines.append("Check the green path in the 3D view, then send it.")
         self.program_md.content = "  \n".join(lines)
         self.progress.visible = False
@@ -98,10 +89,62 @@ class ProgramPanel:
         self.program_md.content = f"making the program: {plain(stage)}…"
 
     def on_send_program(self) -> None:
-        """Second confirmation: send the pending program to the work site."""
+        """Second confirmation: send the pending program to the work site (a program sent
+        before goes again under a new id: the work site runs each id once)."""
         program, self.pending_program = self.pending_program, None
         self.send_button.disabled = True
         if program is None:
             return
-        self.link.send_program(program)
-        self.program_md.content += f"  \nsent to the work site {plain(self.link.site_id)}"
+        with self._lock:
+            sent = self.op.send(program)
+        self.last_program = sent
+        self.program_md.content += (
+            f"  \nsent to the work site {plain(self.link.site_id)} as {plain(sent.program_id)}"
+        )
+
+    def on_save_program(self, path: str) -> None:
+        """Save the program made last (pending or sent) to ``path``."""
+        program = self.pending_program or self.last_program
+        if program is None:
+            self.program_md.content = "⚠ no program to save: make one first"
+            return
+        try:
+            save_program(path, program)
+        except OSError as e:
+            self.program_md.content = f"⚠ could not save to {plain(path)}: {plain(e.strerror)}"
+            return
+        self.program_md.content = (
+            f"program {plain(program.program_id)} saved to {plain(Path(path).resolve())}"
+        )
+
+    def on_load_program(self, path: str) -> None:
+        """Load a saved program and show it, ready to be sent (under a new id)."""
+        try:
+            program = load_program(path)
+        except ValueError as e:
+            self.program_md.content = f"⚠ {plain(e)}"
+            return
+        self.pending_program = program = self.op.renamed(program)
+        self._show_path(None, None)
+        lines = [
+            f"**program {plain(program.program_id)}** (a new id) loaded from {plain(path)}, "
+            f"{len(program.commands)} commands:",
+            *_command_lines(program),
+            "It runs as it was made: check that the blocks lie as they did then.",
+        ]
+        self.program_md.content = "  \n".join(lines)
+        self.send_button.disabled = False
+
+
+def _command_lines(program: MotionProgram) -> list[str]:
+    """One line a command, for the page (outside text through :func:`plain`)."""
+    lines = []
+    for i, c in enumerate(program.commands):
+        p = c.X_WP[:3, 3]
+        kept = ", ".join(x.object for x in c.contacts)
+        contacts = f" keeping {plain(kept)}" if c.contacts else ""
+        lines.append(
+            f"{i + 1}\\. {plain(c.kind)} to ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m at "
+            f"{c.speed_mps * 1000:.0f} mm/s{contacts}"
+        )
+    return lines

@@ -102,6 +102,9 @@ class SceneView:
             if in_model:
                 set_pose(frame, self.session.X_WO.get(obj.name, obj.X_WO))
         self.workpiece_dropdown.options = self._workpiece_options()
+        self.reference_dropdown.options = self._reference_options()
+        if self.reference_dropdown.value != self.op.reference:
+            self.reference_dropdown.value = self.op.reference
 
     def _show_fingers(self, name: str | None) -> None:
         """The gripper's fingers, drawn on the workpiece where the grasp puts them."""

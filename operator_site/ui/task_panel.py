@@ -1,5 +1,6 @@
 """The page's task panel: the workpiece picked and dragged on its spring, captures, undo and
-reset, the task saved to and loaded from a file."""
+reset, the task saved to and loaded from a task file (``docs/tasks.md``), relative to the object
+the operator measures it from."""
 
 from __future__ import annotations
 
@@ -12,10 +13,12 @@ import viser
 
 from models.scene import Scene
 from models.transforms import make_pose, quat_wxyz_to_R
+from operator_site.failures import RunError
 from operator_site.model_editor import WorkSiteModel
+from operator_site.session import OperatorSession
 from operator_site.task import TaskSession
+from operator_site.taskfile import load_task, save_task
 from operator_site.ui.scene_view import set_pose
-from operator_site.ui.taskfile import TaskFile, load_task, save_task
 from operator_site.ui.text import plain
 
 NO_WORKPIECE = "(none)"
@@ -23,7 +26,8 @@ TASK_HELP = (
     "Pick a block (click it, or choose it below), then drag the arrows and rings around it: "
     "the block follows on a spring and bumps, slides and settles against what it meets. "
     "**Capture mode**: click the frame or the table to keep the block touching it. "
-    "**Undo** takes the last drag back."
+    "**Undo** takes the last drag back. A saved task is measured from the object chosen "
+    "below: loaded on another layout, it is done relative to where that object is there."
 )
 DEFAULT_TASK_FILE = "task.json"
 GESTURE_GAP_S = 0.5
@@ -41,6 +45,7 @@ class TaskPanel:
     scene: Scene
     model: WorkSiteModel
     session: TaskSession
+    op: OperatorSession
     message: str
     _lock: threading.Lock
     _last_drag_s: float
@@ -53,10 +58,20 @@ class TaskPanel:
         self.undo_button = gui.add_button("undo the last drag")
         self.reset_button = gui.add_button("put the block back")
         self.task_md = gui.add_markdown("")
+        self.reference_dropdown = gui.add_dropdown(
+            "measured from", self._reference_options(), initial_value=self.op.reference
+        )
         self.task_file = gui.add_text("task file", DEFAULT_TASK_FILE)
         self.save_button = gui.add_button("save the task")
         self.load_button = gui.add_button("load a task")
-        self.workpiece_dropdown.on_update(lambda _: self.on_select(self.workpiece_dropdown.value))
+        # Only a person's choice acts: the page setting a dropdown itself (under its lock)
+        # calls these synchronously too.
+        self.workpiece_dropdown.on_update(
+            lambda e: e.client is None or self.on_select(self.workpiece_dropdown.value)
+        )
+        self.reference_dropdown.on_update(
+            lambda e: e.client is None or self.on_reference(self.reference_dropdown.value)
+        )
         self.undo_button.on_click(lambda _: self.on_undo())
         self.reset_button.on_click(lambda _: self.on_reset())
         self.save_button.on_click(lambda _: self.on_save(self.task_file.value))
@@ -64,6 +79,20 @@ class TaskPanel:
 
     def _workpiece_options(self) -> tuple[str, ...]:
         return (NO_WORKPIECE, *[o.name for o in self.scene.movable if o.name in self.model.poses])
+
+    def _reference_options(self) -> tuple[str, ...]:
+        fixed = [o.name for o in self.scene.objects if o.fixed]
+        return (*fixed, *[o.name for o in self.scene.movable if o.name in self.model.poses])
+
+    def on_reference(self, name: str) -> None:
+        """Measure the task from ``name`` (the frame, the table, a block in the model)."""
+        with self._lock:
+            try:
+                self.op.set_reference(name)
+            except (RunError, ValueError) as e:
+                self.message = f"⚠ {plain(e)}"
+                return
+            self.message = f"the task is measured from the **{plain(name)}**"
 
     def on_select(self, name: str) -> None:
         """Make ``name`` the workpiece (or none) and put the dragger on it."""
@@ -76,7 +105,7 @@ class TaskPanel:
                 self.message = ""
                 return
             try:
-                self.session.select(name)
+                self.op.select(name)
             except (KeyError, ValueError) as e:
                 self.message = plain(_reason(e))
                 return
@@ -99,7 +128,7 @@ class TaskPanel:
         if self.capture_mode.value and self.session.sim is not None:
             with self._lock:
                 try:
-                    now = self.session.toggle_capture(name)
+                    now = self.op.toggle_capture(name)
                     self.message = f"{plain(name)}: {'captured' if now else 'released'}"
                 except ValueError as e:
                     self.message = plain(e)
@@ -116,14 +145,14 @@ class TaskPanel:
         with self._lock:
             if self.session.sim is not None:
                 if now - self._last_drag_s > GESTURE_GAP_S:
-                    self.session.mark()  # a new drag begins: undo comes back here
+                    self.op.mark()  # a new drag begins: undo comes back here
                 self._last_drag_s = now
-                self.session.set_target(X_WD)
+                self.op.set_target(X_WD)
 
     def on_undo(self) -> None:
         """Take the last drag back: the block, its captures and its path as they were before."""
         with self._lock:
-            X = self.session.undo()
+            X = self.op.undo()
             if X is None:
                 self.message = "nothing to undo"
             else:
@@ -136,7 +165,7 @@ class TaskPanel:
     def on_reset(self) -> None:
         """Put the workpiece back where it was picked up, dragger too."""
         with self._lock:
-            self.session.reset()
+            self.op.reset()
             self._show_path(None, None)
             if self.session.workpiece is not None:
                 X = self.session.X_WO[self.session.workpiece]
@@ -144,59 +173,59 @@ class TaskPanel:
                 set_pose(self.object_frames[self.session.workpiece], X)
 
     def on_save(self, path: str) -> None:
-        """Save the model, the workpiece and its dragged path to ``path``."""
+        """Save the task demonstrated so far to ``path`` (docs/tasks.md's format)."""
         with self._lock:
-            sim = self.session.sim
-            task = TaskFile(
-                scene=self.scene.name,
-                model={n: X.copy() for n, X in self.model.poses.items()},
-                workpiece=self.session.workpiece,
-                path=[r.X_WO for r in sim.history] if sim else [],
-                captured=sorted(self.session.captured),
-            )
-            if sim is not None and self.session.start_X_WO is not None:
-                task.model[sim.world.workpiece] = self.session.start_X_WO.copy()
+            try:
+                task = self.op.recorded_task()
+            except ValueError as e:
+                self.message = f"⚠ nothing saved: {plain(e)}"
+                self.task_md.content = self.message
+                return
         try:
-            save_task(path, task)
+            save_task(task, path)
         except OSError as e:
-            self.task_md.content = f"⚠ could not save to {plain(path)}: {plain(e.strerror)}"
-            return
-        self.task_md.content = f"saved to {plain(Path(path).resolve())} ({len(task.path)} steps)"
+            self.message = f"⚠ could not save to {plain(path)}: {plain(e.strerror)}"
+        else:
+            self.message = (
+                f"saved to {plain(Path(path).resolve())}: {len(task.steps)} steps, measured "
+                f"from the {plain(task.reference)}"
+            )
+        self.task_md.content = self.message
 
     def on_load(self, path: str) -> None:
-        """Load a task file: its model, its workpiece, and its path dragged again."""
+        """Load a task file and drag it in this model as the runner would (carried to its
+        first step, its steps followed, its captures made)."""
         try:
             task = load_task(path)
-            if task.scene != self.scene.name:
-                raise ValueError(f"{path}: made for scene {task.scene!r}, not {self.scene.name!r}")
-        except ValueError as e:
-            self.task_md.content = f"⚠ {plain(e)}"
+        except ValueError as e:  # TaskFileError: one line naming the file and the field
+            self.message = f"⚠ {plain(e)}"
+            self.task_md.content = self.message
             return
         with self._lock:
             try:
-                model = WorkSiteModel(self.scene, task.model)
-            except (KeyError, ValueError) as e:
-                self.task_md.content = f"⚠ {plain(path)}: {plain(_reason(e))}"
+                self.op.load(task)
+            except (RunError, ValueError) as e:
+                self.message = f"⚠ {plain(path)} cannot be done in this model: {plain(e)}"
+                self.task_md.content = self.message
                 return
-            self.model = model
-            self._model_changed()
-        if task.workpiece is not None:
-            self.on_select(task.workpiece)
-            with self._lock:
-                for name in task.captured:
-                    self.session.toggle_capture(name)
-                self.session.replay(task.path)
-                X = self.session.X_WO[task.workpiece]
-                set_pose(self.dragger, X)
-                set_pose(self.object_frames[task.workpiece], X)
-        # As the message, so that the live task text (rewritten every step) keeps it.
-        self.message = f"loaded {plain(path)} ({len(task.path)} steps replayed)"
+            name = task.workpiece
+            X = self.op.task.X_WO[name]
+            set_pose(self.dragger, X)
+            set_pose(self.object_frames[name], X)
+            self.dragger.visible = True
+            self._show_fingers(name)
+            self._show_path(None, None)
+        if self.workpiece_dropdown.value != name:
+            self.workpiece_dropdown.value = name
+        if self.reference_dropdown.value != task.reference:
+            self.reference_dropdown.value = task.reference
+        self.message = f"loaded {plain(path)}: {plain(task.name)} ({len(task.steps)} steps)"
         self.task_md.content = self.message
 
     def step_task(self) -> None:
         """One simulator step of the workpiece, shown on the page."""
         with self._lock:
-            result = self.session.step()
+            result = self.op.step()
             captured = sorted(self.session.captured)
         if result is None:
             return
