@@ -31,12 +31,11 @@ from typing import Any
 import numpy as np
 
 from bench.e2e import add_time_scale_argument
+from operator_site.chain import ProgramMaker
 from operator_site.program import CommandParams, DeformParams
 from operator_site.scripted import TASKS, run_scripted
 from operator_site.session import generated_program
 from operator_site.simulator import SimParams
-from operator_site.task import TaskSession
-from protocol import MotionProgram
 from work_site.control.controller import DEFAULT_SURFACE_STIFFNESS_N_PER_M
 from work_site.vision import IndexParams
 
@@ -89,7 +88,7 @@ KNOBS: dict[str, Knob] = {
 }  # fmt: skip
 
 
-def _program_maker(knob: Knob, value: float) -> Callable[[TaskSession, str], MotionProgram]:
+def _program_maker(knob: Knob, value: float) -> ProgramMaker:
     """The scripted run's program generator with ``knob`` at ``value`` (ValueError, from the
     parameters' own checks, if the value is not allowed)."""
     field = {knob.field: type(knob.default)(value)}

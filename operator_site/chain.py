@@ -17,7 +17,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +27,7 @@ from operator_site.failures import RunError
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import Correction, WorkSiteModel
 from operator_site.program import Generated
-from operator_site.session import ACCEPT_SCORE, OperatorSession, generated_program
+from operator_site.session import OperatorSession, generated_program
 from operator_site.task import TaskSession
 from protocol import Recognition, Recognitions, TruthPoses, decode, key, make_config
 from protocol.messages import contact_directions
@@ -71,34 +71,33 @@ def model_from_frames(
     ready: Callable[[WorkSiteModel], bool],
     log: Callable[[str], None] = lambda _: None,
     max_frames: int = WORKPIECE_FRAMES,
+    operator: OperatorSession | None = None,
 ) -> RecognisedModel:
-    """The model editor fed as a person would: every recognition of the first of ``frames``
-    scoring at least :data:`ACCEPT_SCORE` accepted and made consistent; until ``ready`` says
-    the model holds what the task needs, the next frames' recognitions of blocks not yet in it
-    are added (each frame has its own sensor noise), ``max_frames`` frames in all at most."""
-    found: dict[str, tuple[np.ndarray, float]] = {}
-    model, corrections, model_s = WorkSiteModel(scene), [], 0.0
-    n, vision_s = 0, 0.0
+    """The model built as a person builds it in the page (``operator``'s, or a new operator
+    session's): every recognition of the first of ``frames`` scoring at least
+    :data:`~operator_site.session.ACCEPT_SCORE` accepted and made consistent; until ``ready``
+    says the model holds what the task needs, the next frames' recognitions of blocks not yet
+    in it are added (each frame has its own sensor noise), ``max_frames`` frames in all at
+    most."""
+    op = operator or OperatorSession(scene)
+    corrections: dict[str, Correction] = {}
+    n, vision_s, model_s = 0, 0.0, 0.0
     for recs in frames:
         n += 1
         vision_s += recs.elapsed_s
-        new = {
-            r.model: (r.X_WO, r.score)
-            for r in recs.objects
-            if r.score >= ACCEPT_SCORE and r.model not in found
-        }
         log(f"frame {n}: recognised {[(r.model, round(r.score, 2)) for r in recs.objects]}")
-        if new or n == 1:
-            found |= new
+        new = [r for r in recs.objects if r.model not in op.model.poses]
+        if new:
             t0 = time.monotonic()
-            model = WorkSiteModel(scene)
-            for name, (X, score) in found.items():
-                model.accept(name, X, score)
-            corrections = model.make_consistent()
-            model_s = time.monotonic() - t0
-        if ready(model) or n >= max_frames:
+            try:
+                op.accept_all(replace(recs, objects=tuple(new)))
+            except ValueError as e:
+                log(f"frame {n}: not added to the model: {e}")
+            corrections |= {c.name: c for c in op.corrections}
+            model_s += time.monotonic() - t0
+        if ready(op.model) or n >= max_frames:
             break
-    return RecognisedModel(model, corrections, n, vision_s, model_s)
+    return RecognisedModel(op.model, list(corrections.values()), n, vision_s, model_s)
 
 
 ProgramMaker = Callable[[TaskSession, str], Generated]
@@ -264,7 +263,8 @@ def run_chain(
             frames: Iterable[Recognitions] = [truth_frame]
         else:
             frames = _recognised_frames(link)
-        rec = model_from_frames(scene, frames, task.ready, log)
+        operator = OperatorSession(scene, link)
+        rec = model_from_frames(scene, frames, task.ready, log, operator=operator)
         model, corrections = rec.model, rec.corrections
         stage_s["vision"], stage_s["model"] = rec.vision_s, rec.model_s
         out["vision_frames"] = rec.frames
@@ -298,7 +298,6 @@ def run_chain(
         t0 = time.monotonic()
         kind = "execution_failed"
         state0 = link.robot_state
-        operator = OperatorSession(scene, link)
         program = operator.send(program)
         finished = lambda: operator.outcome(program.program_id) is not None  # noqa: E731
 

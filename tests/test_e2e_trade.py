@@ -6,7 +6,7 @@ import pytest
 
 from bench import trade as e2e_trade
 from bench.trade import KNOBS
-from operator_site import chain
+from operator_site import session
 
 
 @pytest.mark.parametrize("name", list(KNOBS))
@@ -37,10 +37,10 @@ def test_a_knob_value_reaches_the_program_generator(monkeypatch) -> None:
         def path_history(self):
             return []
 
-    monkeypatch.setattr(chain, "generate_program", fake_generate)
-    monkeypatch.setattr(chain, "choose_grasp_yaw", lambda *a: None)
+    monkeypatch.setattr(session, "generate_program", fake_generate)
+    monkeypatch.setattr(session, "choose_grasp_yaw", lambda *a: None)
     make = e2e_trade._program_maker(KNOBS["sim_dt"], 0.1)
-    assert make(_Session(), "p") == "the program"
+    assert make(_Session(), "p").program == "the program"
     assert seen["sim_params"].dt_s == 0.1 and seen["command_params"] is None
     make = e2e_trade._program_maker(KNOBS["deform_sweeps"], 10)
     make(_Session(), "p")
