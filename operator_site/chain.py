@@ -120,7 +120,10 @@ class _Truth:
             if truth is not None and truth.stamp_s >= t_s:
                 return truth
             time.sleep(0.05)
-        raise TimeoutError("no ground truth from the work site")
+        raise TimeoutError(
+            "no ground truth from the work site (a simulated work site publishes it with "
+            "--publish-truth; a real one has none to judge the task by)"
+        )
 
 
 def _wait(predicate: Callable[[], bool], link: WorkSiteLink, timeout_s: float) -> bool:
@@ -143,7 +146,7 @@ def _start_work_site(
     cmd = [
         sys.executable, "-m", "work_site", "serve", "--listen", endpoint, "--site-id", site_id,
         "--vision-rate", "2", "--time-scale", str(time_scale),
-        "--state-rate", str(STATE_RATE_HZ), *extra_args,
+        "--state-rate", str(STATE_RATE_HZ), "--publish-truth", *extra_args,
     ]  # fmt: skip
     with log_path.open("w") as out:
         return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)

@@ -174,8 +174,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=0,
         metavar="N",
-        help="without --scene: the random layout and the camera's offset from its "
-        "calibration (default: %(default)s)",
+        help="the camera's offset from its calibration and, without --scene, the random "
+        "layout (default: %(default)s)",
     )
     run.add_argument(
         "--connect",

@@ -99,7 +99,10 @@ def run_task(
         judge=lambda demo, model, truth: judge_on_truth(task, demo, model, truth),
         describe=lambda demo: {"symmetry_O": np.round(demo.S_O, 6).tolist()},
     )
-    extra = ("--scene", str(scene_file)) if scene_file is not None else ()
+    # With a scene file the layout is the file's: the seed draws only the camera's error.
+    extra = (
+        ("--scene", str(scene_file), "--camera-seed", str(seed)) if scene_file is not None else ()
+    )
     return run_chain(
         chain,
         seed,

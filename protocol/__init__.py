@@ -2,7 +2,7 @@
 zenoh session configuration. See ``protocol/README.md`` for frames, units and the wire format."""
 
 from ._schema import HOMOGENEOUS_ROW_TOL, ROTATION_ORTHONORMAL_TOL, UNIT_NORMAL_TOL
-from .codec import MAX_PAYLOAD_BYTES, decode, encode
+from .codec import MAX_PAYLOAD_BYTES, claimed_program_id, decode, encode
 from .errors import ProtocolError
 from .images import IMAGE_ENCODINGS, decode_image, encode_image, parse_image_encoding
 from .keys import (
@@ -73,6 +73,7 @@ __all__ = [
     "TruthPoses",
     "alive_key",
     "check_site_id",
+    "claimed_program_id",
     "decode",
     "decode_image",
     "encode",

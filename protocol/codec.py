@@ -38,7 +38,7 @@ from ._schema import (
 )
 from .errors import ProtocolError
 from .images import decode_image, encode_image
-from .messages import MESSAGE_TYPES, SCHEMA_VERSION, Message
+from .messages import MESSAGE_TYPES, SCHEMA_VERSION, Message, MotionProgram, Name
 
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 """Largest payload ``encode`` produces and ``decode`` accepts (bytes), checked before unpacking."""
@@ -330,3 +330,29 @@ def _explain_envelope(envelope: Any, exc: Exception, types: tuple[type, ...]) ->
     if steps[:1] != ["b"]:
         return ProtocolError(f"envelope: {text}")
     return explain_at(cls, envelope["b"], steps[1:], text, cls.__name__)
+
+
+# ------------------------------------------------------------------------------ refusals
+
+
+class _ClaimedBody(msgspec.Struct):
+    program_id: Name
+
+
+class _Claimed(msgspec.Struct):
+    t: str
+    b: _ClaimedBody
+
+
+_CLAIMED = msgspec.msgpack.Decoder(_Claimed)
+
+
+def claimed_program_id(payload: bytes) -> str | None:
+    """The program id a program payload that :func:`decode` refused claims, if it claims a
+    valid one (so that its refusal reaches the sender under that id); None otherwise. Reads
+    only the envelope's type and the body's ``program_id``."""
+    try:
+        claimed = _CLAIMED.decode(payload)
+    except (msgspec.MsgspecError, ValueError, TypeError, RecursionError):
+        return None
+    return claimed.b.program_id if claimed.t == MotionProgram.TYPE else None

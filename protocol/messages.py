@@ -284,7 +284,8 @@ class ObjectPose(Record):
 @dataclass(frozen=True, eq=False)
 class TruthPoses(Message):
     """Where the simulated work site's objects really are: its ground truth, published for
-    evaluating the system end to end (a real work site has none to publish)."""
+    evaluating the system end to end, only when started with ``--publish-truth`` (a real
+    work site has none to publish)."""
 
     TYPE: ClassVar[str] = "truth_poses"
     seq: Seq

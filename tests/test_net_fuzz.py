@@ -11,6 +11,7 @@ execution, no controller move, the joint targets unchanged.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -29,6 +30,7 @@ from protocol import (
     MotionProgram,
     ProtocolError,
     Stop,
+    claimed_program_id,
     decode,
     encode,
 )
@@ -170,7 +172,10 @@ def check_payload(harness: Harness, payload: bytes) -> None:
     if not valid_program:
         assert not harness.moving(), payload
         assert harness.server.stats["refused"] == refused + 1
-        assert [(r.program_id, r.status) for r in reports] == [("invalid", "refused")]
+        # Refused under the id it claims, if a valid one, else "invalid".
+        claimed = claimed_program_id(payload)
+        assert [r.status for r in reports] == ["refused"]
+        assert reports[0].program_id in {"invalid", claimed}, (reports[0].program_id, claimed)
     else:  # a well-formed program is either accepted or refused, with a report either way
         assert reports and reports[0].status in ("accepted", "refused")
 
@@ -179,7 +184,9 @@ def check_payload(harness: Harness, payload: bytes) -> None:
     harness.handle(stop=payload)
     assert not harness.moving()  # a stop never moves, valid or not
     assert harness.stops.dropped.total == dropped + (0 if valid_stop else 1)
-    assert harness.publisher.reports == []
+    # A valid stop with nothing running is answered (at most once in a while); garbage never.
+    replies = [(r.program_id, r.status) for r in harness.publisher.reports]
+    assert replies in ([("stop", "stopped")], []) if valid_stop else replies == []
 
 
 # ------------------------------------------------------------------------------ strategies
@@ -309,3 +316,33 @@ def test_the_harness_can_see_motion(harness: Harness) -> None:
     replayed = harness.publisher.reports[before:]
     assert [r.status for r in replayed] == [r.status for r in harness.publisher.reports[:before]]
     assert harness.server._execution is None
+
+
+def test_a_malformed_program_is_refused_under_the_id_it_claims(harness: Harness) -> None:
+    """Its sender waits on that id: the refusal says why under it. An id the work site has
+    seen before never gets another payload's refusal added to its reports."""
+    envelope = msgpack.unpackb(encode(one_move_program("mine-1")), raw=False)
+    envelope["b"]["speed"] = 1  # a field programs do not have
+    harness.reset()
+    harness.handle(program=msgpack.packb(envelope))
+    reports = harness.publisher.reports
+    assert [(r.program_id, r.status) for r in reports] == [("mine-1", "refused")]
+    assert "speed" in reports[0].message and not harness.moving()
+    harness.reset()
+    harness.handle(program=VALID_PROGRAM)
+    envelope["b"]["program_id"] = decode(VALID_PROGRAM, MotionProgram).program_id
+    harness.handle(program=msgpack.packb(envelope))
+    assert [(r.program_id, r.status) for r in harness.publisher.reports][-1] == (
+        "invalid",
+        "refused",
+    )
+
+
+def test_a_stop_with_nothing_running_is_answered_once_in_a_while(harness: Harness) -> None:
+    harness.reset()
+    harness.server._stop_replied_s = -math.inf
+    harness.handle(stop=VALID_STOP)
+    harness.handle(stop=VALID_STOP)  # at once again: held, not answered twice
+    reports = harness.publisher.reports
+    assert [(r.program_id, r.status) for r in reports] == [("stop", "stopped")]
+    assert "no program was running" in reports[0].message

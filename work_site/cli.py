@@ -177,6 +177,21 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         "camera a little off its calibration (2 mm, 0.2°); default: the scene file as it is",
     )
     parser.add_argument(
+        "--camera-seed",
+        type=int,
+        default=None,
+        metavar="N",
+        help="put the real camera a little off its calibration (2 mm, 0.2°), seeded, the "
+        "blocks where the scene file has them (--seed does both); default: --seed's",
+    )
+    parser.add_argument(
+        "--publish-truth",
+        action="store_true",
+        help="publish the simulation's ground truth (every object's true pose) with each "
+        "camera frame, for end-to-end evaluation: operator-site run and the benchmarks need "
+        "it; a real cell has none",
+    )
+    parser.add_argument(
         "--vision-rate",
         type=float,
         default=None,
@@ -271,7 +286,10 @@ def serve(args: argparse.Namespace) -> int:
                     for o in scene.objects
                 ),
             )
-            camera_X_WC = tuple(map(tuple, perturbed_camera_pose(scene.camera.X_WC, args.seed)))
+        camera_seed = args.camera_seed if args.camera_seed is not None else args.seed
+        if camera_seed is not None:
+            X_WC = perturbed_camera_pose(scene.camera.X_WC, camera_seed)
+            camera_X_WC = tuple(map(tuple, X_WC))
         camera_encoding, camera_quality = parse_image_encoding(args.camera_encoding)
         options = ServerOptions(
             camera_encoding=camera_encoding,
@@ -284,6 +302,7 @@ def serve(args: argparse.Namespace) -> int:
             physics_rate_hz=args.physics_rate,
             state_rate_hz=args.state_rate,
             deadman_s=args.deadman_s,
+            publish_truth=args.publish_truth,
             camera=not args.no_camera,
             camera_supersample=args.camera_supersample,
             camera_noise_grey=args.camera_noise,

@@ -82,6 +82,8 @@ class ValidatedInbox:
         self.dropped = DropCounter(expected.TYPE)
         self.last_s: float | None = None
         """When the newest valid message arrived (time.monotonic())."""
+        self.last: Message | None = None
+        """The newest valid message."""
         self._queue: collections.deque = collections.deque(maxlen=keep)
         self._wake, self._accept = wake, accept
         self._sub = (
@@ -111,7 +113,7 @@ class ValidatedInbox:
         if self._accept is not None and not self._accept(msg):
             return False
         self._queue.append(msg)
-        self.last_s = time.monotonic()
+        self.last, self.last_s = msg, time.monotonic()
         if self._wake is not None:
             self._wake.set()
         return True

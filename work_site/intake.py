@@ -13,7 +13,14 @@ import logging
 import threading
 import time
 
-from protocol import ExecutionReport, MotionProgram, ProtocolError, decode, encode
+from protocol import (
+    ExecutionReport,
+    MotionProgram,
+    ProtocolError,
+    claimed_program_id,
+    decode,
+    encode,
+)
 from work_site.control.executor import CheckCancelledError, program_refusal
 
 log = logging.getLogger("work-site")
@@ -49,8 +56,10 @@ class ProgramIntake:
         kept programs' reports."""
         return len(self._ids), [(pid, list(p)) for pid, p in self._reports.items()]
 
-    def _refuse_invalid(self, error: ProtocolError) -> None:
-        """Count an undecodable program; answer it while the report budget lasts."""
+    def _refuse_invalid(self, error: ProtocolError, payload: bytes) -> None:
+        """Count an undecodable program; answer it while the report budget lasts, under the
+        program id it claims if it claims a valid one (its sender is waiting on that id),
+        else under ``invalid``."""
         self.stats["refused"] += 1
         self._invalid_programs.add(str(error))
         now = time.monotonic()
@@ -61,7 +70,11 @@ class ProgramIntake:
         self._invalid_report_s = now
         if self._invalid_report_budget >= 1.0:
             self._invalid_report_budget -= 1.0
-            self._report("invalid", -1, "refused", f"program refused: {error}", fresh=False)
+            pid = claimed_program_id(payload)
+            with self._lock:
+                known = pid is None or pid in self._seen
+            pid = "invalid" if known else pid  # never add to a real program's reports
+            self._report(pid, -1, "refused", f"program refused: {error}", fresh=False)
 
     def _check_programs(self, inbox_program, done: threading.Event) -> None:
         """The checking thread: take programs off the wire until ``done``."""
@@ -80,10 +93,11 @@ class ProgramIntake:
             sample = inbox_program.try_recv()
             if sample is None:
                 return n
+            payload = sample.payload.to_bytes()
             try:
-                program = decode(sample.payload.to_bytes(), expected=MotionProgram)
+                program = decode(payload, expected=MotionProgram)
             except ProtocolError as e:
-                self._refuse_invalid(e)
+                self._refuse_invalid(e, payload)
                 continue
             self._take_program(program)
         return INBOX_CAPACITY

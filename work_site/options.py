@@ -61,6 +61,9 @@ class ServerOptions:
     per frame, less accuracy (docs/benchmarks.md, vision's resolution sweep)."""
     vision_index_views: int | None = None
     """Viewing directions sampled for vision's model index (None: its default)."""
+    publish_truth: bool = False
+    """Publish every object's true pose with each camera frame (``TruthPoses``), for
+    end-to-end evaluation; a real cell has no such thing to publish."""
     deadman_s: float = 0.5
     """A running program is stopped when the operator's heartbeats have not come for this
     long (s; :data:`DEADMAN_RANGE_S`): its process died, or the link to it was cut."""

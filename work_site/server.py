@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import sys
 import threading
 import time
@@ -68,6 +69,11 @@ FINAL_STATUSES = ("done", "failed", "refused", "stopped")
 SWITCH_INTERVAL_S = 0.001
 """The interpreter's thread switch interval while serving: a program being checked on the
 checking thread hands the control loop the GIL back within this (Python's default is 5 ms)."""
+STOP_REPLY_ID = "stop"
+"""The program id under which a stop that found no program running is answered."""
+STOP_REPLY_PERIOD_S = 0.2
+"""Such answers go at most this often: a stream of stops gets a stream of holds, not of
+reports."""
 DEADMAN_STALL_S = 0.05
 """A loop iteration this long after the last one means this process was starved (s)."""
 
@@ -111,6 +117,7 @@ class WorkSiteServer(ProgramIntake):
         self._last_stop_reason = ""
         self._execution_started_s = 0.0
         self._deadman_checked_s = 0.0
+        self._stop_replied_s = -math.inf
         self._wrench_S = np.zeros(6)
         """The wrist wrench of the last control period, for reports sent off the loop's thread."""
         self._journal: JournalWriter | None = None
@@ -268,7 +275,11 @@ class WorkSiteServer(ProgramIntake):
         self._pub_recognitions = session.declare_publisher(
             key(site, "recognitions"), priority=zenoh.Priority.DATA
         )
-        self._pub_truth = session.declare_publisher(key(site, "truth"), congestion_control=drop)
+        self._pub_truth = (
+            session.declare_publisher(key(site, "truth"), congestion_control=drop)
+            if self.options.publish_truth
+            else None
+        )
         self._pub_report = session.declare_publisher(
             key(site, "report"), priority=zenoh.Priority.INTERACTIVE_HIGH
         )
@@ -323,6 +334,8 @@ class WorkSiteServer(ProgramIntake):
 
     def _publish_truth(self, seq: int, poses: dict[str, np.ndarray]) -> None:
         """The simulation's ground truth, for end-to-end evaluation only."""
+        if self._pub_truth is None:
+            return
         truth = tuple(ObjectPose(name=n, X_WO=X) for n, X in poses.items())
         self._pub_truth.put(encode(TruthPoses(seq=seq, stamp_s=time.time(), objects=truth)))
 
@@ -454,9 +467,16 @@ class WorkSiteServer(ProgramIntake):
             self._stops_seen += 1
             self._last_stop_reason = msg.reason
             if self._execution is not None and not self._execution.finished:
-                self._execution.stop(f"stop: {msg.reason}")
+                self._execution.stop(f"stop: {msg.reason}")  # its report is the reply
             else:
                 self._controller.stop(ease=True)
+                now = time.monotonic()
+                if now - self._stop_replied_s >= STOP_REPLY_PERIOD_S:
+                    self._stop_replied_s = now
+                    self._report(
+                        STOP_REPLY_ID, -1, "stopped",
+                        f"stop received ({msg.reason}): no program was running; the arm is held",
+                    )  # fmt: skip
             log.info("stop: %s", msg.reason)
 
     def _start_ready(self) -> None:
@@ -479,7 +499,8 @@ class WorkSiteServer(ProgramIntake):
         """Stop the running program when the operator's heartbeats stopped coming: the newest
         beat, or the program's start if later, is more than ``deadman_s`` ago."""
         now = time.monotonic()
-        stalled = now - self._deadman_checked_s > DEADMAN_STALL_S
+        stalled_s = now - self._deadman_checked_s
+        stalled = stalled_s > DEADMAN_STALL_S
         self._deadman_checked_s = now
         execution = self._execution
         if execution is None or execution.finished:
@@ -491,6 +512,16 @@ class WorkSiteServer(ProgramIntake):
         silent_s = now - last_s
         deadman_s = self.options.deadman_s
         if silent_s > deadman_s and (not stalled or silent_s > 2 * deadman_s):
+            beat = inbox_heartbeat.last
+            # Whether the beat was sent late or arrived late (the operator's clock may differ).
+            log.warning(
+                "dead-man: %.3f s without a heartbeat (the last, #%s, sent %s s ago by the "
+                "operator's clock); this loop's last iteration %.3f s ago",
+                silent_s,
+                "-" if beat is None else beat.seq,
+                "-" if beat is None else f"{time.time() - beat.stamp_s:.3f}",
+                stalled_s,
+            )
             execution.stop(f"no heartbeat from the operator for {self.options.deadman_s:g} s")
             self.stats["deadman"] = self.stats.get("deadman", 0) + 1
             self._release_finished()
