@@ -43,6 +43,8 @@ past it."""
 FLANGE_LINK = "flange"
 SENSOR_LINK = "ft_sensor"
 TCP_LINK = "gripper_tcp"
+FT_SENSOR_JOINT = "ft_sensor_joint"
+"""The wrist force sensor's joint: fixed at the flange, unrotated (sensor frame S)."""
 
 JointType = Literal["revolute", "continuous", "prismatic", "fixed"]
 ShapeKind = Literal["box", "cylinder", "sphere"]
@@ -160,6 +162,20 @@ class RobotModel:
     def effort_max(self) -> np.ndarray:
         """Arm joint effort limits, shape (n_arm,), N·m."""
         return np.array([self.joint(n).effort for n in self.arm_joints])
+
+    def mass_beyond_kg(self, joint_name: str) -> float:
+        """The mass of every link beyond joint ``joint_name`` (its child and descendants)."""
+        children: dict[str, list[str]] = {}
+        for j in self.joints:
+            children.setdefault(j.parent, []).append(j.child)
+        stack, total = [self.joint(joint_name).child], 0.0
+        for _ in range(len(self.links)):  # a tree: each link once
+            if not stack:
+                break
+            link = stack.pop()
+            total += self.links[link].mass
+            stack.extend(children.get(link, []))
+        return total
 
     @property
     def finger_opening_max(self) -> float:

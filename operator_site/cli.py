@@ -5,6 +5,7 @@ operator-site serve [--connect ENDPOINT] [--port 8080]   # the page, for a runni
 operator-site demo                                       # both sites on this machine
 operator-site demo --scripted corner --seed 3 --json     # the whole chain, no person
 operator-site run examples/tasks/cube-corner.json --seed 3 --json   # a task file, no person
+operator-site recover retract                                  # back off after a failure
 """
 
 from __future__ import annotations
@@ -151,6 +152,41 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --scripted: the started work site simulates X seconds per wall second "
         "(default: 1, real time; the JSON's time_scale_achieved says how fast it managed)",
     )
+    recover = sub.add_parser(
+        "recover",
+        help="release, back off or go home after a failure or a stop",
+        description="A way back without restarting anything, sent to a running work site as "
+        "a short program made from the robot's latest state (checked and run like any other; "
+        "STOP ends it): release opens the fingers; retract backs the gripper away from what "
+        "it presses, along the force it feels, and up; home rises clear of the blocks and "
+        "parks the arm. Exit code 0 when done, 1 otherwise, 2 for options that cannot be used.",
+    )
+    recover.add_argument("action", choices=["release", "retract", "home"], help="what to do")
+    recover.add_argument(
+        "--connect",
+        default=DEFAULT_WORK_SITE_ENDPOINT,
+        metavar="ENDPOINT",
+        help="zenoh endpoint of the work site or a router (default: %(default)s)",
+    )
+    recover.add_argument(
+        "--single-link", action="store_true", help="the --connect endpoint alone, one link"
+    )
+    recover.add_argument(
+        "--site-id", default=DEFAULT_SITE_ID, help="the work site's id (default: %(default)s)"
+    )
+    recover.add_argument(
+        "--scene",
+        type=Path,
+        default=DEFAULT_SCENE,
+        help="the scene JSON (its robot; default: the puzzle scene)",
+    )
+    recover.add_argument(
+        "--certs", type=Path, default=None, metavar="DIR", help="as for serve: mutual TLS"
+    )
+    recover.add_argument(
+        "--cert-name", default="operator", metavar="NAME", help="as for serve (default: operator)"
+    )
+    recover.add_argument("-v", "--verbose", action="store_true", help="log more")
     run = sub.add_parser(
         "run",
         help="run a task file end to end without a page",
@@ -254,6 +290,71 @@ def _page_token(args: argparse.Namespace) -> str | None:
     return None if loopback or no_token else new_token()
 
 
+def _link_config(args: argparse.Namespace):
+    """The zenoh config and the endpoints' note for ``args``' --connect, --single-link and
+    --certs (ValueError, ProtocolError for what cannot be used)."""
+    connect, links_note = link_endpoints([args.connect], args.single_link)
+    certs = getattr(args, "certs", None)  # demo's work site is on loopback: no TLS
+    tls = None
+    if certs is not None:
+        tls = TlsFiles(
+            certs / "ca.pem", certs / f"{args.cert_name}.pem", certs / f"{args.cert_name}.key"
+        )
+    return make_config(connect=connect, tls=tls), connect, links_note
+
+
+RECOVER_STATE_TIMEOUT_S = 15.0
+RECOVER_DONE_TIMEOUT_S = 120.0
+
+
+def recover(args: argparse.Namespace) -> int:
+    """``recover ACTION``: send the recovery and follow it to its end."""
+    import time
+
+    from operator_site.link import WorkSiteLink
+    from operator_site.session import OperatorSession
+
+    try:
+        check_site_id(args.site_id)
+        scene = load_scene(args.scene)
+        config, connect, _ = _link_config(args)
+    except (ModelError, ProtocolError, ValueError) as e:
+        print(f"operator-site: {e}", file=sys.stderr)
+        return 2
+    link = WorkSiteLink(config, args.site_id)
+    try:
+        deadline = time.monotonic() + RECOVER_STATE_TIMEOUT_S
+        while link.robot_state is None and time.monotonic() < deadline:
+            link.poll()
+            time.sleep(0.05)
+        if link.robot_state is None:
+            print(
+                f"operator-site: no robot state from work site {args.site_id!r} at "
+                f"{', '.join(connect)} within {RECOVER_STATE_TIMEOUT_S:.0f} s",
+                file=sys.stderr,
+            )
+            return 1
+        op = OperatorSession(scene, link)
+        program = op.recover(args.action)
+        print(f"{args.action}: sent as {program.program_id}", flush=True)
+        deadline, shown = time.monotonic() + RECOVER_DONE_TIMEOUT_S, 0
+        while time.monotonic() < deadline:
+            link.poll()
+            mine = [r for r in link.status.reports if r.program_id == program.program_id]
+            for r in mine[shown:]:
+                print(f"  command {r.command_index}: {r.status} {r.message}", flush=True)
+            shown = len(mine)
+            end = op.outcome(program.program_id)
+            if end is not None:
+                return 0 if end.status == "done" else 1
+            time.sleep(0.05)
+        print(f"operator-site: no end of {program.program_id} within "
+              f"{RECOVER_DONE_TIMEOUT_S:.0f} s", file=sys.stderr)  # fmt: skip
+        return 1
+    finally:
+        link.close()
+
+
 def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     """Serve the page until SIGINT/SIGTERM (or ``stop``); returns the exit code."""
     from operator_site.link import WorkSiteLink  # heavy imports after parsing
@@ -262,14 +363,7 @@ def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     try:
         check_site_id(args.site_id)
         scene = load_scene(args.scene)
-        connect, links_note = link_endpoints([args.connect], args.single_link)
-        certs = getattr(args, "certs", None)  # demo's work site is on loopback: no TLS
-        tls = None
-        if certs is not None:
-            tls = TlsFiles(
-                certs / "ca.pem", certs / f"{args.cert_name}.pem", certs / f"{args.cert_name}.key"
-            )
-        config = make_config(connect=connect, tls=tls)
+        config, connect, links_note = _link_config(args)
         if not 1 <= args.port <= 65535:
             raise ValueError(f"--port must be in 1..65535, got {args.port}")
         token = _page_token(args)
@@ -349,6 +443,8 @@ def main(argv: list[str]) -> int:
     )
     if args.command == "run":
         return run_task_file(args)
+    if args.command == "recover":
+        return recover(args)
     if args.command == "demo" and args.scripted:
         return run_scripted_demo(args, connect_given="--connect" in argv)
     return demo(args) if args.command == "demo" else serve(args)

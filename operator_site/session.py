@@ -35,6 +35,7 @@ from operator_site.program import (
     choose_grasp_yaw,
     generate_program,
 )
+from operator_site.recovery import recovery_program
 from operator_site.simulator import SimParams
 from operator_site.task import MAX_UNDO, TaskSession
 from operator_site.taskdrag import TaskDemonstration, drag_task, reference_pose_W, turn_rad
@@ -340,6 +341,17 @@ class OperatorSession:
         self._sent.add(program.program_id)
         self.link.send_program(program)
         return program
+
+    def recover(self, action: str) -> MotionProgram:
+        """Send recovery ``action`` (:data:`~operator_site.recovery.RECOVERY_ACTIONS`: release,
+        retract, home), made from the robot's latest state; the program sent. RuntimeError
+        without a work site or its robot state."""
+        if self.link is None or self.link.robot_state is None:
+            raise RuntimeError("no robot state from the work site yet")
+        program = recovery_program(
+            action, self.link.robot_state, self.scene, self.new_program_id(action)
+        )
+        return self.send(program)
 
     def outcome(self, program_id: str) -> ExecutionReport | None:
         """The whole-program report that ended ``program_id`` (done, failed, refused, stopped),

@@ -285,3 +285,8 @@ def test_page_undo_and_the_program_progress(page: OperatorPage, monkeypatch) -> 
     np.testing.assert_allclose(page.dragger.position, page.session.sim.state.X_WD[:3, 3])
     page.on_undo()
     assert "nothing to undo" in page.task_md.content
+
+
+def test_a_recovery_without_robot_state_says_why(page: OperatorPage) -> None:
+    page.on_recover("retract")
+    assert "back off" in page.program_md.content and "no robot state" in page.program_md.content

@@ -15,6 +15,7 @@ import numpy as np
 import pybullet as p
 
 from models.geometry import mass_properties, write_obj
+from models.robot import FT_SENSOR_JOINT
 from models.scene import Scene, SceneObject
 from models.transforms import (
     R_to_quat_wxyz,
@@ -28,7 +29,6 @@ from models.transforms import (
 GRAVITY_W = (0.0, 0.0, -9.81)
 ARM_JOINTS = ("joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6")
 FINGER_JOINTS = ("finger_left", "finger_right")
-FT_SENSOR_JOINT = "ft_sensor_joint"
 FLANGE_LINK = "flange"
 ARM_MAX_FORCE_N = 300.0
 FINGER_MAX_FORCE_N = 40.0

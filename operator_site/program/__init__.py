@@ -14,6 +14,7 @@ from operator_site.program.commands import (
     CommandParams,
     build_program,
     fit_targets,
+    park_pose_W,
     program_to_json,
     target_bias,
 )
@@ -56,6 +57,7 @@ __all__ = [
     "fit_targets",
     "generate_program",
     "lost_contact_nodes",
+    "park_pose_W",
     "path_from_history",
     "pick_and_place",
     "program_to_json",

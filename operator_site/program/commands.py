@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from models.robot import TCP_LINK, load_robot
+from models.scene import Scene
 from operator_site.program.check import Sweeper
 from operator_site.program.contact_step import away_normal, held_towards
 from operator_site.program.path import NodeContact, PathNode, WorkpiecePath
@@ -84,6 +86,13 @@ class CommandParams:
     target_bias_m: float = TARGET_BIAS_M
     """d of §VI-B: the impedance target is biased this far into each contact normal (the work
     site applies its own d; :func:`program_to_json` shows the bias for reference)."""
+
+
+def park_pose_W(scene: Scene) -> np.ndarray:
+    """``X_WG`` where the gripper parks after a program: the robot's home configuration's,
+    above the table by the robot's base, out of the camera's view of the frame."""
+    robot = load_robot(scene.robot.urdf_path)
+    return robot.link_poses_W(scene.robot.q_home_rad, 0.0, scene.robot.X_WB)[TCP_LINK]
 
 
 def contact_states(node: PathNode) -> tuple[ContactState, ...]:
@@ -350,8 +359,11 @@ def build_program(
     X_GP: np.ndarray,
     params: CommandParams | None = None,
     sweeper: Sweeper | None = None,
+    park_X_WG: np.ndarray | None = None,
 ) -> MotionProgram:
-    """The motion program for a settled ``path`` with grasp ``X_GP`` (workpiece in gripper)."""
+    """The motion program for a settled ``path`` with grasp ``X_GP`` (workpiece in gripper);
+    with ``park_X_WG`` the gripper ends there (:func:`park_pose_W`), out of the camera's view
+    and of the next program's way."""
     params = params or CommandParams()
     first = path.nodes[0]
     commands = [
@@ -388,6 +400,11 @@ def build_program(
         MotionCommand("move", up, params.free_speed_mps, params.force_limit_n, ()),
     ]
     X_GP = np.asarray(X_GP, dtype=np.float64)
+    if park_X_WG is not None:
+        park = np.asarray(park_X_WG, dtype=np.float64) @ X_GP  # the gripper's target as X_WP
+        commands.append(
+            MotionCommand("move", park, params.free_speed_mps, params.force_limit_n, ())
+        )
     return MotionProgram(program_id=program_id, X_GP=X_GP, commands=tuple(commands))
 
 

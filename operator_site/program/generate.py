@@ -10,7 +10,7 @@ import numpy as np
 from models.geometry import ConvexPart
 from models.scene import Scene
 from operator_site.program.check import CheckResult, Sweeper
-from operator_site.program.commands import CommandParams, build_program
+from operator_site.program.commands import CommandParams, build_program, park_pose_W
 from operator_site.program.deform import Deformer, DeformParams, DeformResult
 from operator_site.program.feasibility import Feasibility, check_feasibility
 from operator_site.program.path import WorkpiecePath, path_from_history
@@ -84,7 +84,9 @@ def generate_program(
         deformer = Deformer(scene, workpiece, deform_params, sim_params, attached_O, X_WO)
         deformed = deformer.deform(raw)
         say(0.55, "fitting robot moves")
-        program = build_program(program_id, deformed.path, X_GP, command_params, sweeper)
+        program = build_program(
+            program_id, deformed.path, X_GP, command_params, sweeper, park_pose_W(scene)
+        )
         say(0.85, "checking every move for collisions")
         check = sweeper.program(program)
         if check.ok:

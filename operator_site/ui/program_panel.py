@@ -16,6 +16,12 @@ from operator_site.ui.text import plain
 from protocol import MotionProgram
 
 DEFAULT_PROGRAM_FILE = "program.msgpack"
+RECOVERY_BUTTONS = {"retract": "back off", "release": "open the gripper", "home": "go home"}
+RECOVERY_HELP = (
+    "**After a failure or a stop**: *back off* moves the gripper away from what it presses; "
+    "*open the gripper* lets the block go; *go home* lifts clear of the blocks and parks the "
+    "arm. Each is a short program the work site checks and runs; STOP ends it."
+)
 
 
 class ProgramPanel:
@@ -41,6 +47,10 @@ class ProgramPanel:
         self.load_program_button.on_click(lambda _: self.on_load_program(self.program_file.value))
         # The panel scrolls: a second stop where the operator's eyes are after sending.
         gui.add_button("STOP", color="red").on_click(lambda _: self.on_stop())
+        gui.add_markdown(RECOVERY_HELP)
+        for action, label in RECOVERY_BUTTONS.items():
+            button = gui.add_button(label)
+            button.on_click(lambda _, a=action: self.on_recover(a))
         self.program_button.on_click(lambda _: self.on_make_program())
         self.send_button.on_click(lambda _: self.on_send_program())
 
@@ -48,6 +58,19 @@ class ProgramPanel:
         """The stop button: stop the robot now."""
         self.link.send_stop("operator pressed stop")
         self.program_md.content = "**stop sent to the work site**"
+
+    def on_recover(self, action: str) -> None:
+        """A way back after a failure or a stop (:mod:`operator_site.recovery`)."""
+        try:
+            with self._lock:
+                program = self.op.recover(action)
+        except (RuntimeError, ValueError) as e:
+            self.program_md.content = f"⚠ {plain(RECOVERY_BUTTONS[action])}: {plain(e)}"
+            return
+        self.program_md.content = (
+            f"**{plain(RECOVERY_BUTTONS[action])}** sent as {plain(program.program_id)}: "
+            "follow it in the execution log"
+        )
 
     def on_make_program(self) -> None:
         """Turn the task into a robot program (§VI: the dragged path deformed, fitted with few

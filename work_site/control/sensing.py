@@ -15,28 +15,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.robot import RobotModel
-from work_site.world import FT_SENSOR_JOINT, GRAVITY_W, RobotSnapshot
-
-
-def mass_beyond_kg(robot: RobotModel, joint_name: str) -> float:
-    """The mass of every link beyond joint ``joint_name`` (its child and descendants)."""
-    children: dict[str, list[str]] = {}
-    for j in robot.joints:
-        children.setdefault(j.parent, []).append(j.child)
-    stack, total = [robot.joint(joint_name).child], 0.0
-    while stack:
-        link = stack.pop()
-        total += robot.links[link].mass
-        stack.extend(children.get(link, []))
-    return total
+from models.robot import FT_SENSOR_JOINT, RobotModel
+from work_site.world import GRAVITY_W, RobotSnapshot
 
 
 class WristSensor:
     """External force on the hand (N, in W), with the hand's and the payload's weight removed."""
 
     def __init__(self, robot: RobotModel) -> None:
-        self.hand_mass_kg = mass_beyond_kg(robot, FT_SENSOR_JOINT)
+        self.hand_mass_kg = robot.mass_beyond_kg(FT_SENSOR_JOINT)
         self._hand_weight_W = self.hand_mass_kg * np.asarray(GRAVITY_W, dtype=np.float64)
         self.payload_W = np.zeros(3)
         """The held payload's weight (N, in W), as last measured by :meth:`tare`."""
