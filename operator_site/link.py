@@ -12,8 +12,12 @@ stop coming (the operator's process died, the link was cut).
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import math
+import os
+import re
+import socket
 import threading
 import time
 from dataclasses import dataclass, field
@@ -50,7 +54,16 @@ HEARTBEAT_PERIOD_S = 0.1
 """Heartbeats go this often while a program of ours is unfinished: several within the work
 site's dead-man timeout (``work-site serve --deadman-s``, 0.5 s by default), so that one lost
 or late beat stops nothing."""
+LEASE_BEAT_PERIOD_S = 1.0
+"""While this operator holds the work site's control lease and runs nothing, it beats this
+often, so that the lease stays its own while its page is open (``work_site/lease.py``)."""
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
+
+
+def default_operator_id() -> str:
+    """This operator site's id for the control lease: host name and process id."""
+    host = re.sub(r"[^A-Za-z0-9_.-]+", "-", socket.gethostname()).strip("-")[:64] or "host"
+    return f"{host}-{os.getpid()}"
 
 
 class RateMeter:
@@ -78,6 +91,8 @@ class LinkStatus:
     last_state_age_s: float | None = None
     last_frame_age_s: float | None = None
     rejected: int = 0
+    holder: str = ""
+    """The operator holding the work site's control lease, as its heartbeat says ("": none)."""
     reports: list[ExecutionReport] = field(default_factory=list)
     """The last 100 reports, each once; a program's reports in the order the work site sent
     them (by their stamps), also when its replay of earlier ones arrives after newer ones."""
@@ -95,8 +110,12 @@ class LinkStatus:
 class WorkSiteLink:
     """Subscribes to one work site's topics; open with a zenoh config, close when done."""
 
-    def __init__(self, zenoh_config: zenoh.Config, site_id: str) -> None:
+    def __init__(
+        self, zenoh_config: zenoh.Config, site_id: str, operator_id: str | None = None
+    ) -> None:
         self.site_id = site_id
+        self.operator_id = operator_id or default_operator_id()
+        """Who this operator site is to the work site's control lease."""
         self.session = zenoh.open(zenoh_config)
         ring = zenoh.handlers.RingChannel
         self._sub_state = self.session.declare_subscriber(key(site_id, "robot_state"), ring(4))
@@ -143,20 +162,43 @@ class WorkSiteLink:
         self._beating.start()
 
     def _beat(self) -> None:
-        """The heartbeat thread: beat while a program of ours is unfinished, until closed."""
+        """The heartbeat thread, until closed: beat while a program of ours is unfinished (the
+        dead-man), and now and then while we hold the control lease (to keep it)."""
+        idle_s = 0.0
         while not self._closing.wait(HEARTBEAT_PERIOD_S):
-            if self._unanswered or self._unfinished:
+            idle_s += HEARTBEAT_PERIOD_S
+            if (
+                self._unanswered
+                or self._unfinished
+                or (self.holds_control and idle_s >= LEASE_BEAT_PERIOD_S)
+            ):
                 self._send_heartbeat()
+                idle_s = 0.0
+
+    @property
+    def holds_control(self) -> bool:
+        """Whether the work site says this operator holds its control lease."""
+        return self.status.holder == self.operator_id
+
+    @property
+    def watching(self) -> bool:
+        """Whether another operator holds the work site's control lease."""
+        return self.status.holder not in ("", self.operator_id)
 
     def _send_heartbeat(self) -> None:
         beat = Heartbeat(
-            site_id=self.site_id, role="operator_site", seq=self._heartbeat_seq, stamp_s=time.time()
+            site_id=self.site_id,
+            role="operator_site",
+            seq=self._heartbeat_seq,
+            stamp_s=time.time(),
+            operator=self.operator_id,
         )
         self._heartbeat_seq += 1
         try:
             self._pub_heartbeat.put(encode(beat))
         except zenoh.ZError:  # the session is closing
-            pass
+            return
+        log.debug("heartbeat #%d sent", beat.seq)
 
     def _decode(self, sample: zenoh.Sample, expected: type, what: str):
         try:
@@ -195,7 +237,9 @@ class WorkSiteLink:
             if (msg := self._decode(sample, Recognitions, "recognitions")) is not None:
                 self.recognitions = msg
         while (sample := self._sub_heartbeat.try_recv()) is not None:
-            self._decode(sample, Heartbeat, "heartbeat")
+            beat = self._decode(sample, Heartbeat, "heartbeat")
+            if beat is not None and beat.role == "work_site" and beat.site_id == self.site_id:
+                self.status.holder = beat.operator
         if self.status.work_site_alive:
             for pid, (payload, first_s, sent_s) in list(self._unanswered.items()):
                 if now - first_s > GIVE_UP_AFTER_S:
@@ -241,9 +285,12 @@ class WorkSiteLink:
         del reports[:-100]
 
     def send_program(self, program: MotionProgram) -> None:
-        """Publish a motion program to the work site; sent again (same id) every
+        """Publish a motion program to the work site, as this operator (its ``operator``
+        unless the program names one); sent again (same id) every
         :data:`RESEND_AFTER_S` until the work site answers, and again whenever it comes back
         before the program has finished. The work site runs each id at most once."""
+        if not program.operator:  # sent as this operator: the lease goes by it
+            program = dataclasses.replace(program, operator=self.operator_id)
         payload = encode(program)
         now = time.monotonic()
         self._unanswered[program.program_id] = (payload, now, now)

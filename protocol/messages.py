@@ -29,10 +29,11 @@ from ._schema import (
 )
 from .images import DEFAULT_JPEG_QUALITY, ImageEncoding
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 """Version of the wire schema; bump on any incompatible change to a message.
 2: ``CameraFrame`` carries its image's ``encoding`` and ``quality``.
-3: ``ExecutionReport`` carries its number within its program (``seq``)."""
+3: ``ExecutionReport`` carries its number within its program (``seq``).
+4: ``MotionProgram`` and ``Heartbeat`` carry an ``operator`` (the control lease)."""
 
 MAX_NAME_LEN = 256
 """Longest name or id (characters)."""
@@ -77,6 +78,8 @@ Seq = Annotated[int, Meta(ge=0, le=2**63 - 1)]
 Real = Annotated[float, FINITE]
 NonNegative = Annotated[float, NON_NEGATIVE]
 Name = Annotated[str, Meta(max_length=MAX_NAME_LEN, pattern=anchored(NAME_PATTERN))]
+NameOrNone = Annotated[str, Meta(max_length=MAX_NAME_LEN, pattern=anchored(f"(?:{NAME_PATTERN})?"))]
+"""A name, or "" for none."""
 SiteId = Annotated[str, Meta(max_length=MAX_NAME_LEN, pattern=anchored(SITE_ID_PATTERN))]
 Text = Annotated[str, Meta(max_length=MAX_TEXT_LEN)]
 Pose = Annotated[np.ndarray, Array((4, 4), check=check_pose)]
@@ -222,12 +225,15 @@ class MotionCommand(Record):
 
 @dataclass(frozen=True, eq=False)
 class MotionProgram(Message):
-    """A robot program: the grasp ``X_GP`` (workpiece in gripper frame) and 1..1000 commands."""
+    """A robot program: the grasp ``X_GP`` (workpiece in gripper frame) and 1..1000 commands;
+    ``operator`` is the sending operator site's id, which the control lease goes by ("": an
+    anonymous sender, which holds no lease)."""
 
     TYPE: ClassVar[str] = "motion_program"
     program_id: Name
     X_GP: Pose
     commands: Annotated[tuple[MotionCommand, ...], Meta(min_length=1, max_length=MAX_COMMANDS)]
+    operator: NameOrNone = ""
 
 
 @dataclass(frozen=True, eq=False)
@@ -264,13 +270,16 @@ class Stop(Message):
 
 @dataclass(frozen=True, eq=False)
 class Heartbeat(Message):
-    """Periodic liveness message from a site; ``role`` is one of :data:`ROLES`."""
+    """Periodic liveness message from a site; ``role`` is one of :data:`ROLES`. ``operator``:
+    an operator site's own id; a work site's, the operator holding its control lease ("":
+    nobody)."""
 
     TYPE: ClassVar[str] = "heartbeat"
     site_id: SiteId
     role: Role
     seq: Seq
     stamp_s: NonNegative
+    operator: NameOrNone = ""
 
 
 @dataclass(frozen=True, eq=False)

@@ -290,3 +290,16 @@ def test_page_undo_and_the_program_progress(page: OperatorPage, monkeypatch) -> 
 def test_a_recovery_without_robot_state_says_why(page: OperatorPage) -> None:
     page.on_recover("retract")
     assert "back off" in page.program_md.content and "no robot state" in page.program_md.content
+
+
+def test_a_watcher_s_controls_are_disabled_but_stop(page: OperatorPage) -> None:
+    page.link.status.work_site_alive = True
+    page.link.status.holder = "someone-else"
+    page._show_control()
+    assert page.program_button.disabled and page.send_button.disabled
+    assert all(b.disabled for b in page.recovery_buttons) and not page.stop_button.disabled
+    assert "you watch" in shown(page._status_text())
+    page.link.status.holder = page.link.operator_id
+    page._show_control()
+    assert not page.program_button.disabled and "control: **you**" in page._status_text()
+    page.link.status.holder = ""

@@ -140,13 +140,53 @@ def stop_inbox(
     return ValidatedInbox(session, key_expr, Stop, MAX_STOP_BYTES, KEPT_STOPS, wake)
 
 
-def heartbeat_inbox(session: zenoh.Session, key_expr: str, site_id: str) -> ValidatedInbox:
+LATE_BEAT_S = 0.25
+"""A heartbeat that arrives this long after its operator sent it (by the operator's clock:
+on two machines, their clocks' offset counts too) is logged: half the dead-man's default."""
+LATE_BEAT_LOG_PERIOD_S = 10.0
+
+
+class LateBeats:
+    """Heartbeats that arrived late, logged at most every :data:`LATE_BEAT_LOG_PERIOD_S`: the
+    reason a dead-man stop came without the operator going quiet."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self._next_log_s = 0.0
+
+    def add(self, beat: Message) -> None:
+        age_s = time.time() - beat.stamp_s
+        log.debug("heartbeat #%d of %s, sent %.1f ms ago", beat.seq, beat.operator, 1e3 * age_s)
+        if age_s < LATE_BEAT_S:
+            return
+        self.count += 1
+        now = time.monotonic()
+        if now >= self._next_log_s:
+            self._next_log_s = now + LATE_BEAT_LOG_PERIOD_S
+            log.warning(
+                "heartbeat #%d of operator %s arrived %.0f ms after it was sent (%d late so "
+                "far): the link or this machine is slow, or the clocks differ",
+                beat.seq, beat.operator or "-", 1e3 * age_s, self.count,
+            )  # fmt: skip
+
+
+def heartbeat_inbox(
+    session: zenoh.Session,
+    key_expr: str,
+    site_id: str,
+    heard: Callable[[Message], None] = lambda _beat: None,
+) -> ValidatedInbox:
     """Valid heartbeats of operator sites of ``site_id`` (a work site hears its own too: those
-    are left out)."""
+    are left out); ``heard`` is told of each as it comes (zenoh's thread: keep it cheap)."""
 
     def from_operator(beat: Message) -> bool:
-        return beat.role == "operator_site" and beat.site_id == site_id
+        if beat.role != "operator_site" or beat.site_id != site_id:
+            return False
+        heard(beat)
+        late.add(beat)
+        return True
 
+    late = LateBeats()
     return ValidatedInbox(
         session, key_expr, Heartbeat, MAX_HEARTBEAT_BYTES, 1, accept=from_operator
     )

@@ -140,6 +140,20 @@ class ProgramIntake:
             self.stats["duplicates"] = self.stats.get("duplicates", 0) + 1
             log.info("program %s received again: %d reports replayed", pid, len(replay))
             return
+        holder = self._lease.take(program.operator, time.monotonic())
+        if holder:
+            if busy is None:
+                with self._lock:
+                    self._busy = None
+            self.stats["refused"] += 1
+            who = f"operator {program.operator}" if program.operator else "an unnamed operator"
+            self._report(
+                pid, -1, "refused",
+                f"the robot is controlled by operator {holder}: {who} may watch until it lets "
+                "go (its page closed or idle); a STOP is honoured from anyone",
+                fresh=False,
+            )  # fmt: skip
+            return
         if busy is not None:
             self.stats["refused"] += 1
             self._report(pid, -1, "refused", f"busy with program {busy}", fresh=False)

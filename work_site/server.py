@@ -52,6 +52,7 @@ from work_site.intake import (
     ProgramIntake,
 )
 from work_site.journal import JournalWriter, journal_line, load_journal
+from work_site.lease import ControlLease
 from work_site.options import ServerOptions
 from work_site.recognition import VisionProcess
 from work_site.world import World
@@ -109,6 +110,7 @@ class WorkSiteServer(ProgramIntake):
         """Guards what the checking thread and the control loop share: the reports, the
         program being checked or run (``_busy``) and the programs ready to start."""
         self._busy: str | None = None
+        self._lease = ControlLease()
         """The id of the program being checked, waiting to start or running."""
         self._stops_seen = 0
         """Stops acted on so far: a program whose check began before the latest one is cancelled."""
@@ -189,7 +191,12 @@ class WorkSiteServer(ProgramIntake):
         # queued (no flood can push one out), and a stop wakes this loop at once.
         wake = threading.Event()
         inbox_stop = stop_inbox(session, key(site, "stop"), wake)
-        inbox_heartbeat = heartbeat_inbox(session, key(site, "heartbeat"), site)
+        inbox_heartbeat = heartbeat_inbox(
+            session,
+            key(site, "heartbeat"),
+            site,
+            lambda beat: self._lease.heard(beat.operator, time.monotonic()),
+        )
         inbox_program = session.declare_subscriber(
             key(site, "program"), zenoh.handlers.RingChannel(INBOX_CAPACITY)
         )
@@ -347,6 +354,7 @@ class WorkSiteServer(ProgramIntake):
             role="work_site",
             seq=self._seq_heartbeat,
             stamp_s=time.time(),
+            operator=self._lease.holder(time.monotonic()),
         )
         self._pub_heartbeat.put(encode(beat))
         self._seq_heartbeat += 1
@@ -506,7 +514,10 @@ class WorkSiteServer(ProgramIntake):
         if execution is None or execution.finished:
             return
         inbox_heartbeat.drain()  # only when the newest came matters
-        last_s = max(inbox_heartbeat.last_s or 0.0, self._execution_started_s)
+        # A named operator's program lives on its own operator's beats, not a watcher's.
+        operator = execution.program.operator
+        heard_s = self._lease.last_heard_s(operator) if operator else inbox_heartbeat.last_s
+        last_s = max(heard_s or 0.0, self._execution_started_s)
         # After a stall of this process, beats that came meanwhile may still wait for their
         # callback: judge at the next iteration (unless silence is long past doubt).
         silent_s = now - last_s

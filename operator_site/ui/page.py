@@ -135,7 +135,7 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
             "STOP the robot", color="red", icon=None, hint="stops any motion at the work site"
         )
         self.stop_button.on_click(lambda _: self.on_stop())
-        self.status_md = gui.add_markdown(status_markdown(self.link.site_id, self.link.status))
+        self.status_md = gui.add_markdown(self._status_text())
         cam = self.scene.camera
         self.camera_image = gui.add_image(
             # Half size: cheap to send, and never mistaken for a frame from the work site.
@@ -210,10 +210,22 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
             self.update()
             self.step_task()
             if t >= next_status:
-                self.status_md.content = status_markdown(self.link.site_id, self.link.status)
+                self.status_md.content = self._status_text()
                 self.log_md.content = log_markdown(self.link.status.reports)
+                self._show_control()
                 next_status = t + STATUS_PERIOD_S
             stop.wait(max(0.0, UI_PERIOD_S - (time.monotonic() - t)))
+
+    def _status_text(self) -> str:
+        return status_markdown(self.link.site_id, self.link.status, self.link.operator_id)
+
+    def _show_control(self) -> None:
+        """A watcher's controls are disabled (another operator holds the robot); STOP stays."""
+        watching = self.link.watching
+        self.program_button.disabled = watching
+        self.send_button.disabled = watching or self.pending_program is None
+        for button in self.recovery_buttons:
+            button.disabled = watching
 
     def close(self) -> None:
         self.server.stop()

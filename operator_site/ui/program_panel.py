@@ -48,9 +48,11 @@ class ProgramPanel:
         # The panel scrolls: a second stop where the operator's eyes are after sending.
         gui.add_button("STOP", color="red").on_click(lambda _: self.on_stop())
         gui.add_markdown(RECOVERY_HELP)
+        self.recovery_buttons = []
         for action, label in RECOVERY_BUTTONS.items():
             button = gui.add_button(label)
             button.on_click(lambda _, a=action: self.on_recover(a))
+            self.recovery_buttons.append(button)
         self.program_button.on_click(lambda _: self.on_make_program())
         self.send_button.on_click(lambda _: self.on_send_program())
 

@@ -30,9 +30,23 @@ def waiting_image(width: int, height: int, text: str) -> np.ndarray:
     return img
 
 
-def status_markdown(site_id: str, status: LinkStatus) -> str:
-    """The status panel's text for the link state ``status``."""
+def control_words(status: LinkStatus, operator_id: str) -> str:
+    """Who controls the robot, in words, for operator ``operator_id``."""
+    if not status.holder:
+        return "control: free (the next program sent takes it)"
+    if status.holder == operator_id:
+        return "control: **you**"
+    return (
+        f"control: operator **{plain(status.holder)}**; you watch (STOP still acts) until "
+        "it lets go"
+    )
+
+
+def status_markdown(site_id: str, status: LinkStatus, operator_id: str = "") -> str:
+    """The status panel's text for the link state ``status``, seen by ``operator_id``."""
     lines = [f"**work site: {status.label}** ({plain(site_id)})"]
+    if status.work_site_alive:
+        lines.append(control_words(status, operator_id))
     if status.work_site_alive:
         lines.append(
             f"robot state {status.state_rate_hz:.0f} Hz · camera {status.frame_rate_hz:.1f} Hz"

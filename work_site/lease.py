@@ -1,0 +1,72 @@
+"""The control lease: one operator site controls the robot at a time; the others watch.
+
+An operator takes the lease by sending a program when nobody holds it, and keeps it while its
+heartbeats keep coming (its page open); :data:`LEASE_IDLE_S` after its last beat or program the
+lease is free again. Programs from anyone else are refused, naming the holder; a STOP is
+honoured from any operator. Operators name themselves (``MotionProgram.operator``,
+``Heartbeat.operator``): with TLS and ``--operators`` only admitted operators reach the work site
+at all, and among them the lease keeps two from driving the arm at once, as a convention, not a
+defence against an admitted operator that lies about its name.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+
+LEASE_IDLE_S = 5.0
+"""The lease lapses this long after its holder's last heartbeat or program (s): several of the
+operator's idle beats (one a second), short enough that a closed page frees the robot soon."""
+MAX_TRACKED_OPERATORS = 64
+"""Operators whose last heartbeat is remembered; the oldest is forgotten first."""
+
+
+class ControlLease:
+    """Who holds the robot, and when each operator was last heard from (thread-safe: beats
+    arrive on zenoh's threads, programs on the checking thread, the dead-man reads it on the
+    control loop's)."""
+
+    def __init__(self, idle_s: float = LEASE_IDLE_S) -> None:
+        self.idle_s = idle_s
+        self._holder = ""
+        self._last_s: collections.OrderedDict[str, float] = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+    def heard(self, operator: str, now_s: float) -> None:
+        """Operator ``operator`` was heard from at ``now_s`` (monotonic s): a heartbeat."""
+        if not operator:
+            return
+        with self._lock:
+            self._last_s[operator] = now_s
+            self._last_s.move_to_end(operator)
+            while len(self._last_s) > MAX_TRACKED_OPERATORS:
+                self._last_s.popitem(last=False)
+
+    def last_heard_s(self, operator: str) -> float | None:
+        """When ``operator`` was last heard from (None: not lately)."""
+        with self._lock:
+            return self._last_s.get(operator)
+
+    def holder(self, now_s: float) -> str:
+        """The operator holding the lease at ``now_s`` ("" when nobody does)."""
+        with self._lock:
+            return self._holder_locked(now_s)
+
+    def _holder_locked(self, now_s: float) -> str:
+        last = self._last_s.get(self._holder)
+        if self._holder and (last is None or now_s - last > self.idle_s):
+            self._holder = ""
+        return self._holder
+
+    def take(self, operator: str, now_s: float) -> str:
+        """``operator`` asks for the robot (it sent a program): "" if it may have it (it then
+        holds the lease, unless it is anonymous), else the holder's name."""
+        with self._lock:
+            holder = self._holder_locked(now_s)
+            if holder and holder != operator:
+                return holder
+            if operator:
+                self._holder = operator
+                self._last_s[operator] = now_s
+                self._last_s.move_to_end(operator)
+            return ""
