@@ -26,6 +26,7 @@ import numpy as np
 
 from models.scene import Scene
 from models.transforms import invert_pose
+from operator_site.failures import RunError
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import Correction, WorkSiteModel
 from operator_site.program import (
@@ -183,6 +184,8 @@ class OperatorSession:
         """Make block ``name`` the workpiece (held as the gripper would hold it) and begin
         recording its task where it lies; ValueError for an object that cannot be moved."""
         self.task.select(name)
+        if self.reference == name:  # a block is not measured from itself
+            self.reference = self._default_reference()
         self.loaded = self.demonstration = None
         self._recorded = [_Recorded(self.task.start_X_WO.copy(), frozen=True)]
         self._marks = []
@@ -190,7 +193,10 @@ class OperatorSession:
     def set_reference(self, name: str) -> None:
         """The object the task's poses are measured from (the frame, the table, a block);
         ValueError if it is not in the model or is the workpiece."""
-        reference_pose_W(self.model, name)  # RunError (a RuntimeError) if not in the model
+        try:
+            reference_pose_W(self.model, name)
+        except RunError as e:
+            raise ValueError(str(e)) from None
         if name == self.task.workpiece:
             raise ValueError(f"the workpiece {name!r} cannot be its own reference")
         self.reference = name

@@ -20,22 +20,22 @@ SLOW_MPS = 0.005
 DEADMAN_S = 0.5
 
 
+FINAL = ("done", "failed", "refused", "stopped")
+
+
+def _final(link: WorkSiteLink, pid: str, statuses: tuple[str, ...] = FINAL):
+    """``pid``'s whole-program report with one of ``statuses``, if it came."""
+    link.poll()
+    return next(
+        (r for r in link.status.reports if r.program_id == pid and r.command_index == -1
+         and r.status in statuses),
+        None,
+    )  # fmt: skip
+
+
 def _end(link: WorkSiteLink, pid: str):
-    link.poll()
-    return next(
-        (r for r in link.status.reports if r.program_id == pid and r.command_index == -1
-         and r.status in ("accepted", "done", "failed", "refused", "stopped")),
-        None,
-    )  # fmt: skip
-
-
-def _final(link: WorkSiteLink, pid: str):
-    link.poll()
-    return next(
-        (r for r in link.status.reports if r.program_id == pid and r.command_index == -1
-         and r.status in ("done", "failed", "refused", "stopped")),
-        None,
-    )  # fmt: skip
+    """``pid``'s first answer: accepted, or its end."""
+    return _final(link, pid, ("accepted", *FINAL))
 
 
 def test_one_operator_drives_the_others_watch_and_may_stop(work_site) -> None:

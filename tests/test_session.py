@@ -15,7 +15,6 @@ import pytest
 
 from models.scene import load_scene
 from models.transforms import so3_log
-from operator_site.failures import RunError
 from operator_site.session import OperatorSession, load_program, save_program
 from operator_site.taskfile import load_task, save_task
 from tests.conftest import REPO
@@ -139,8 +138,10 @@ def test_a_task_that_cannot_be_done_here_says_why() -> None:
     with pytest.raises(ValueError, match="workpiece: 'cube' is not in the model"):
         op.load(task)
     op.use_scene_layout()
-    op.select("plank")
-    with pytest.raises(RunError):
+    op.set_reference("plank")
+    op.select("plank")  # the reference was the workpiece: back to the frame
+    assert op.reference == "frame"
+    with pytest.raises(ValueError, match="'nonexistent' is not in the model"):
         op.set_reference("nonexistent")
 
 
