@@ -89,7 +89,7 @@ class TaskPanel:
         with self._lock:
             try:
                 self.op.set_reference(name)
-            except (RunError, ValueError) as e:
+            except ValueError as e:
                 self.message = f"⚠ {plain(e)}"
                 return
             self.message = f"the task is measured from the **{plain(name)}**"
