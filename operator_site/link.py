@@ -66,19 +66,33 @@ def default_operator_id() -> str:
     return f"{host}-{os.getpid()}"
 
 
+MAX_SEQ_STEP = 10_000
+"""A sequence number further on than this from the last one seen is a restarted sender: it
+counts as one message."""
+
+
 class RateMeter:
-    """Messages per second over the last :data:`RATE_WINDOW_S` seconds."""
+    """Messages a sender sent per second over the last :data:`RATE_WINDOW_S` seconds, counted by
+    their sequence numbers: a reader that keeps only the newest few (a ring it drains now and
+    then) still measures the rate they were sent at."""
 
     def __init__(self) -> None:
-        self._stamps: collections.deque[float] = collections.deque()
+        self._stamps: collections.deque[tuple[float, int]] = collections.deque()
+        self._last_seq: int | None = None
 
-    def tick(self, now_s: float) -> None:
-        self._stamps.append(now_s)
+    def tick(self, now_s: float, seq: int | None = None) -> None:
+        """A message arrived at ``now_s`` with sequence number ``seq`` (None: count one)."""
+        step = 1
+        if seq is not None and self._last_seq is not None:
+            step = seq - self._last_seq if 0 < seq - self._last_seq <= MAX_SEQ_STEP else 1
+        if seq is not None:
+            self._last_seq = seq
+        self._stamps.append((now_s, step))
 
     def rate_hz(self, now_s: float) -> float:
-        while self._stamps and self._stamps[0] < now_s - RATE_WINDOW_S:
+        while self._stamps and self._stamps[0][0] < now_s - RATE_WINDOW_S:
             self._stamps.popleft()
-        return len(self._stamps) / RATE_WINDOW_S
+        return sum(n for _, n in self._stamps) / RATE_WINDOW_S
 
 
 @dataclass
@@ -223,12 +237,12 @@ class WorkSiteLink:
         while (sample := self._sub_state.try_recv()) is not None:
             if (msg := self._decode(sample, RobotState, "robot state")) is not None:
                 self.robot_state, new_state = msg, True
-                self._state_rate.tick(now)
+                self._state_rate.tick(now, msg.seq)
                 self._last_state_s = now
         while (sample := self._sub_camera.try_recv()) is not None:
             if (msg := self._decode(sample, CameraFrame, "camera frame")) is not None:
                 self.camera_frame, new_frame = msg, True
-                self._frame_rate.tick(now)
+                self._frame_rate.tick(now, msg.seq)
                 self._last_frame_s = now
         while (sample := self._sub_report.try_recv()) is not None:
             if (msg := self._decode(sample, ExecutionReport, "execution report")) is not None:

@@ -121,23 +121,22 @@ class ModelPanel:
             self.recognitions_md.content = f"frame {recs.seq}: nothing recognised"
             return
         lines = [f"frame {recs.seq}, {recs.elapsed_s * 1e3:.0f} ms:"]
-        for r in sorted(recs.objects, key=lambda r: -r.score):
+        for r in sorted(recs.objects, key=lambda r: r.model):  # in one place frame to frame
             state = "in the model" if r.model in self.model.poses else "not accepted"
             lines.append(f"- {plain(r.model)}: score {r.score:.2f} ({state})")
         self.recognitions_md.content = "\n".join(lines)
-        self._show_add_buttons(
-            {r.model: r.score for r in recs.objects if r.model not in self.model.poses}
-        )
+        self._show_add_buttons({r.model for r in recs.objects if r.model not in self.model.poses})
 
-    def _show_add_buttons(self, scores: dict[str, float]) -> None:
+    def _show_add_buttons(self, names: set[str]) -> None:
         """One "add" button per recognised block not in the model."""
-        for name in [n for n in self._rec_buttons if n not in scores]:
+        for name in [n for n in self._rec_buttons if n not in names]:
             self._rec_buttons.pop(name).remove()
         known = {o.name for o in self.scene.movable}
         with self._rec_folder:
-            for name, score in scores.items():
+            for name in sorted(names):
                 if name in self._rec_buttons or name not in known:
                     continue
-                button = self.server.gui.add_button(f"add {name} ({score:.2f})")
+                # The score changes every frame: the list above shows it, the button not.
+                button = self.server.gui.add_button(f"add {name}")
                 button.on_click(lambda _, n=name: self.on_accept_one(n))
                 self._rec_buttons[name] = button
