@@ -48,7 +48,7 @@ class ModelPanel:
         """The model's objects changed (the session started its task afresh): show it."""
         self.dragger.visible = False
         self._show_fingers(None)
-        self._show_path(None, None)
+        self._task_changed()
         self._show_model()
         if self.workpiece_dropdown.value != NO_WORKPIECE:
             self.workpiece_dropdown.value = NO_WORKPIECE  # nothing is picked any more

@@ -56,10 +56,23 @@ class ProgramPanel:
         self.program_button.on_click(lambda _: self.on_make_program())
         self.send_button.on_click(lambda _: self.on_send_program())
 
+    def _task_changed(self) -> None:
+        """The task the program was made from changed (another block, an undo, a reset, a new
+        model, a loaded task): its program and paths are no longer it."""
+        self._show_path(None, None)
+        if self.pending_program is not None:
+            self.pending_program = None
+            self.send_button.disabled = True
+            self.program_md.content = "The task changed: make its program again."
+
     def on_stop(self) -> None:
         """The stop button: stop the robot now."""
         self.link.send_stop("operator pressed stop")
-        self.program_md.content = "**stop sent to the work site**"
+        # Below the program, not instead of it: the operator still sees what was stopped.
+        shown = self.program_md.content
+        self.program_md.content = "  \n".join(
+            filter(None, [shown, "**stop sent to the work site**"])
+        )
 
     def on_recover(self, action: str) -> None:
         """A way back after a failure or a stop (:mod:`operator_site.recovery`)."""

@@ -113,7 +113,7 @@ class TaskPanel:
             set_pose(self.dragger, X)
             self.dragger.visible = True
             self._show_fingers(name)
-            self._show_path(None, None)
+            self._task_changed()
             self.message = f"dragging **{plain(name)}**, held as the gripper will hold it"
         if self.workpiece_dropdown.value != name:
             self.workpiece_dropdown.value = name
@@ -158,7 +158,7 @@ class TaskPanel:
             else:
                 set_pose(self.dragger, self.session.sim.state.X_WD)
                 set_pose(self.object_frames[self.session.workpiece], X)
-                self._show_path(None, None)
+                self._task_changed()
                 self.message = "the last drag was undone"
             self.task_md.content = self.message
 
@@ -166,7 +166,7 @@ class TaskPanel:
         """Put the workpiece back where it was picked up, dragger too."""
         with self._lock:
             self.op.reset()
-            self._show_path(None, None)
+            self._task_changed()
             if self.session.workpiece is not None:
                 X = self.session.X_WO[self.session.workpiece]
                 set_pose(self.dragger, X)
@@ -214,7 +214,7 @@ class TaskPanel:
             set_pose(self.object_frames[name], X)
             self.dragger.visible = True
             self._show_fingers(name)
-            self._show_path(None, None)
+            self._task_changed()
         if self.workpiece_dropdown.value != name:
             self.workpiece_dropdown.value = name
         if self.reference_dropdown.value != task.reference:
