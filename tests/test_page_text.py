@@ -105,3 +105,16 @@ def test_status_and_log_show_report_messages_as_text(text: str) -> None:
         assert not re.search(r"<(img|iframe|script|a)\b", out), out
         text_nodes = html.unescape(re.sub(r"<[^>]+>", "", out)).replace(WORD_JOINER, "")
         assert " ".join(text.split()) in text_nodes
+
+
+def test_the_log_says_what_to_do_after_a_program_ends_badly() -> None:
+    refused = report("command 3 is out of reach")
+    assert "Nothing moved" in log_markdown([refused])
+    ended = {
+        status: ExecutionReport(program_id="p", command_index=-1, status=status,
+                                wrench_S=np.zeros(6), message="", stamp_s=1.0)
+        for status in ("failed", "stopped", "done")
+    }  # fmt: skip
+    assert "*back off*" in log_markdown([ended["failed"]])
+    assert "*go home*" in log_markdown([ended["stopped"]])
+    assert "➜" not in log_markdown([refused, ended["done"]])

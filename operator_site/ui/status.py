@@ -63,12 +63,27 @@ def status_markdown(site_id: str, status: LinkStatus, operator_id: str = "") -> 
     return "  \n".join(lines)
 
 
+NEXT_STEP = {
+    "failed": "The robot holds where it stopped. Next: *back off* if it presses something, "
+    "*open the gripper* to let the block go, *go home*; then check the camera and the model.",
+    "stopped": "The robot holds where it stopped. Next: *back off*, *open the gripper* or "
+    "*go home* (Program panel), or make a new program from here.",
+    "refused": "Nothing moved. The line above says why; change the task or the model, and make "
+    "the program again.",
+}
+"""What the operator may do after a program ends so, shown under the log."""
+
+
 def log_markdown(reports) -> str:
-    """The execution log: the last :data:`LOG_LINES` reports, newest last."""
+    """The execution log: the last :data:`LOG_LINES` reports, newest last, and what to do
+    next when the newest program ended badly."""
     if not reports:
         return "no program sent yet"
     lines = []
     for r in reports[-LOG_LINES:]:
         where = "program" if r.command_index < 0 else f"command {r.command_index}"
         lines.append(f"{plain(r.program_id)} {where}: **{plain(r.status)}** {plain(r.message)}")
+    last = reports[-1]
+    if last.command_index == -1 and last.status in NEXT_STEP:
+        lines.append(f"➜ {NEXT_STEP[last.status]}")
     return "  \n".join(lines)
