@@ -626,7 +626,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             "site reads; an operator process SIGKILLed mid-program and an operator's link cut "
             "mid-program (the dead-man, 0.5 s); the robot-state rate while a 1,000-command program "
             "is checked, and a STOP during that check. Progress goes to stderr; the last line of "
-            "stdout is the JSON summary. Takes about 3 minutes with the defaults.",
+            "stdout is the JSON summary. Takes about a minute with the defaults.",
             width=88,
         )
     )
