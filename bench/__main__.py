@@ -14,6 +14,7 @@ BENCHMARKS: dict[str, str] = {
     "net": "round trips and camera frames over zenoh beside plain TCP, loopback and emulated link",
     "lcp": "time per contact LCP solve on random contact sets",
     "program_sweeps": "the deformation's sweep cap: generator CPU time against program change",
+    "safety": "STOP latency (also through a flood), the dead-man, state rate during a check",
     "e2e": "the scripted tasks end to end, each seed against its own work site",
     "trade": "each user knob's effect on a scripted task end to end",
     "tasks": "every shipped task file end to end on seeded layouts",

@@ -4,18 +4,16 @@ from __future__ import annotations
 
 import os
 import shutil
-import signal
 import subprocess
-import sys
-import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from models.transforms import make_pose, rpy_to_R
+from bench.netsafety import GRIPPER_DOWN, WorkSiteProcess, start_work_site
+from bench.netsafety import wait_until as wait_until  # re-exported: the tests import it here
+from models.transforms import make_pose
 from protocol import MotionCommand, MotionProgram
 from protocol.session import free_port_pair
 
@@ -37,68 +35,20 @@ def free_port() -> int:
     return free_port_pair()
 
 
-def wait_until(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.05) -> bool:
-    """Poll ``predicate`` until it is true or ``timeout_s`` passes; returns its last value."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(poll_s)
-    return predicate()
-
-
-@dataclass
-class WorkSiteProcess:
-    proc: subprocess.Popen
-    endpoint: str
-    site_id: str
-    log_path: Path
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-
 @pytest.fixture
 def work_site(tmp_path: Path) -> Iterator[Callable[..., WorkSiteProcess]]:
-    """Start ``python -m work_site serve`` on a free port; killed at the end of the test."""
+    """Start ``python -m work_site serve`` on a free port (:func:`bench.netsafety.start_work_site`:
+    ``vision=True`` runs recognition too); killed at the end of the test."""
     started: list[WorkSiteProcess] = []
 
     def start(*extra: str, site_id: str = "test", vision: bool = False) -> WorkSiteProcess:
-        """``vision``: run recognition too (off by default: it costs a core)."""
-        endpoint = f"tcp/127.0.0.1:{free_port()}"
-        if not vision and "--vision-rate" not in extra:
-            extra = (*extra, "--vision-rate", "0")
-        if "--journal" not in extra:  # each test its own: program ids repeat across tests
-            extra = (*extra, "--journal", str(tmp_path / f"journal_{len(started)}.jsonl"))
-        log_path = tmp_path / f"work_site_{len(started)}.log"
-        with log_path.open("w") as log:
-            proc = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "work_site",
-                    "serve",
-                    "--listen",
-                    endpoint,
-                    "--site-id",
-                    site_id,
-                    *extra,
-                ],
-                cwd=REPO,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-                env={**os.environ, "PYTHONUNBUFFERED": "1"},
-            )
-        ws = WorkSiteProcess(proc, endpoint, site_id, log_path)
+        ws = start_work_site(tmp_path, len(started), *extra, site_id=site_id, vision=vision)
         started.append(ws)
         return ws
 
     yield start
     for ws in started:
-        if ws.proc.poll() is None:
-            os.killpg(ws.proc.pid, signal.SIGKILL)
-            ws.proc.wait()
+        ws.kill()
 
 
 @pytest.fixture(scope="session")
@@ -113,10 +63,6 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
         [str(REPO / "deploy" / "make-certs.sh"), str(out)], check=True, capture_output=True
     )
     return out
-
-
-GRIPPER_DOWN = rpy_to_R(np.array([np.pi, 0.0, np.pi]))
-"""A gripper orientation pointing down, as the tests' programs use."""
 
 
 def one_move_program(

@@ -378,9 +378,9 @@ def test_a_work_site_restarted_mid_program_never_runs_it_twice(work_site, link_t
 
 
 def _operator_process(ws, program_id: str, *args: str) -> subprocess.Popen:
-    """A real operator process (tests/operator_process.py) sending a program of moves."""
+    """A real operator process (bench/operator_process.py) sending a program of moves."""
     return subprocess.Popen(
-        [sys.executable, "-m", "tests.operator_process", ws.endpoint, ws.site_id, program_id,
+        [sys.executable, "-m", "bench.operator_process", ws.endpoint, ws.site_id, program_id,
          *args],
         cwd=REPO,
         stdout=subprocess.PIPE,

@@ -1,6 +1,7 @@
-"""A minimal operator-site process for tests: connect, send one program, print its reports.
+"""A minimal operator-site process (tests, benchmarks): connect, send one program, print its
+reports.
 
-    python -m tests.operator_process ENDPOINT SITE_ID PROGRAM_ID X,Y,Z [X,Y,Z ...]
+    python -m bench.operator_process ENDPOINT SITE_ID PROGRAM_ID X,Y,Z [X,Y,Z ...]
 
 Sends a program of straight moves of the gripper (pointing down) through the given points at
 ``--speed`` with ``operator_site.link.WorkSiteLink`` (which re-sends it until the work site
@@ -18,13 +19,9 @@ import json
 import sys
 import time
 
-import numpy as np
-
-from models.transforms import make_pose, rpy_to_R
+from bench.netsafety import moves_program
 from operator_site.link import FINAL_STATUSES, WorkSiteLink
-from protocol import MotionCommand, MotionProgram, make_config
-
-DOWN = rpy_to_R(np.array([np.pi, 0.0, np.pi]))
+from protocol import make_config
 
 
 def main(argv: list[str]) -> int:
@@ -42,17 +39,8 @@ def main(argv: list[str]) -> int:
         "comes back while its program runs: the replay then arrives after newer reports)",
     )
     args = parser.parse_args(argv)
-    commands = tuple(
-        MotionCommand(
-            kind="move",
-            X_WP=make_pose(DOWN, [float(v) for v in p.split(",")]),
-            speed_mps=args.speed,
-            force_limit_n=10.0,
-            contacts=(),
-        )
-        for p in args.points
-    )
-    program = MotionProgram(program_id=args.program_id, X_GP=np.eye(4), commands=commands)
+    points = [[float(v) for v in p.split(",")] for p in args.points]
+    program = moves_program(args.program_id, points, args.speed)
     link = WorkSiteLink(make_config(connect=[args.endpoint]), args.site_id)
     try:
         deadline = time.monotonic() + args.timeout
