@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import getpass
 import logging
 import math
 import os
@@ -61,9 +62,15 @@ FINAL_STATUSES = ("done", "failed", "refused", "stopped")
 
 
 def default_operator_id() -> str:
-    """This operator site's id for the control lease: host name and process id."""
-    host = re.sub(r"[^A-Za-z0-9_.-]+", "-", socket.gethostname()).strip("-")[:64] or "host"
-    return f"{host}-{os.getpid()}"
+    """This operator site's id for the control lease: the user and the host, so that one
+    person's page and command line (``operator-site recover``) on one machine are one
+    operator to the work site."""
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):  # no user name to be had (a container without one)
+        user = str(os.getuid())
+    words = f"{user}.{socket.gethostname()}"
+    return re.sub(r"[^A-Za-z0-9_.-]+", "-", words).strip("-.")[:128] or "operator"
 
 
 MAX_SEQ_STEP = 10_000
