@@ -131,7 +131,9 @@ def generated_program(
         session.scene,
         session.workpiece,
         session.path_history(),
-        choose_grasp_yaw(session.start_X_WO, session.X_GP),
+        choose_grasp_yaw(
+            session.start_X_WO, session.X_GP, [s.X_WO for s in session.path_history()]
+        ),
         attached_O=session.fingers_O,
         sim_params=sim_params or session.params,
         deform_params=deform_params,
