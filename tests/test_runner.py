@@ -57,6 +57,22 @@ def test_the_shipped_task_files_are_the_four_tasks() -> None:
     assert {"cube-corner", "cube-around-corner", "cube-wall", "hex-corner-turned"} <= names
 
 
+def test_the_shipped_library_covers_every_block_and_the_kinds_of_task(scene) -> None:
+    """At least twelve tasks: each of the six blocks the workpiece of one, one on another
+    block, one slid under capture, and two that turn the block a quarter turn or more."""
+    library = [load_task(p) for p in SHIPPED]
+    assert len(library) >= 12
+    assert {t.workpiece for t in library} == {o.name for o in scene.movable}
+    assert any(t.reference in {o.name for o in scene.movable} for t in library)
+    assert any(s.capture for t in library for s in t.steps)
+
+    def yaw_turn_deg(t) -> float:
+        yaws = [math.atan2(s.X_RD[1, 0], s.X_RD[0, 0]) for s in t.steps]
+        return math.degrees(max(abs(math.remainder(a - yaws[0], 2 * math.pi)) for a in yaws))
+
+    assert sum(yaw_turn_deg(t) >= 90.0 - 1e-9 for t in library) >= 2
+
+
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
 def test_a_shipped_task_reaches_its_goal_in_the_simulator(scene, path: Path, seed: int) -> None:
