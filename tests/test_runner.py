@@ -183,6 +183,26 @@ def test_nearest_symmetry_picks_the_least_turn() -> None:
     np.testing.assert_allclose(nearest_symmetry(np.eye(3), now, []), np.eye(3))
 
 
+def test_no_symmetry_tumbles_the_wedge(scene) -> None:
+    """The wedge swapped end for end about its sloping face's diagonal is the same shape, and a
+    nearer turn than a half turn about the vertical: the drag must still not tip it over (the
+    robot holds it from above and cannot)."""
+    task = load_task(TASKS_DIR / "wedge-wall.json")
+    X = scene.object("wedge").X_WO
+    R = rpy_to_R(np.radians([0.0, 0.0, 180.0]))
+    model = WorkSiteModel(scene, {"wedge": make_pose(R, X[:3, 3])})
+    symmetries = model.symmetries("wedge")
+    assert len(symmetries) == 2  # identity and the end-for-end swap
+    swap = next(S for S in symmetries if not np.allclose(S, np.eye(3)))
+    R_first = task.steps[0].X_RD[:3, :3]
+    assert _turn_rad(R, R_first @ swap) < _turn_rad(R, R_first)  # the swap is nearer
+    np.testing.assert_allclose(nearest_symmetry(R_first, R, symmetries), np.eye(3), atol=1e-12)
+    demo = drag_task(task, model)
+    up = np.array([0.0, 0.0, 1.0])
+    for X_WD in (*demo.transit_X_WD, *demo.steps_X_WD):
+        np.testing.assert_allclose(X_WD[:3, :3] @ R.T @ up, up, atol=1e-9)
+
+
 def test_the_transit_clears_the_highest_top_on_its_way(scene) -> None:
     """A tall block standing on the straight line to the first step raises the carry."""
     X_cube = scene.object("cube").X_WO
