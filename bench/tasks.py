@@ -116,8 +116,10 @@ def run(
     with rows_path.open("w") as f:
         f.writelines(json.dumps(r) + "\n" for r in kept)
     tree = _tree()
-    for k, (name, task) in enumerate(tasks.items(), 1):
-        for seed in range(first_seed, first_seed + seeds):
+    summaries: list[dict] = []
+    # Seed by seed, every task at each: a run stopped early has as many layouts of each task.
+    for seed in range(first_seed, first_seed + seeds):
+        for k, (name, task) in enumerate(tasks.items(), 1):
             r = run_task(task, seed, log=lambda _: None, time_scale=time_scale)
             r |= {"file": name, "workpiece": task.workpiece, "tree": tree}
             with rows_path.open("a") as f:
@@ -130,6 +132,13 @@ def run(
                 file=sys.stderr,
                 flush=True,
             )
+        summaries = write_summaries(out_dir, rows_path)  # after each seed: usable if stopped
+    return summaries
+
+
+def write_summaries(out_dir: Path, rows_path: Path) -> list[dict]:
+    """``tasks.csv``, ``tasks.json`` and ``tasks.png`` from the rows in ``rows_path``; the
+    summaries."""
     rows_by_file: dict[str, list[dict]] = {}
     for r in sorted(_read_rows(rows_path), key=lambda r: (r["file"], r["seed"])):
         rows_by_file.setdefault(r["file"], []).append(r)

@@ -392,10 +392,12 @@ def choose_grasp(
 ) -> GraspChoice:
     """The grasp for moving block ``name`` from ``X_WO[name]`` along ``path_X_WO`` (its poses,
     the goal last) pressing ``pressed``: today's :func:`clear_top_grasp` when it can do the
-    task (:func:`grasp_problem`), else, among :func:`grasp_candidates`, the first that can,
-    preferring pads side-on to every pressed normal, then fingers clear of the bars, then the
-    most pad area, then the nearest the block's centre. No grasp: the reason for each pair of
-    faces."""
+    task (:func:`grasp_problem`) with its pads side-on to every pressed normal; else, among
+    :func:`grasp_candidates`, the first that can, preferring pads side-on to every pressed
+    normal (when today's grasp can do the task, only those with the open fingers
+    :data:`GRASP_CLEARANCE_M` clear of every neighbour; failing them, today's grasp), then
+    fingers clear of the bars, then the most pad area, then the nearest the block's centre. No
+    grasp: the reason for each pair of faces."""
     X_GP, opening = clear_top_grasp(robot, scene, name, X_WO)
     faces = _faces_words(invert_pose(X_GP)[:3, :3] @ [0.0, 1.0, 0.0])
     up_O = X_WO[name][:3, :3].T @ np.array([0.0, 0.0, 1.0])
@@ -403,9 +405,10 @@ def choose_grasp(
     tip_O = invert_pose(X_GP)[:3, 3] @ up_O - _finger_box_G(robot)[1]
     area = grip_area_m2(robot, scene, name, X_GP)
     default = Grasp(X_GP, opening, faces, area, float(tip_O - (V @ up_O).min()))
-    if default.grip_area_m2 >= MIN_GRIP_AREA_M2 and not grasp_problem(
+    default_ok = default.grip_area_m2 >= MIN_GRIP_AREA_M2 and not grasp_problem(
         robot, scene, name, X_WO, default, path_X_WO, pressed
-    ):
+    )
+    if default_ok and _side_on(default, pressed):
         return GraspChoice(default)
     candidates = grasp_candidates(robot, scene, name, X_WO[name])
     candidates.sort(
@@ -417,10 +420,21 @@ def choose_grasp(
     )
     rejected: dict[str, str] = {}
     for grasp in candidates:
+        if default_ok:
+            # Pads facing a pressed surface pass it only just above a bar (the program's
+            # deformation may tilt them into it): side-on pads clear of the neighbours are
+            # preferred; else today's grasp, which does the task too.
+            if not _side_on(grasp, pressed):
+                return GraspChoice(default)
+            clear = open_finger_clearance_m(robot, scene, name, X_WO, grasp.X_GP)
+            if clear < GRASP_CLEARANCE_M:
+                continue
         problem = grasp_problem(robot, scene, name, X_WO, grasp, path_X_WO, pressed)
         if not problem:
             return GraspChoice(grasp)
         rejected.setdefault(grasp.faces, problem)
+    if default_ok:
+        return GraspChoice(default)
     for d_O in _closing_directions_O(scene.object(name).model, up_O):
         faces = _faces_words(d_O)
         width = float(np.ptp(V @ d_O))

@@ -70,12 +70,13 @@ def generated_program(
     made into contact moves, checked (:class:`~operator_site.program.ProgramRefusedError`, a
     ValueError, when it cannot be). The parameters default to the session's simulator and the
     generator's defaults."""
+    path = session.path_history()
     return generate_program(
         program_id,
         session.scene,
         session.workpiece,
-        session.path_history(),
-        choose_grasp_yaw(session.start_X_WO, session.X_GP),
+        path,
+        choose_grasp_yaw(session.start_X_WO, session.X_GP, [s.X_WO for s in path]),
         attached_O=session.fingers_O,
         sim_params=sim_params or session.params,
         deform_params=deform_params,

@@ -36,6 +36,9 @@ TRANSIT_CLEARANCE_M = 0.02
 TRANSIT_SAMPLE_M = 0.005
 """The way to the first step is sampled this finely when looking for what it passes over."""
 MAX_TRANSIT_SAMPLES = 2000
+UP_TOL = 0.1
+"""A symmetry keeps the block standing as it does when it turns W's z, seen in the block's
+frame, by less than this (a unit vector's change: about 6°)."""
 WAYPOINT_REACHED_RAD = 1e-3
 """A step that turns the workpiece is held until it is turned this close (rad), as well as moved
 within :data:`WAYPOINT_REACHED_M`."""
@@ -73,10 +76,14 @@ def nearest_symmetry(
     R_WD_first: np.ndarray, R_WO_now: np.ndarray, symmetries: Sequence[np.ndarray]
 ) -> np.ndarray:
     """Of the workpiece's symmetry rotations S (in O; identity when none are given), the one
-    for which ``R_WD_first @ S`` is nearest ``R_WO_now``."""
+    for which ``R_WD_first @ S`` is nearest ``R_WO_now``, among those that keep the block
+    standing on the face it stands on now, if any does (no symmetry tumbles the block)."""
     candidates = list(symmetries) or [np.eye(3)]
+    up_O = R_WO_now[2, :]  # W's z in O, as the block lies now
+    upright = [S for S in candidates if np.linalg.norm((R_WD_first @ S)[2, :] - up_O) < UP_TOL]
     return min(
-        candidates, key=lambda S: float(np.linalg.norm(so3_log(R_WO_now.T @ R_WD_first @ S)))
+        upright or candidates,
+        key=lambda S: float(np.linalg.norm(so3_log(R_WO_now.T @ R_WD_first @ S))),
     )
 
 

@@ -220,3 +220,22 @@ def test_a_grasp_from_below_is_refused() -> None:
     result = check_feasibility(SCENE, "cube", program)
     assert not result.ok and result.check == "grasp" and result.command == 0
     assert "does not hold the cube from above" in result.reason
+
+
+def test_the_grasp_yaw_is_chosen_for_the_whole_way_not_only_the_start() -> None:
+    """A block that lies a little off the best wrist angle and is then turned by a hundred
+    degrees: chosen at the start alone, the grasp ends with the gripper's x along +x of W, at
+    the end of joint 6's range; chosen over the path, it takes the grasp turned half a turn."""
+    X_GP = make_pose(np.diag([-1.0, 1.0, -1.0]))
+
+    def at(yaw_deg: float) -> np.ndarray:
+        return make_pose(rpy_to_R(np.radians([0.0, 0.0, yaw_deg])), (0.45, 0.0, 0.025))
+
+    def x_W(X_WP: np.ndarray, grasp: np.ndarray) -> float:
+        return float((X_WP @ np.linalg.inv(grasp))[0, 0])
+
+    start, path = at(80.0), [at(a) for a in (100.0, 140.0, 180.0)]
+    np.testing.assert_array_equal(choose_grasp_yaw(start, X_GP), X_GP)  # the start alone
+    chosen = choose_grasp_yaw(start, X_GP, path)
+    assert max(x_W(X, chosen) for X in [start, *path]) < 0.2
+    assert x_W(path[-1], X_GP) == pytest.approx(1.0)  # what the start alone would have done

@@ -187,3 +187,29 @@ def test_each_new_block_pushed_against_a_wall_runs_end_to_end(name, yaw_deg) -> 
         np.testing.assert_allclose(world.object_pose(name)[:3, 3], goal[:3, 3], atol=2e-3)
     finally:
         world.close()
+
+
+def test_a_tall_block_pushed_against_the_outside_of_a_bar_is_held_side_on() -> None:
+    """Today's grasp holds the tall block on the faces that end up facing the bar, its fingers
+    2 mm above the bar's top: a grasp that passes only just, and a program's deformed path may
+    tilt the block and the fingers into the bar. The pads side-on to the bar are chosen."""
+    session = TaskSession(SCENE)
+    session.X_WO["tall_block"] = make_pose(np.eye(3), (0.45, -0.19, 0.05))
+    session.select("tall_block")
+    X_WO = dict(session.X_WO)
+    today, _ = clear_top_grasp(ROBOT, SCENE, "tall_block", X_WO)
+    target = session.X_WO["tall_block"].copy()
+    target[:3, 3] = (0.45, -0.141, 0.046)  # into the near bar's outer face and the table
+    session.set_target(target)
+    for _ in range(300):
+        session.step()
+    goal = session.path_history()[-1]
+    frame = [c for c in goal.contacts if c.object == "frame"]
+    assert frame, "the tall block must end against the bar"
+    assert np.max(np.abs(frame[0].normals_W @ _closing_W(goal.X_WO, today))) > PAD_FACING_SIN
+    choice = session.choose_grasp_for_path()
+    assert choice.grasp is not None, choice.reason
+    assert np.max(np.abs(frame[0].normals_W @ _closing_W(goal.X_WO, choice.grasp.X_GP))) <= (
+        PAD_FACING_SIN
+    )
+    assert choice.grasp.tip_height_m >= 0.03  # still clear of the bars

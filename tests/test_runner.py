@@ -56,6 +56,22 @@ def test_the_shipped_task_files_are_the_four_tasks() -> None:
     assert {"cube-corner", "cube-around-corner", "cube-wall", "hex-corner-turned"} <= names
 
 
+def test_the_shipped_library_covers_every_block_and_the_kinds_of_task(scene) -> None:
+    """At least twelve tasks: each of the six blocks the workpiece of one, one on another
+    block, one slid under capture, and two that turn the block a quarter turn or more."""
+    library = [load_task(p) for p in SHIPPED]
+    assert len(library) >= 12
+    assert {t.workpiece for t in library} == {o.name for o in scene.movable}
+    assert any(t.reference in {o.name for o in scene.movable} for t in library)
+    assert any(s.capture for t in library for s in t.steps)
+
+    def yaw_turn_deg(t) -> float:
+        yaws = [math.atan2(s.X_RD[1, 0], s.X_RD[0, 0]) for s in t.steps]
+        return math.degrees(max(abs(math.remainder(a - yaws[0], 2 * math.pi)) for a in yaws))
+
+    assert sum(yaw_turn_deg(t) >= 90.0 - 1e-9 for t in library) >= 2
+
+
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
 def test_a_shipped_task_reaches_its_goal_in_the_simulator(scene, path: Path, seed: int) -> None:
@@ -164,6 +180,26 @@ def test_nearest_symmetry_picks_the_least_turn() -> None:
     S = nearest_symmetry(np.eye(3), now, symmetries)
     np.testing.assert_allclose(S, quarter, atol=1e-12)
     np.testing.assert_allclose(nearest_symmetry(np.eye(3), now, []), np.eye(3))
+
+
+def test_no_symmetry_tumbles_the_wedge(scene) -> None:
+    """The wedge swapped end for end about its sloping face's diagonal is the same shape, and a
+    nearer turn than a half turn about the vertical: the drag must still not tip it over (the
+    robot holds it from above and cannot)."""
+    task = load_task(TASKS_DIR / "wedge-wall.json")
+    X = scene.object("wedge").X_WO
+    R = rpy_to_R(np.radians([0.0, 0.0, 180.0]))
+    model = WorkSiteModel(scene, {"wedge": make_pose(R, X[:3, 3])})
+    symmetries = model.symmetries("wedge")
+    assert len(symmetries) == 2  # identity and the end-for-end swap
+    swap = next(S for S in symmetries if not np.allclose(S, np.eye(3)))
+    R_first = task.steps[0].X_RD[:3, :3]
+    assert _turn_rad(R, R_first @ swap) < _turn_rad(R, R_first)  # the swap is nearer
+    np.testing.assert_allclose(nearest_symmetry(R_first, R, symmetries), np.eye(3), atol=1e-12)
+    demo = drag_task(task, model)
+    up = np.array([0.0, 0.0, 1.0])
+    for X_WD in (*demo.transit_X_WD, *demo.steps_X_WD):
+        np.testing.assert_allclose(X_WD[:3, :3] @ R.T @ up, up, atol=1e-9)
 
 
 def test_the_transit_clears_the_highest_top_on_its_way(scene) -> None:

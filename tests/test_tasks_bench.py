@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import pytest
@@ -47,3 +48,30 @@ def test_a_malformed_task_file_is_refused_before_any_run(tmp_path: Path, capsys)
     assert tasks.main(args) == 2
     assert "bad.json: missing field" in capsys.readouterr().err
     assert not (tmp_path / "out" / "tasks.jsonl").exists()
+
+
+def test_runs_go_seed_by_seed_and_the_summary_is_written_after_each(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """Every task at seed 0, then every task at seed 1: a bench stopped early has as many
+    layouts of each task, and its tasks.json already counts the finished seeds."""
+    files = [tasks.TASKS_DIR / "cube-corner.json", tasks.TASKS_DIR / "cube-wall.json"]
+    out = tmp_path / "out"
+    calls: list[tuple[str, int]] = []
+    seen_runs: list[dict[str, int]] = []
+
+    def fake_run_task(task, seed, **_kwargs) -> dict:
+        if len(calls) == len(files):  # the first seed done: its summary is on disk
+            summary = json.loads((out / "tasks.json").read_text())
+            seen_runs.append({s["file"]: s["runs"] for s in summary})
+        calls.append((task.name, seed))
+        return {"task": task.name, "seed": seed, "success": True, "failure": None,
+                "final_error_mm": 0.1, "final_error_deg": 0.1, "stage_s": {}}  # fmt: skip
+
+    monkeypatch.setattr(tasks, "run_task", fake_run_task)
+    monkeypatch.setattr(tasks, "_plot", lambda *_args: None)
+    summaries = tasks.run(out, 2, files)
+    names = [tasks.load_task(f).name for f in files]
+    assert calls == [(names[0], 0), (names[1], 0), (names[0], 1), (names[1], 1)]
+    assert seen_runs == [{"cube-corner.json": 1, "cube-wall.json": 1}]
+    assert [s["runs"] for s in summaries] == [2, 2]

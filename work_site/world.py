@@ -54,10 +54,11 @@ not infinitely stiff. pybullet's default rigid contact answers a touch with a sp
 1 ms step, which no force guard can catch."""
 ENV_CONTACT_DAMPING_N_S_PER_M = 100.0
 """Damping of those contacts: enough that a touch does not bounce."""
-PAD_CONTACT_STIFFNESS_N_PER_M = 5e4
+PAD_CONTACT_STIFFNESS_N_PER_M = 2e5
 """Contact stiffness of the finger pads (rubber; per contact point, four a pad). Rigid pads
 hold the cube on two diagonally opposite corners, a hinge about which it turns in contact
-moves; compliant, each pad presses on all four corners of its overlap with the cube."""
+moves; compliant, each pad presses on all four corners of its overlap with the cube. Softer
+still, a held block lags the gripper when it turns about the vertical, and the lag stays."""
 PAD_CONTACT_DAMPING_N_S_PER_M = 100.0
 """Damping of the pads' contacts: about critical for the held cube on four such points."""
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from models.transforms import invert_pose, make_pose, rpy_to_R
@@ -17,14 +19,22 @@ PLACE_GUARD_N = 4.0
 _HALF_TURN = make_pose(rpy_to_R(np.array([0.0, 0.0, np.pi])))
 
 
-def choose_grasp_yaw(X_WP: np.ndarray, X_GP: np.ndarray) -> np.ndarray:
+def choose_grasp_yaw(
+    X_WP: np.ndarray, X_GP: np.ndarray, path_X_WP: Sequence[np.ndarray] = ()
+) -> np.ndarray:
     """``X_GP`` or the same grasp turned half a turn about the gripper axis (a parallel gripper
-    holds both alike), whichever points the gripper's x axis more along −x of W: the arm's wrist
-    then stays well inside joint 6's ±3.14 rad."""
+    holds both alike), whichever points the gripper's x axis more along −x of W at the
+    workpiece pose ``X_WP`` and, with ``path_X_WP`` (the poses the workpiece is carried
+    through), at the worst pose of the whole way: the arm's wrist then stays well inside joint
+    6's ±3.14 rad on a path that turns the block."""
     turned = _HALF_TURN @ X_GP
-    x_plain = (X_WP @ invert_pose(X_GP))[0, 0]
-    x_turned = (X_WP @ invert_pose(turned))[0, 0]
-    return X_GP if x_plain <= x_turned else turned
+    poses = [np.asarray(X_WP, dtype=np.float64), *(np.asarray(X) for X in path_X_WP)]
+
+    def worst_x(grasp: np.ndarray) -> float:
+        X_PG = invert_pose(grasp)
+        return max(float((X @ X_PG)[0, 0]) for X in poses)
+
+    return X_GP if worst_x(X_GP) <= worst_x(turned) else turned
 
 
 def _above(X_WP: np.ndarray) -> np.ndarray:
