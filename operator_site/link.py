@@ -152,15 +152,19 @@ class WorkSiteLink:
         self._pub_program = self.session.declare_publisher(
             key(site_id, "program"), priority=zenoh.Priority.INTERACTIVE_HIGH
         )
+        # Stops and beats are never dropped by this side's queue (zenoh's DROP gives a message
+        # up when the queue has not moved within a millisecond, which a loaded machine allows)
+        # and never batched: they wait for room instead, on the caller's thread (the page's
+        # for a stop, the beating thread's own for a beat), and go at once.
+        block = zenoh.CongestionControl.BLOCK
         self._pub_stop = self.session.declare_publisher(
-            key(site_id, "stop"), priority=zenoh.Priority.REAL_TIME
-        )
-        # Beats must never wait behind camera frames, nor ever block the beating thread.
+            key(site_id, "stop"), priority=zenoh.Priority.REAL_TIME, congestion_control=block,
+            express=True,
+        )  # fmt: skip
         self._pub_heartbeat = self.session.declare_publisher(
-            key(site_id, "heartbeat"),
-            priority=zenoh.Priority.REAL_TIME,
-            congestion_control=zenoh.CongestionControl.DROP,
-        )
+            key(site_id, "heartbeat"), priority=zenoh.Priority.REAL_TIME,
+            congestion_control=block, express=True,
+        )  # fmt: skip
         self._heartbeat_seq = 0
         self.status = LinkStatus()
         self.robot_state: RobotState | None = None

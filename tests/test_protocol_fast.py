@@ -41,6 +41,7 @@ ALL_TYPES = tuple(MESSAGE_TYPES.values())
 SEQ = ("int", 0, 2**63)
 NON_NEGATIVE = ("float", 0.0)
 NAME = ("str", 256, r"[A-Za-z0-9_.-]+")
+NAME_OR_NONE = ("str", 256, r"(?:[A-Za-z0-9_.-]+)?")
 TEXT = ("str", 4096, None)
 POSE = ("array", ((4, 4), (4, 4)), "pose")
 VECTOR6 = ("array", ((6, 6),), None)
@@ -86,6 +87,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, ...]]] = {
         "program_id": NAME,
         "X_GP": POSE,
         "commands": ("records", "MotionCommand", 1, 1000),
+        "operator": NAME_OR_NONE,
     },
     "ExecutionReport": {
         "program_id": NAME,
@@ -105,6 +107,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, ...]]] = {
         "role": ("choice", ("work_site", "operator_site")),
         "seq": SEQ,
         "stamp_s": NON_NEGATIVE,
+        "operator": NAME_OR_NONE,
     },
     "ObjectPose": {"name": NAME, "X_WO": POSE},
     "TruthPoses": {
@@ -229,7 +232,7 @@ def ref_decode(payload: bytes) -> tuple[str, dict[str, Any]]:
     except Exception:
         raise RefusedError from None
     need(isinstance(env, dict) and sorted(env) == ["b", "t", "v"])
-    need(type(env["v"]) is int and env["v"] == 3)
+    need(type(env["v"]) is int and env["v"] == 4)
     need(isinstance(env["t"], str) and env["t"] in TAGS)
     name = TAGS[env["t"]]
     return name, ref_wire_record(name, env["b"])
