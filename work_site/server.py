@@ -510,6 +510,7 @@ class WorkSiteServer(ProgramIntake):
         stalled_s = now - self._deadman_checked_s
         stalled = stalled_s > DEADMAN_STALL_S
         self._deadman_checked_s = now
+        inbox_heartbeat.pull()  # every iteration: the lease hears its holder while idle too
         execution = self._execution
         if execution is None or execution.finished:
             return
@@ -518,8 +519,8 @@ class WorkSiteServer(ProgramIntake):
         operator = execution.program.operator
         heard_s = self._lease.last_heard_s(operator) if operator else inbox_heartbeat.last_s
         last_s = max(heard_s or 0.0, self._execution_started_s)
-        # After a stall of this process, beats that came meanwhile may still wait for their
-        # callback: judge at the next iteration (unless silence is long past doubt).
+        # After a stall of this process, beats that came meanwhile may still be in the socket's
+        # buffers: judge at the next iteration (unless silence is long past doubt).
         silent_s = now - last_s
         deadman_s = self.options.deadman_s
         if silent_s > deadman_s and (not stalled or silent_s > 2 * deadman_s):
