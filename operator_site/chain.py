@@ -10,6 +10,7 @@ the judging.
 from __future__ import annotations
 
 import math
+import os
 import re
 import signal
 import subprocess
@@ -232,10 +233,12 @@ def run_chain(
     out: dict = {"task": task.label, "seed": seed, "success": False, "failure": None}
     out["stage_s"] = stage_s
     proc = None
-    site_id = site_id or (f"e2e-{seed}" if connect is None else "site1")
+    # The started work site's id names this process too: two runs of one seed on one machine
+    # (two benchmarks at once) must not hear each other's ground truth, nor share a log.
+    site_id = site_id or (f"e2e-{seed}-{os.getpid()}" if connect is None else "site1")
     if connect is None:
         connect = f"tcp/127.0.0.1:{free_port_pair()}"
-        log_path = Path(tempfile.gettempdir()) / f"telerobot-e2e-{seed}-work-site.log"
+        log_path = Path(tempfile.gettempdir()) / f"telerobot-{site_id}-work-site.log"
         seed_args = ("--seed", str(seed)) if seeded_layout else ()
         proc = _start_work_site(
             site_id, connect, log_path, time_scale, (*seed_args, *work_site_args)
