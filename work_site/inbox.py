@@ -69,8 +69,8 @@ class ValidatedInbox:
     whenever one is queued, so that the control loop can act before its next period.
 
     With ``ring`` > 0 the samples wait in zenoh's own ring of that size, with no Python callback,
-    until :meth:`pull` checks them: on a loaded machine a callback waits for the interpreter,
-    and heartbeats were seen arriving 0.3-0.6 s late that way."""
+    until :meth:`pull` checks them: their arrival never waits for the interpreter, which a busy
+    control loop holds."""
 
     def __init__(
         self,
