@@ -239,6 +239,9 @@ def run_chain(
     if connect is None:
         connect = f"tcp/127.0.0.1:{free_port_pair()}"
         log_path = Path(tempfile.gettempdir()) / f"telerobot-{site_id}-work-site.log"
+        # Its journal beside its log: a run's own, not one more file in the user's state.
+        journal = log_path.with_name(f"telerobot-{site_id}-programs.jsonl")
+        work_site_args = ("--journal", str(journal), *work_site_args)
         seed_args = ("--seed", str(seed)) if seeded_layout else ()
         proc = _start_work_site(
             site_id, connect, log_path, time_scale, (*seed_args, *work_site_args)
