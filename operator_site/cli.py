@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import signal
 import socket
 import subprocess
@@ -23,6 +24,7 @@ from models.errors import ModelError
 from models.scene import DEFAULT_SCENE, load_scene
 from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError, make_config
 from protocol.keys import check_site_id
+from protocol.messages import NAME_PATTERN
 from protocol.session import TlsFiles, link_endpoints
 
 WORK_SITE_STOP_TIMEOUT_S = 10.0
@@ -186,6 +188,13 @@ def build_parser() -> argparse.ArgumentParser:
     recover.add_argument(
         "--cert-name", default="operator", metavar="NAME", help="as for serve (default: operator)"
     )
+    recover.add_argument(
+        "--operator-id",
+        default=None,
+        metavar="ID",
+        help="act as this operator: the id a page that holds the robot shows on its status "
+        "line (default: this process's own, which another operator's lease refuses)",
+    )
     recover.add_argument("-v", "--verbose", action="store_true", help="log more")
     run = sub.add_parser(
         "run",
@@ -316,12 +325,16 @@ def recover(args: argparse.Namespace) -> int:
 
     try:
         check_site_id(args.site_id)
+        if args.operator_id is not None and not re.fullmatch(NAME_PATTERN, args.operator_id):
+            raise ValueError(
+                f"--operator-id must be letters, digits and _.- only, got {args.operator_id!r}"
+            )
         scene = load_scene(args.scene)
         config, connect, _ = _link_config(args)
     except (ModelError, ProtocolError, ValueError) as e:
         print(f"operator-site: {e}", file=sys.stderr)
         return 2
-    link = WorkSiteLink(config, args.site_id)
+    link = WorkSiteLink(config, args.site_id, args.operator_id)
     try:
         deadline = time.monotonic() + RECOVER_STATE_TIMEOUT_S
         while link.robot_state is None and time.monotonic() < deadline:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import getpass
+import itertools
 import logging
 import math
 import os
@@ -61,15 +62,19 @@ often, so that the lease stays its own while its page is open (``work_site/lease
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
 
 
+_LINKS = itertools.count(1)
+
+
 def default_operator_id() -> str:
-    """This operator site's id for the control lease: the user and the host, so that one
-    person's page and command line (``operator-site recover``) on one machine are one
-    operator to the work site."""
+    """A new link's id for the control lease and the dead-man: user, host, process and link.
+    One per link, because the work site's dead-man hears a program's operator by its beats:
+    another link of the same user beating for its lease must not keep a dead one's program
+    going. ``operator-site recover --operator-id`` acts as a page's id."""
     try:
         user = getpass.getuser()
     except (KeyError, OSError):  # no user name to be had (a container without one)
         user = str(os.getuid())
-    words = f"{user}.{socket.gethostname()}"
+    words = f"{user}.{socket.gethostname()}.{os.getpid()}.{next(_LINKS)}"
     return re.sub(r"[^A-Za-z0-9_.-]+", "-", words).strip("-.")[:128] or "operator"
 
 

@@ -29,10 +29,11 @@ PRESSED_N = 2.0
 """Failed in the corner, the hand is pressed sideways at least this hard (N)."""
 
 
-def _recover(ws, action: str) -> subprocess.CompletedProcess:
+def _recover(ws, action: str, operator_id: str) -> subprocess.CompletedProcess:
+    """``operator-site recover`` acting as the operator that holds the robot (a page's id)."""
     return subprocess.run(
         [sys.executable, "-m", "operator_site", "recover", action, "--connect", ws.endpoint,
-         "--single-link", "--site-id", ws.site_id],
+         "--single-link", "--site-id", ws.site_id, "--operator-id", operator_id],
         capture_output=True, text=True, timeout=180, cwd=REPO,
     )  # fmt: skip
 
@@ -81,14 +82,14 @@ def test_after_a_failure_in_contact_the_arm_backs_off_releases_and_parks(work_si
 
         pressed_n = sideways_n()
         assert pressed_n >= PRESSED_N, pressed_n  # the stuck state: pressing into the corner
-        out = _recover(ws, "retract")
+        out = _recover(ws, "retract", link.operator_id)
         assert out.returncode == 0, (out.stdout, out.stderr, ws.log()[-3000:])
         assert "retract: sent as retract-" in out.stdout and ": done" in out.stdout
         assert sideways_n() < FREE_N, pressed_n
-        out = _recover(ws, "release")
+        out = _recover(ws, "release", link.operator_id)
         assert out.returncode == 0, (out.stdout, out.stderr)
         assert wait_until(lambda: (link.poll(), link.robot_state.gripper_opening_m > 0.06)[1], 5)
-        out = _recover(ws, "home")
+        out = _recover(ws, "home", link.operator_id)
         assert out.returncode == 0, (out.stdout, out.stderr)
         state = link.robot_state
         assert wait_until(lambda: (link.poll(), link.robot_state.seq > state.seq + 5)[1], 5)

@@ -35,7 +35,7 @@ def control_words(status: LinkStatus, operator_id: str) -> str:
     if not status.holder:
         return "control: free (the next program sent takes it)"
     if status.holder == operator_id:
-        return "control: **you**"
+        return f"control: **you** (operator {plain(operator_id)})"
     return (
         f"control: operator **{plain(status.holder)}**; you watch (STOP still acts) until "
         "it lets go"
