@@ -49,7 +49,8 @@ def check_deadman_stop(
     delay_s = stopped.stamp_s - silent_s
     assert delay_s > 0, delay_s  # not while the operator beat
     silences_s = [float(x) for x in re.findall(r"dead-man: ([0-9.]+) s without", ws.log())]
-    assert len(silences_s) == 1 and silences_s[0] > DEADMAN_S, silences_s
+    # The log rounds the silence to the millisecond: a stop just past the timeout reads as it.
+    assert len(silences_s) == 1 and silences_s[0] >= DEADMAN_S, silences_s
     assert observer.motion_after(stopped.stamp_s + still_after_s) <= STILL_RAD
     return delay_s
 
