@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.robot import FLANGE_LINK, TCP_LINK, RobotModel
-from models.transforms import invert_pose
+from models.transforms import invert_pose, make_pose, so3_exp, so3_log
 
 STRUCTURE_TOL_M = 1e-9
 """Offsets the closed form assumes to be zero must be below this (m)."""
@@ -37,6 +37,16 @@ ELBOW_LIMIT_TOL_RAD = 3e-7
 where a rounding error δ of the cosine (~1e-15) becomes √(2δ) ≈ 5e-8 rad of q3, and q2 follows."""
 REACH_TOL_M = 1e-9
 """A wrist centre this much beyond reach is still taken as reachable (rounding)."""
+PATH_SAMPLE_M = 0.005
+"""A straight TCP move is followed in steps no longer than this (m) ..."""
+PATH_SAMPLE_RAD = math.radians(2.0)
+"""... and turning no more than this (rad)."""
+BRANCH_JUMP_RAD = 0.5
+"""Between path samples this close, a joint that turns more than this (rad) has left its
+continuous solution for another IK branch (the arm would swing through space); away from the
+singularities a continuous path turns every joint by a few hundredths of this."""
+MAX_PATH_SAMPLES = 4000
+"""At most this many samples per move: the workspace's diagonal and a half turn need fewer."""
 _AXES = ((0, 0, 1), (0, 1, 0), (0, 1, 0), (0, 0, 1), (0, 1, 0), (0, 0, 1))
 
 
@@ -258,3 +268,61 @@ def geometric_jacobian_W(
         J[:3, i] = np.cross(z, p_F - X_WJ[:3, 3])
         J[3:, i] = z
     return J
+
+
+@dataclass(frozen=True)
+class PathFollow:
+    """How the arm follows a straight TCP move: ``ok`` with the joints at its end ``q`` (rad)
+    and the smallest distance to a joint limit on the way ``margin_rad``; else the ``reason``."""
+
+    ok: bool
+    q: np.ndarray | None
+    margin_rad: float = math.inf
+    reason: str = ""
+
+
+def follow_line_tcp(
+    X_WG_from: np.ndarray,
+    X_WG_to: np.ndarray,
+    q_from: np.ndarray,
+    robot: RobotModel,
+    X_WB: np.ndarray | None = None,
+    geometry: ArmGeometry | None = None,
+) -> PathFollow:
+    """Follow the straight TCP move from ``X_WG_from`` (where the arm is, at ``q_from``) to
+    ``X_WG_to`` as the work site does: a straight line in position and the shortest arc in
+    orientation, the nearest IK solution at each sample (:data:`PATH_SAMPLE_M`,
+    :data:`PATH_SAMPLE_RAD` apart). Fails where a sample is out of reach or the joints jump to
+    another branch (:data:`BRANCH_JUMP_RAD`): checking only the move's end misses both."""
+    g = geometry or arm_geometry(robot)
+    p0, p1 = X_WG_from[:3, 3], X_WG_to[:3, 3]
+    R0 = X_WG_from[:3, :3]
+    w = so3_log(R0.T @ X_WG_to[:3, :3])
+    n = math.ceil(
+        max(np.linalg.norm(p1 - p0) / PATH_SAMPLE_M, np.linalg.norm(w) / PATH_SAMPLE_RAD, 1.0)
+    )
+    if n > MAX_PATH_SAMPLES:
+        return PathFollow(False, None, reason=f"a move {np.linalg.norm(p1 - p0):.2f} m long")
+    q = np.asarray(q_from, dtype=np.float64)
+    lo, hi = robot.q_lower, robot.q_upper
+    margin = float(np.min(np.minimum(q - lo, hi - q)))
+    for i in range(1, n + 1):
+        s = i / n
+        X = make_pose(R0 @ so3_exp(s * w), p0 + s * (p1 - p0))
+        result = ik_tcp(X, q, robot, X_WB, g)
+        where = f"{s * 100:.0f} % of the way to {np.round(p1, 3).tolist()} m"
+        if not result.ok:
+            return PathFollow(False, None, margin, f"{where}: {result.reason}")
+        jump = np.abs(result.q - q)
+        j = int(np.argmax(jump))
+        if jump[j] > BRANCH_JUMP_RAD:
+            return PathFollow(
+                False,
+                None,
+                margin,
+                f"{where}: {robot.arm_joints[j]} would swing {jump[j]:.2f} rad at once to "
+                "another arm configuration (a joint at its limit)",
+            )
+        q = result.q
+        margin = min(margin, float(np.min(np.minimum(q - lo, hi - q))))
+    return PathFollow(True, q, margin)

@@ -22,8 +22,9 @@ MAX_REACH_XY_M = 0.58
 """No block centre further than this from the robot's base axis (m): the wrist keeps ≥ 20 mm
 of reach in hand for grasps from above (the arm reaches 0.635 m from the shoulder)."""
 MIN_REACH_XY_M = 0.21
-"""No block centre nearer than this to the robot's base axis (m): nearer, a grasp from above
-folds the elbow past joint 3's limit (tests/test_control_kinematics.py checks seeded layouts)."""
+"""No part of a block nearer than this to the robot's base axis (m): nearer, a grasp from above
+folds the elbow past joint 3's limit, and a block may be set anywhere on another
+(tests/test_control_kinematics.py checks seeded layouts)."""
 CLEARANCE_M = 0.012
 """Blocks start at least this far apart (between their bounding circles), room for fingers."""
 MAX_TRIES = 2000
@@ -50,7 +51,7 @@ def random_layout(scene: Scene, seed: int) -> dict[str, np.ndarray]:
             outside = np.maximum([fx0 - xy[0], fy0 - xy[1]], [xy[0] - fx1, xy[1] - fy1])
             if np.linalg.norm(np.maximum(outside, 0.0)) < r + LANE_M:
                 continue
-            if not MIN_REACH_XY_M <= np.linalg.norm(xy) <= MAX_REACH_XY_M:
+            if not MIN_REACH_XY_M + r <= np.linalg.norm(xy) <= MAX_REACH_XY_M:
                 continue
             if any(np.linalg.norm(xy - c) < r + rc + CLEARANCE_M for c, rc in placed.values()):
                 continue

@@ -76,7 +76,12 @@ def generated_program(
         session.scene,
         session.workpiece,
         path,
-        choose_grasp_yaw(session.start_X_WO, session.X_GP, [s.X_WO for s in path]),
+        choose_grasp_yaw(
+            session.start_X_WO,
+            session.X_GP,
+            [s.X_WO for s in path],
+            (session.robot, session.scene.robot.X_WB, session.scene.robot.q_home_rad),
+        ),
         attached_O=session.fingers_O,
         sim_params=sim_params or session.params,
         deform_params=deform_params,

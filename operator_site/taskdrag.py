@@ -19,10 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.transforms import make_pose, so3_log
+from models.transforms import make_pose, so3_exp, so3_log
 from operator_site.failures import RunError
 from operator_site.grasp import Grasp, choose_grasp, grasp_problem, pressed_contacts
 from operator_site.model_editor import WorkSiteModel
+from operator_site.program.pick_place import HALF_TURN, carried_arm_path
 from operator_site.simulator.world import SimWorld
 from operator_site.task import TaskSession
 from operator_site.taskfile import Task
@@ -112,17 +113,31 @@ def transit_height_m(world: SimWorld, X_WO_start: np.ndarray, X_WD_first: np.nda
 
 
 def transit_waypoints(
-    world: SimWorld, X_WO_start: np.ndarray, X_WD_first: np.ndarray
+    world: SimWorld, X_WO_start: np.ndarray, X_WD_first: np.ndarray, long_way: bool = False
 ) -> list[np.ndarray]:
     """The dragger targets before the first step: straight up to :func:`transit_height_m`,
     across to above the first step turning to its orientation on the way; the first step
-    itself (lowering onto it) is the task's."""
+    itself (lowering onto it) is the task's. The turn is the shorter one, or with ``long_way``
+    the other way round the same axis, in targets a quarter turn apart at most (the simulator
+    turns the block the short way to each)."""
     z = transit_height_m(world, X_WO_start, X_WD_first)
     up = X_WO_start.copy()
     up[2, 3] = z
     above = X_WD_first.copy()
     above[2, 3] = z
-    return [up, above]
+    w = so3_log(up[:3, :3].T @ above[:3, :3])
+    angle = float(np.linalg.norm(w))
+    if not long_way or angle < WAYPOINT_REACHED_RAD:
+        return [up, above]
+    w_long = -w / angle * (2 * math.pi - angle)
+    n = math.ceil((2 * math.pi - angle) / (math.pi / 2))
+    between = [
+        make_pose(
+            up[:3, :3] @ so3_exp(w_long * i / n), up[:3, 3] + (above[:3, 3] - up[:3, 3]) * i / n
+        )
+        for i in range(1, n)
+    ]
+    return [up, *between, above]
 
 
 def already_there(X_WO: np.ndarray, X_WD: np.ndarray) -> bool:
@@ -153,10 +168,11 @@ def goal_on_reference_W(task: Task, X_WR: np.ndarray, S_O: np.ndarray) -> np.nda
 
 
 def _play(
-    task: Task, model: WorkSiteModel, grasp: Grasp | None, fingers: bool
+    task: Task, model: WorkSiteModel, grasp: Grasp | None, fingers: bool, long_way: bool = False
 ) -> TaskDemonstration:
     """One drag of ``task`` in a new task session, the workpiece held in ``grasp`` (or the
-    block alone, ``fingers=False``)."""
+    block alone, ``fingers=False``), turned on the way to the first step the shorter way round
+    (or the other, ``long_way``)."""
     session = TaskSession(model.scene())
     try:
         session.select(task.workpiece, grasp=grasp, fingers=fingers)
@@ -167,7 +183,7 @@ def _play(
     transit = (
         []
         if already_there(X_start, steps[0])
-        else transit_waypoints(session.sim.world, X_start, steps[0])
+        else transit_waypoints(session.sim.world, X_start, steps[0], long_way)
     )
     drag(session, transit, reached_rad=WAYPOINT_REACHED_RAD)
     captured, lengths = [], []
@@ -218,6 +234,12 @@ def drag_task(task: Task, model: WorkSiteModel) -> TaskDemonstration:
     if choice.grasp is None:
         raise RunError("no_grasp", choice.reason)
     demo = _play(task, model, grasp=choice.grasp, fingers=True)
+    if demo.transit_X_WD and not arm_can_carry(demo.session):
+        # The wrist's joint limits may allow the turn to the first step only the other way
+        # round (the arm's base turns too as the block is carried across).
+        other = _play(task, model, grasp=choice.grasp, fingers=True, long_way=True)
+        if arm_can_carry(other.session):
+            demo = other
     # Held, the block may take another path (the fingers meet what the block alone passed).
     X_WO, path_X_WO, pressed = _path_of(demo.session)
     problem = grasp_problem(
@@ -226,6 +248,18 @@ def drag_task(task: Task, model: WorkSiteModel) -> TaskDemonstration:
     if problem:
         raise RunError("no_grasp", f"no grasp of the {task.workpiece} can do this task: {problem}")
     return demo
+
+
+def arm_can_carry(session: TaskSession) -> bool:
+    """Whether the robot's arm, from its home, can take the workpiece of ``session`` where it
+    started and carry it along the dragged path in the session's grasp or the same grasp
+    turned half a turn (:func:`~operator_site.program.pick_place.carried_arm_path`)."""
+    path = [step.X_WO for step in session.path_history()]
+    arm = (session.robot, session.scene.robot.X_WB, session.scene.robot.q_home_rad)
+    return any(
+        carried_arm_path(*arm, session.start_X_WO, X_GP, path).ok
+        for X_GP in (session.X_GP, HALF_TURN @ session.X_GP)
+    )
 
 
 def drag(session: TaskSession, waypoints: list[np.ndarray], reached_rad: float = math.inf) -> None:

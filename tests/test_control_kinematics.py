@@ -15,7 +15,9 @@ from models.scene import load_scene
 from models.transforms import make_pose, rpy_to_R
 from tests.conftest import examples
 from work_site.control.kinematics import (
+    BRANCH_JUMP_RAD,
     arm_geometry,
+    follow_line_tcp,
     geometric_jacobian_W,
     ik_flange,
     ik_nearest,
@@ -223,3 +225,51 @@ def test_every_block_of_a_seeded_layout_can_be_grasped_from_above() -> None:
                 X[2, 3] += lift_m
                 result = ik_tcp(X, np.asarray(HOME_Q), robot)
                 assert result.ok, (seed, name, lift_m, result.reason)
+
+
+def _dense_line_ok(X_from, X_to, q, n: int) -> bool:
+    """Brute force: the nearest IK solution at ``n`` samples, every step continuous."""
+    from models.transforms import so3_exp, so3_log
+
+    w = so3_log(X_from[:3, :3].T @ X_to[:3, :3])
+    for i in range(1, n + 1):
+        s = i / n
+        X = make_pose(X_from[:3, :3] @ so3_exp(s * w), X_from[:3, 3] + s * (X_to - X_from)[:3, 3])
+        result = ik_tcp(X, q, ROBOT)
+        if not result.ok or np.max(np.abs(result.q - q)) > BRANCH_JUMP_RAD:
+            return False
+        q = result.q
+    return True
+
+
+def test_a_line_whose_ends_are_reachable_is_followed_only_if_its_middle_is() -> None:
+    """Straight down beside the base the elbow folds past its limit half way, though both ends
+    are reachable; along the table to the same pose it does not. A dense brute-force sampling
+    agrees with the follower in both cases."""
+    home = ROBOT.tcp_pose_W(np.asarray(HOME_Q))
+    near = home.copy()
+    near[:3, 3] = (0.19, 0.0, 0.06)
+    beside = near.copy()
+    beside[0, 3] = 0.25
+    assert ik_tcp(near, np.asarray(HOME_Q), ROBOT).ok
+    down = follow_line_tcp(home, near, np.asarray(HOME_Q), ROBOT)
+    assert not down.ok and "joint_3" in down.reason and "of the way" in down.reason
+    assert not _dense_line_ok(home, near, np.asarray(HOME_Q), 2000)
+    to_beside = follow_line_tcp(home, beside, np.asarray(HOME_Q), ROBOT)
+    along = follow_line_tcp(beside, near, to_beside.q, ROBOT)
+    assert to_beside.ok and along.ok and along.margin_rad > 0.0
+    assert _dense_line_ok(beside, near, to_beside.q, 2000)
+    np.testing.assert_allclose(ROBOT.tcp_pose_W(along.q), near, atol=POSE_TOL)
+
+
+def test_a_turn_past_the_wrist_limit_is_a_swing_not_a_move() -> None:
+    """Turning the gripper on the spot from joint 6 near +3.0 rad a further 0.4 rad: the nearest
+    solution inside the limits is a whole turn back, which the follower refuses by name."""
+    q = np.array([0.0, 0.3, 1.8, 0.0, 0.6, 3.0])
+    X = ROBOT.tcp_pose_W(q)
+    turned = X @ make_pose(rpy_to_R(np.array([0.0, 0.0, 0.4])))
+    back = X @ make_pose(rpy_to_R(np.array([0.0, 0.0, -0.4])))
+    result = follow_line_tcp(X, turned, q, ROBOT)
+    assert not result.ok and "joint_6 would swing" in result.reason
+    other_way = follow_line_tcp(X, back, q, ROBOT)
+    assert other_way.ok and abs(other_way.q[5] - 3.0) == pytest.approx(0.4, abs=1e-6)

@@ -172,7 +172,12 @@ def test_each_unsafe_program_is_refused_with_its_reason_before_motion(site) -> N
         # its limit): refused here, not on the way down.
         "outside joint limits": program(cmd("guarded_grasp", near)),
     }
-    assert program_refusal(program(cmd("move", near)), controller) == ""
+    # The pose itself is reachable along the table; straight down from home the line passes
+    # where the elbow folds past its limit.
+    beside = near.copy()
+    beside[0, 3] = 0.25
+    assert program_refusal(program(cmd("move", beside), cmd("move", near)), controller) == ""
+    assert "on the way" in program_refusal(program(cmd("move", near)), controller)
     # NaN never gets this far: the message refuses it (tests/test_protocol_*).
     with pytest.raises(ProtocolError, match="finite"):
         cmd("move", np.full((4, 4), math.nan))

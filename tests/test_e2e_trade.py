@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 
 from bench import trade as e2e_trade
@@ -30,7 +32,8 @@ def test_a_knob_value_reaches_the_program_generator(monkeypatch) -> None:
         return _Generated()
 
     class _Session:
-        scene = workpiece = X_GP = start_X_WO = X_WO = None
+        scene = SimpleNamespace(robot=SimpleNamespace(X_WB=None, q_home_rad=None))
+        robot = workpiece = X_GP = start_X_WO = X_WO = None
         fingers_O = ()
         params = "session params"
 

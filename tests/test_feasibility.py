@@ -120,7 +120,7 @@ def test_a_program_needing_an_unreachable_pose_is_refused() -> None:
     result = check_feasibility(SCENE, "cube", program)
     assert not result.ok and result.check == "reach"
     assert result.command == 2  # the carry over to the far pose
-    assert "the arm cannot reach" in result.reason and "unreachable" in result.reason
+    assert "the arm cannot move the gripper" in result.reason and "unreachable" in result.reason
 
 
 def test_a_program_outside_the_workspace_is_refused() -> None:

@@ -417,3 +417,18 @@ def test_a_workpiece_out_of_the_task_is_reported_not_a_crash(tmp_path, where, ki
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert proc.returncode == 1 and not result["success"], (result, proc.stderr[-2000:])
     assert result["failure"]["kind"] == kind and result["failure"]["message"], result["failure"]
+
+
+def test_a_turn_the_wrist_allows_only_the_long_way_round_still_makes_a_program(scene) -> None:
+    """On this layout the L-block must turn so far on its way to the corner that, turned the
+    short way round, joint 6 passes its limit with either grasp: the drag turns it the other way,
+    and the program made from it is one the robot can follow (refused otherwise)."""
+    from operator_site.session import generated_program
+    from operator_site.taskdrag import arm_can_carry
+
+    task = load_task(TASKS_DIR / "l-block-corner.json")
+    demo = drag_task(task, _layout_model(scene, 2))
+    assert len(demo.transit_X_WD) > 2  # up, turned on the way in quarter turns, above
+    assert arm_can_carry(demo.session)
+    program = generated_program(demo.session, "long-way").program
+    assert program.commands[0].kind == "guarded_grasp"

@@ -11,21 +11,23 @@ Three questions, each answered with the work site's own rules:
   gripper opens, enough of the pads on the block, no finger on the way down or along the path
   into anything, none between the workpiece and a surface it presses
   (:func:`operator_site.grasp.grasp_problem`);
-- every gripper pose the program's motions aim at must be in the work site's workspace box and
-  reachable within the joint limits, by the same closed-form IK the work site's acceptance check
-  uses (:mod:`models.kinematics`), followed command after command from the arm's home.
+- every gripper pose the program's motions aim at must be in the work site's workspace box, and
+  every straight move to one followed within the joint limits without a swing to another arm
+  configuration, by the same closed-form IK the work site's acceptance check uses
+  (:func:`models.kinematics.follow_line_tcp`), move after move from the arm's home.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import nnls
 
 from models.geometry import ConvexPart
-from models.kinematics import arm_geometry, ik_tcp
+from models.kinematics import arm_geometry, follow_line_tcp
 from models.robot import RobotModel, load_robot
 from models.scene import Scene
 from models.transforms import invert_pose
@@ -266,11 +268,12 @@ def reach_feasibility(
     q_start: np.ndarray,
     X_WB: np.ndarray | None = None,
 ) -> Feasibility:
-    """Refuse a program with a gripper target outside the work site's workspace box or out of
-    the arm's reach within its joint limits, followed from ``q_start`` (rad) target after
-    target as the work site's acceptance check does."""
+    """Refuse a program with a gripper target outside the work site's workspace box, or a move
+    the arm cannot follow within its joint limits without swinging to another configuration,
+    followed from ``q_start`` (rad) move after move as the work site's acceptance check does."""
     geometry = arm_geometry(robot)
     q = np.asarray(q_start, dtype=np.float64)
+    X_WG_here = robot.tcp_pose_W(q, X_WB)
     for k, cmd in enumerate(program.commands):
         X_WG_cmd = np.asarray(cmd.X_WP) @ invert_pose(np.asarray(program.X_GP))
         p = X_WG_cmd[:3, 3]
@@ -283,17 +286,55 @@ def reach_feasibility(
                 "reach",
             )
         for X_WG in gripper_targets_W(program, k):
-            result = ik_tcp(X_WG, q, robot, X_WB, geometry)
+            result = follow_line_tcp(X_WG_here, X_WG, q, robot, X_WB, geometry)
             if not result.ok:
                 return Feasibility(
                     False,
-                    f"{_where(k, cmd)}: the arm cannot reach the gripper pose at "
+                    f"{_where(k, cmd)}: the arm cannot move the gripper to "
                     f"{np.round(X_WG[:3, 3], 3).tolist()} m ({result.reason})",
                     k,
                     "reach",
                 )
-            q = result.q
+            q, X_WG_here = result.q, X_WG
     return Feasibility(True)
+
+
+PARK_JOINT_STEP_RAD = math.pi / 4
+"""Parking through joint space, the gripper's waypoints are at most this far apart in every
+joint (rad): each straight move between them then stays on the arm's configuration."""
+
+
+def parked_through_joints(
+    robot: RobotModel, program: MotionProgram, q_start: np.ndarray, X_WB: np.ndarray | None
+) -> MotionProgram:
+    """``program``, or, when its last move (the park at the arm's home) cannot be followed as
+    one straight move (the shortest turn of the gripper would take the wrist past a limit),
+    the same program parking through waypoints on the straight line in joint space from where
+    the arm is to its home ``q_start``. Unchanged when an earlier move cannot be followed:
+    :func:`reach_feasibility` says why."""
+    commands = program.commands
+    if len(commands) < 2 or commands[-1].kind != "move":
+        return program
+    geometry = arm_geometry(robot)
+    q = np.asarray(q_start, dtype=np.float64)
+    here = robot.tcp_pose_W(q, X_WB)
+    for k in range(len(commands) - 1):
+        for X_WG in gripper_targets_W(program, k):
+            result = follow_line_tcp(here, X_WG, q, robot, X_WB, geometry)
+            if not result.ok:
+                return program
+            q, here = result.q, X_WG
+    park = commands[-1]
+    X_GP = np.asarray(program.X_GP)
+    q_home = np.asarray(q_start, dtype=np.float64)
+    if follow_line_tcp(here, park.X_WP @ invert_pose(X_GP), q, robot, X_WB, geometry).ok:
+        return program
+    n = max(1, math.ceil(float(np.max(np.abs(q_home - q))) / PARK_JOINT_STEP_RAD))
+    waypoints = [
+        replace(park, X_WP=robot.tcp_pose_W(q + (q_home - q) * i / n, X_WB) @ X_GP)
+        for i in range(1, n + 1)
+    ]
+    return replace(program, commands=(*commands[:-1], *waypoints))
 
 
 def check_feasibility(

@@ -8,11 +8,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from models.geometry import ConvexPart
+from models.robot import load_robot
 from models.scene import Scene
 from operator_site.program.check import CheckResult, Sweeper
 from operator_site.program.commands import CommandParams, build_program, park_pose_W
 from operator_site.program.deform import Deformer, DeformParams, DeformResult
-from operator_site.program.feasibility import Feasibility, check_feasibility
+from operator_site.program.feasibility import (
+    Feasibility,
+    check_feasibility,
+    parked_through_joints,
+)
 from operator_site.program.path import WorkpiecePath, path_from_history
 from operator_site.simulator import SimParams, StepResult
 from protocol import MotionProgram
@@ -79,19 +84,27 @@ def generate_program(
     raw = path_from_history(history, workpiece, c_O)
     deform_params = deform_params or DeformParams()
     sweeper = Sweeper(scene, workpiece, sim_params, attached_O, X_WO=X_WO)
+    robot = load_robot(scene.robot.urdf_path)
     say(0.15, "deforming the path")
     while True:
         deformer = Deformer(scene, workpiece, deform_params, sim_params, attached_O, X_WO)
         deformed = deformer.deform(raw)
         say(0.55, "fitting robot moves")
-        program = build_program(
-            program_id, deformed.path, X_GP, command_params, sweeper, park_pose_W(scene)
+        program = parked_through_joints(
+            robot,
+            build_program(
+                program_id, deformed.path, X_GP, command_params, sweeper, park_pose_W(scene)
+            ),
+            scene.robot.q_home_rad,
+            scene.robot.X_WB,
         )
         say(0.85, "checking every move for collisions")
         check = sweeper.program(program)
         if check.ok:
             if feasible:  # quick (tens of ms): no progress stage of its own
-                verdict = check_feasibility(scene, workpiece, program, attached_O, X_WO)
+                verdict = check_feasibility(
+                    scene, workpiece, program, attached_O, X_WO, robot=robot
+                )
                 if not verdict.ok:
                     raise ProgramInfeasibleError(verdict, check)
             return Generated(program, raw, deformed, check)

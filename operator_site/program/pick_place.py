@@ -6,8 +6,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from models.kinematics import PathFollow, arm_geometry, follow_line_tcp
+from models.robot import RobotModel
 from models.transforms import invert_pose, make_pose, rpy_to_R
 from protocol import ContactState, MotionCommand, MotionProgram
+from protocol.execution import GRASP_APPROACH_M
 
 CLEARANCE_M = 0.06
 """Lift, carry and lower this high above the start and goal poses (clears the 30 mm bars)."""
@@ -16,25 +19,64 @@ PLACE_SPEED_MPS = 0.02
 """The last stretch down to the goal is slow: the block is set down, not dropped."""
 PLACE_GUARD_N = 4.0
 """Setting the block down stops when the table pushes back this hard (N)."""
-_HALF_TURN = make_pose(rpy_to_R(np.array([0.0, 0.0, np.pi])))
+HALF_TURN = make_pose(rpy_to_R(np.array([0.0, 0.0, np.pi])))
+"""A grasp turned half a turn about the gripper's axis: a parallel gripper holds it alike."""
+
+
+def carried_arm_path(
+    robot: RobotModel,
+    X_WB: np.ndarray,
+    q_start: np.ndarray,
+    X_WP_start: np.ndarray,
+    X_GP: np.ndarray,
+    path_X_WP: Sequence[np.ndarray],
+) -> PathFollow:
+    """The arm, from joints ``q_start`` (rad), taking the workpiece at ``X_WP_start`` in grasp
+    ``X_GP`` from above and carrying it through ``path_X_WP``, each straight move followed as
+    the work site does (:func:`~models.kinematics.follow_line_tcp`)."""
+    X_PG = invert_pose(X_GP)
+    grasp = np.asarray(X_WP_start) @ X_PG
+    above = grasp.copy()
+    above[2, 3] += GRASP_APPROACH_M
+    geometry = arm_geometry(robot)
+    q = np.asarray(q_start, dtype=np.float64)
+    here = robot.tcp_pose_W(q, X_WB)
+    margin = np.inf
+    for X_WG in (above, grasp, *(np.asarray(X) @ X_PG for X in path_X_WP)):
+        result = follow_line_tcp(here, X_WG, q, robot, X_WB, geometry)
+        if not result.ok:
+            return result
+        q, here, margin = result.q, X_WG, min(margin, result.margin_rad)
+    return PathFollow(True, q, margin)
 
 
 def choose_grasp_yaw(
-    X_WP: np.ndarray, X_GP: np.ndarray, path_X_WP: Sequence[np.ndarray] = ()
+    X_WP: np.ndarray,
+    X_GP: np.ndarray,
+    path_X_WP: Sequence[np.ndarray] = (),
+    arm: tuple[RobotModel, np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """``X_GP`` or the same grasp turned half a turn about the gripper axis (a parallel gripper
-    holds both alike), whichever points the gripper's x axis more along −x of W at the
-    workpiece pose ``X_WP`` and, with ``path_X_WP`` (the poses the workpiece is carried
-    through), at the worst pose of the whole way: the arm's wrist then stays well inside joint
-    6's ±3.14 rad on a path that turns the block."""
-    turned = _HALF_TURN @ X_GP
+    holds both alike). With ``arm`` (robot, ``X_WB``, joints at the start), the one the arm can
+    carry through the whole way (:func:`carried_arm_path`) farthest from its joint limits.
+    Otherwise, or when the arm can carry neither, the one that points the gripper's x axis more
+    along −x of W at the workpiece pose ``X_WP`` and at the worst pose of ``path_X_WP``: the
+    wrist then stays well inside joint 6's ±3.14 rad on most paths that turn the block."""
+    turned = HALF_TURN @ X_GP
     poses = [np.asarray(X_WP, dtype=np.float64), *(np.asarray(X) for X in path_X_WP)]
 
     def worst_x(grasp: np.ndarray) -> float:
         X_PG = invert_pose(grasp)
         return max(float((X @ X_PG)[0, 0]) for X in poses)
 
-    return X_GP if worst_x(X_GP) <= worst_x(turned) else turned
+    by_wrist = (X_GP, turned) if worst_x(X_GP) <= worst_x(turned) else (turned, X_GP)
+    if arm is None:
+        return by_wrist[0]
+    follows = [carried_arm_path(*arm, X_WP, grasp, path_X_WP) for grasp in by_wrist]
+    best = max(
+        range(2), key=lambda i: (follows[i].ok, follows[i].margin_rad if follows[i].ok else 0)
+    )
+    return by_wrist[best] if follows[best].ok else by_wrist[0]
 
 
 def _above(X_WP: np.ndarray) -> np.ndarray:

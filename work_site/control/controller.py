@@ -23,7 +23,12 @@ import numpy as np
 from models.robot import RobotModel
 from models.transforms import invert_pose
 from protocol.execution import NORMAL_STIFFNESS_N_PER_M
-from work_site.control.kinematics import arm_geometry, geometric_jacobian_W, ik_tcp
+from work_site.control.kinematics import (
+    BRANCH_JUMP_RAD,
+    arm_geometry,
+    geometric_jacobian_W,
+    ik_tcp,
+)
 from work_site.control.sensing import WristSensor
 from work_site.control.trajectory import LinearMove
 from work_site.world import World
@@ -329,6 +334,17 @@ class TaskController:
         if not result.ok:
             self.stop()
             return TickResult("failed", f"on the way: {result.reason}")
+        jump_rad = np.abs(result.q - self.world.q_target)
+        if np.max(jump_rad) > BRANCH_JUMP_RAD:
+            # The nearest solution left the continuous one (a joint at its limit): commanding
+            # it would swing the arm through space in one period.
+            j = int(np.argmax(jump_rad))
+            self.stop()
+            return TickResult(
+                "failed",
+                f"on the way: {self.robot.arm_joints[j]} would swing {jump_rad[j]:.2f} rad at "
+                "once to another arm configuration",
+            )
         # Feed-forward joint rates from the path's velocity (finite difference over a period).
         X_next = self.move.pose_at(self.t_s + CONTROL_PERIOD_S)
         X_next[:3, 3] += self.offset_W

@@ -47,7 +47,7 @@ from work_site.control.controller import (
     TaskController,
     compliant_projector,
 )
-from work_site.control.kinematics import ik_tcp
+from work_site.control.kinematics import follow_line_tcp
 
 GRIPPER_OPEN_M = 0.08
 MAX_CONTACT_SPEED_MPS = 0.02
@@ -152,11 +152,18 @@ def program_refusal(
         # here never stops half done on a pose it cannot reach.
         for action in expand(program, i):
             if isinstance(action, MoveTo):
-                result = ik_tcp(
-                    action.X_WG, q, controller.robot, controller.X_WB, controller.geometry
+                # The whole line, as the controller will follow it: a target reachable only
+                # through a joint limit or a swing to another configuration is refused too.
+                result = follow_line_tcp(
+                    X_WG_before,
+                    action.X_WG,
+                    q,
+                    controller.robot,
+                    controller.X_WB,
+                    controller.geometry,
                 )
                 if not result.ok:
-                    return f"{where}: {result.reason}"
+                    return f"{where}: on the way, {result.reason}"
                 q = result.q
                 # At least the translation at the command's speed (a lower bound: cheap).
                 step_m = math.dist(action.X_WG[:3, 3].tolist(), X_WG_before[:3, 3].tolist())

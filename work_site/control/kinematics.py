@@ -2,9 +2,12 @@
 :mod:`models.kinematics`, where the operator site's reach check uses the same solutions."""
 
 from models.kinematics import (
+    BRANCH_JUMP_RAD,
     ArmGeometry,
     IkResult,
+    PathFollow,
     arm_geometry,
+    follow_line_tcp,
     geometric_jacobian_W,
     ik_flange,
     ik_nearest,
@@ -12,9 +15,12 @@ from models.kinematics import (
 )
 
 __all__ = [
+    "BRANCH_JUMP_RAD",
     "ArmGeometry",
     "IkResult",
+    "PathFollow",
     "arm_geometry",
+    "follow_line_tcp",
     "geometric_jacobian_W",
     "ik_flange",
     "ik_nearest",
