@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +46,8 @@ BRANCH_JUMP_RAD = 0.5
 """Between path samples this close, a joint that turns more than this (rad) has left its
 continuous solution for another IK branch (the arm would swing through space); away from the
 singularities a continuous path turns every joint by a few hundredths of this."""
+JOINT_SAMPLE_RAD = 0.02
+"""A straight move in joint space is checked at samples no more than this apart in any joint."""
 MAX_PATH_SAMPLES = 4000
 """At most this many samples per move: the workspace's diagonal and a half turn need fewer."""
 _AXES = ((0, 0, 1), (0, 1, 0), (0, 1, 0), (0, 0, 1), (0, 1, 0), (0, 0, 1))
@@ -326,3 +329,107 @@ def follow_line_tcp(
         q = result.q
         margin = min(margin, float(np.min(np.minimum(q - lo, hi - q))))
     return PathFollow(True, q, margin)
+
+
+def ik_all_tcp(
+    X_WG: np.ndarray,
+    robot: RobotModel,
+    X_WB: np.ndarray | None = None,
+    geometry: ArmGeometry | None = None,
+) -> list[np.ndarray]:
+    """Every joint solution (rad) within the limits for gripper TCP pose ``X_WG``, each joint
+    also a whole turn away where its limits allow."""
+    g = geometry or arm_geometry(robot)
+    X_WF = X_WG @ invert_pose(g.X_FG)
+    X_BF = X_WF if X_WB is None else invert_pose(X_WB) @ X_WF
+    lo, hi = robot.q_lower - JOINT_LIMIT_TOL_RAD, robot.q_upper + JOINT_LIMIT_TOL_RAD
+    out = []
+    for q in ik_flange(X_BF, robot, None, g)[0]:
+        options = [
+            [c for c in (q[i] - 2 * math.pi, q[i], q[i] + 2 * math.pi) if lo[i] <= c <= hi[i]]
+            for i in range(6)
+        ]
+        out += [
+            np.clip(np.array(c), robot.q_lower, robot.q_upper) for c in itertools.product(*options)
+        ]
+    return out
+
+
+def follow_tcp(
+    X_WG_from: np.ndarray,
+    q_from: np.ndarray,
+    targets_WG: Sequence[np.ndarray],
+    robot: RobotModel,
+    X_WB: np.ndarray | None = None,
+    geometry: ArmGeometry | None = None,
+) -> PathFollow:
+    """:func:`follow_line_tcp` through ``targets_WG`` in turn, from ``X_WG_from`` at ``q_from``."""
+    g = geometry or arm_geometry(robot)
+    q, here, margin = np.asarray(q_from, dtype=np.float64), X_WG_from, math.inf
+    for X_WG in targets_WG:
+        result = follow_line_tcp(here, X_WG, q, robot, X_WB, g)
+        if not result.ok:
+            return result
+        q, here, margin = result.q, X_WG, min(margin, result.margin_rad)
+    return PathFollow(True, q, margin)
+
+
+@dataclass(frozen=True)
+class Approach:
+    """How the empty hand gets to a grasp's approach pose: ``ok``; ``q_joint`` None for a
+    straight TCP move, else the joints (rad) to go to in a straight joint-space move; else the
+    ``reason``."""
+
+    ok: bool
+    q_joint: np.ndarray | None = None
+    reason: str = ""
+
+
+def _stays_above(
+    q_from: np.ndarray, q_to: np.ndarray, floor_z_m: float, robot: RobotModel, X_WB
+) -> bool:
+    """Whether the TCP stays at or above ``floor_z_m`` along the joint-space line."""
+    n = max(1, math.ceil(float(np.max(np.abs(q_to - q_from))) / JOINT_SAMPLE_RAD))
+    if n > MAX_PATH_SAMPLES:
+        return False
+    return all(
+        robot.tcp_pose_W(q_from + (q_to - q_from) * i / n, X_WB)[2, 3] >= floor_z_m
+        for i in range(1, n)
+    )
+
+
+def plan_approach(
+    X_WG_here: np.ndarray,
+    q_here: np.ndarray,
+    X_WG_above: np.ndarray,
+    then_WG: Sequence[np.ndarray],
+    robot: RobotModel,
+    X_WB: np.ndarray | None = None,
+    geometry: ArmGeometry | None = None,
+) -> Approach:
+    """The empty hand's way from ``X_WG_here`` (joints ``q_here``) to a grasp's approach pose
+    ``X_WG_above``, from where the program goes on through ``then_WG``: a straight TCP move
+    when the arm can follow it; else a straight move in joint space to the solution at the
+    approach pose nearest ``q_here`` from which the rest can be followed, along which the hand
+    stays no lower than the lower of its two ends (it passes over the blocks, not into them).
+    A straight TCP move turns the hand the short way round; the joint move turns each joint
+    within its limits, whichever way round that takes the hand."""
+    g = geometry or arm_geometry(robot)
+    straight = follow_line_tcp(X_WG_here, X_WG_above, q_here, robot, X_WB, g)
+    if straight.ok:
+        return Approach(True)
+    floor_z_m = min(float(X_WG_here[2, 3]), float(X_WG_above[2, 3]))
+    q_here = np.asarray(q_here, dtype=np.float64)
+    candidates = sorted(
+        ik_all_tcp(X_WG_above, robot, X_WB, g), key=lambda q: float(np.sum((q - q_here) ** 2))
+    )
+    for q in candidates:
+        if follow_tcp(X_WG_above, q, then_WG, robot, X_WB, g).ok and _stays_above(
+            q_here, q, floor_z_m, robot, X_WB
+        ):
+            return Approach(True, q)
+    return Approach(
+        False,
+        reason=f"{straight.reason}, and no joint-space move reaches the approach with the rest "
+        "of the program followable from there",
+    )

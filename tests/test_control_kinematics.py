@@ -22,6 +22,7 @@ from work_site.control.kinematics import (
     ik_flange,
     ik_nearest,
     ik_tcp,
+    plan_approach,
 )
 
 ROBOT = load_robot(PUMA_URDF)
@@ -273,3 +274,26 @@ def test_a_turn_past_the_wrist_limit_is_a_swing_not_a_move() -> None:
     assert not result.ok and "joint_6 would swing" in result.reason
     other_way = follow_line_tcp(X, back, q, ROBOT)
     assert other_way.ok and abs(other_way.q[5] - 3.0) == pytest.approx(0.4, abs=1e-6)
+
+
+def test_an_approach_the_short_turn_cannot_make_goes_through_joint_space() -> None:
+    """From home to a grasp's approach whose wrist angle lies past joint 6's limit the short
+    way round: the straight TCP move swings; the plan is the joint-space move to the solution
+    itself, along which the hand stays above the approach, and from which the descent follows.
+    With a rest of the program no solution can follow, the plan is refused with the reason."""
+    home_q = np.asarray(HOME_Q)
+    home = ROBOT.tcp_pose_W(home_q)
+    q = np.array([0.85, 0.6, 2.19, 0.0, 0.34, -2.8])
+    above = ROBOT.tcp_pose_W(q)
+    grasp = above.copy()
+    grasp[2, 3] -= 0.05
+    assert not follow_line_tcp(home, above, home_q, ROBOT).ok
+    plan = plan_approach(home, home_q, above, [grasp], ROBOT)
+    assert plan.ok and plan.q_joint is not None
+    np.testing.assert_allclose(ROBOT.tcp_pose_W(plan.q_joint), above, atol=POSE_TOL)
+    for s in np.linspace(0.0, 1.0, 101):
+        assert ROBOT.tcp_pose_W(home_q + s * (plan.q_joint - home_q))[2, 3] >= above[2, 3] - 1e-12
+    far = grasp.copy()
+    far[:3, 3] = (0.74, 0.44, 0.49)
+    refused = plan_approach(home, home_q, above, [grasp, far], ROBOT)
+    assert not refused.ok and "joint_6 would swing" in refused.reason

@@ -300,3 +300,54 @@ def test_a_held_block_turned_about_the_vertical_stays_square_in_the_grip(site) -
     X_GP_end = np.linalg.inv(controller.measured_tcp_W()) @ world.object_pose("plank")
     crept = math.degrees(np.linalg.norm(so3_log(X_GP[:3, :3].T @ X_GP_end[:3, :3])))
     assert crept < 0.4, crept
+
+
+@pytest.mark.slow
+def test_a_grasp_the_short_turn_cannot_reach_is_approached_through_joint_space(site) -> None:
+    """The cube held by a grasp whose wrist angle, from home, lies past joint 6's limit the
+    short way round: the work site accepts the program, goes to the approach in a smooth
+    joint-space move (no joint faster than its joint-move speed) and lifts the cube."""
+    from models.kinematics import follow_line_tcp, plan_approach
+    from models.transforms import invert_pose
+    from work_site.control.controller import CONTROL_PERIOD_S, JOINT_MOVE_RPS
+    from work_site.control.executor import GRASP_APPROACH_M
+
+    world, controller = site
+    # Left of the robot, clear of the other blocks, turned 20°: there a grasp of the cube
+    # turned 200° from how the hand hangs at home needs joint 6 past its limit the short way.
+    turned = rpy_to_R(np.radians([0.0, 0.0, 20.0]))
+    world.set_object_pose("cube", make_pose(turned, (0.2, 0.22, CUBE_HALF)))
+    world.step(200)
+    X_cube = world.object_pose("cube")
+    q_home = world.q_target.copy()
+    home = controller.commanded_tcp_W()
+    chosen = None
+    for yaw in np.radians([0.0, 90.0, 180.0, 270.0]):  # the cube's own symmetries
+        X_GP = make_pose(rpy_to_R(np.array([0.0, 0.0, yaw]))) @ TOP_GRASP
+        above = X_cube @ invert_pose(X_GP)
+        above[2, 3] += GRASP_APPROACH_M
+        arm = (controller.robot, controller.X_WB)
+        if not follow_line_tcp(home, above, q_home, *arm).ok:
+            if plan_approach(home, q_home, above, [], *arm).ok:
+                chosen = X_GP
+    assert chosen is not None, "no grasp of the cube here needs the joint-space approach"
+    lifted = X_cube.copy()
+    lifted[2, 3] += 0.04
+    program = MotionProgram(
+        program_id="joint-approach",
+        X_GP=chosen,
+        commands=(command("guarded_grasp", X_cube), command("move", lifted)),
+    )
+    assert program_refusal(program, controller) == ""
+    reports = []
+    execution = Execution(program, controller, lambda *r: reports.append(r))
+    q_before, fastest = world.q_target.copy(), 0.0
+    for _ in range(6000):
+        execution.tick()
+        fastest = max(fastest, float(np.max(np.abs(world.q_target - q_before))))
+        q_before = world.q_target.copy()
+        if execution.finished:
+            break
+    assert reports[-1][2:] == ("done", "program complete"), reports
+    assert fastest <= JOINT_MOVE_RPS * CONTROL_PERIOD_S * 1.5
+    assert world.object_pose("cube")[2, 3] > X_cube[2, 3] + 0.03

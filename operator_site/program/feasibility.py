@@ -27,7 +27,7 @@ import numpy as np
 from scipy.optimize import nnls
 
 from models.geometry import ConvexPart
-from models.kinematics import arm_geometry, follow_line_tcp
+from models.kinematics import PathFollow, arm_geometry, follow_line_tcp, plan_approach
 from models.robot import RobotModel, load_robot
 from models.scene import Scene
 from models.transforms import invert_pose
@@ -270,7 +270,8 @@ def reach_feasibility(
 ) -> Feasibility:
     """Refuse a program with a gripper target outside the work site's workspace box, or a move
     the arm cannot follow within its joint limits without swinging to another configuration,
-    followed from ``q_start`` (rad) move after move as the work site's acceptance check does."""
+    followed from ``q_start`` (rad) move after move as the work site's acceptance check does
+    (the empty hand's approach to the grasp through joint space where it must)."""
     geometry = arm_geometry(robot)
     q = np.asarray(q_start, dtype=np.float64)
     X_WG_here = robot.tcp_pose_W(q, X_WB)
@@ -285,8 +286,22 @@ def reach_feasibility(
                 k,
                 "reach",
             )
-        for X_WG in gripper_targets_W(program, k):
-            result = follow_line_tcp(X_WG_here, X_WG, q, robot, X_WB, geometry)
+        for j, X_WG in enumerate(gripper_targets_W(program, k)):
+            if cmd.kind == "guarded_grasp" and j == 0:  # the empty hand's approach
+                then = [*gripper_targets_W(program, k)[1:]]
+                then += [
+                    X
+                    for i in range(k + 1, len(program.commands))
+                    for X in gripper_targets_W(program, i)
+                ]
+                plan = plan_approach(X_WG_here, q, X_WG, then, robot, X_WB, geometry)
+                result = (
+                    PathFollow(plan.ok, plan.q_joint, reason=plan.reason)
+                    if not plan.ok or plan.q_joint is not None
+                    else follow_line_tcp(X_WG_here, X_WG, q, robot, X_WB, geometry)
+                )
+            else:
+                result = follow_line_tcp(X_WG_here, X_WG, q, robot, X_WB, geometry)
             if not result.ok:
                 return Feasibility(
                     False,

@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from models.kinematics import PathFollow, arm_geometry, follow_line_tcp
+from models.kinematics import PathFollow, arm_geometry, follow_tcp, plan_approach
 from models.robot import RobotModel
 from models.transforms import invert_pose, make_pose, rpy_to_R
 from protocol import ContactState, MotionCommand, MotionProgram
@@ -41,13 +41,13 @@ def carried_arm_path(
     geometry = arm_geometry(robot)
     q = np.asarray(q_start, dtype=np.float64)
     here = robot.tcp_pose_W(q, X_WB)
-    margin = np.inf
-    for X_WG in (above, grasp, *(np.asarray(X) @ X_PG for X in path_X_WP)):
-        result = follow_line_tcp(here, X_WG, q, robot, X_WB, geometry)
-        if not result.ok:
-            return result
-        q, here, margin = result.q, X_WG, min(margin, result.margin_rad)
-    return PathFollow(True, q, margin)
+    then = [grasp, *(np.asarray(X) @ X_PG for X in path_X_WP)]
+    plan = plan_approach(here, q, above, then, robot, X_WB, geometry)
+    if not plan.ok:
+        return PathFollow(False, None, reason=plan.reason)
+    if plan.q_joint is not None:
+        return follow_tcp(above, plan.q_joint, then, robot, X_WB, geometry)
+    return follow_tcp(here, q, [above, *then], robot, X_WB, geometry)
 
 
 def choose_grasp_yaw(

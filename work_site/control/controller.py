@@ -30,7 +30,7 @@ from work_site.control.kinematics import (
     ik_tcp,
 )
 from work_site.control.sensing import WristSensor
-from work_site.control.trajectory import LinearMove
+from work_site.control.trajectory import JointMove, LinearMove
 from work_site.world import World
 
 CONTROL_PERIOD_S = 0.01
@@ -38,6 +38,10 @@ CONTROL_PERIOD_S = 0.01
 MAX_TCP_SPEED_MPS = 0.25
 """No move, however commanded, is faster than this."""
 TCP_ACCEL_MPS2 = 0.5
+JOINT_MOVE_RPS = 0.5
+"""The fastest joint of a joint-space move turns at most this fast (rad/s) ..."""
+JOINT_MOVE_ACCEL_RPS2 = 1.0
+"""... and speeds up at most this fast (rad/s²)."""
 HARD_FORCE_LIMIT_N = 40.0
 """No external force on the hand may exceed this, whatever a program asks (the arm stops)."""
 FORCE_WINDOW_STEPS = 4
@@ -153,7 +157,7 @@ class TaskController:
         self.geometry = arm_geometry(robot)
         self.X_WB = world.scene.robot.X_WB
         self.sensor = WristSensor(robot)
-        self.move: LinearMove | None = None
+        self.move: LinearMove | JointMove | None = None
         self.t_s = 0.0
         self.steps_per_tick = max(1, round(CONTROL_PERIOD_S / world.time_step_s))
         self.guard: Guard | None = None
@@ -215,6 +219,30 @@ class TaskController:
         )
         self.t_s = 0.0
         self.guard, self.impedance = guard, impedance
+        self.force_limit_n = min(force_limit_n, HARD_FORCE_LIMIT_N)
+        self.force_peak_n = 0.0
+        self._offsets, self._settle_s = [], 0.0
+
+    def start_joint_move(
+        self, q_goal: np.ndarray, force_limit_n: float = HARD_FORCE_LIMIT_N
+    ) -> None:
+        """Begin a straight move in joint space to ``q_goal`` (rad, within the limits) at
+        :data:`JOINT_MOVE_RPS`: the empty hand's way where no straight TCP move goes; fails on
+        any external force above ``force_limit_n`` (capped at :data:`HARD_FORCE_LIMIT_N`)."""
+        q_goal = np.asarray(q_goal, dtype=np.float64)
+        if q_goal.shape != (6,) or not np.all(np.isfinite(q_goal)):
+            raise ValueError(f"joint target must be 6 finite angles, got {q_goal!r}")
+        if np.any(q_goal < self.robot.q_lower) or np.any(q_goal > self.robot.q_upper):
+            raise ValueError(f"joint target {np.round(q_goal, 3).tolist()} is outside the limits")
+        if not (math.isfinite(force_limit_n) and force_limit_n > 0):
+            raise ValueError(f"force limit {force_limit_n} N must be finite and > 0")
+        self._ease_q, self._ease_ticks = None, 0
+        self.offset_W = np.zeros(3)
+        self.move = JointMove(
+            self.world.q_target.copy(), q_goal, JOINT_MOVE_RPS, JOINT_MOVE_ACCEL_RPS2
+        )
+        self.t_s = 0.0
+        self.guard, self.impedance = None, None
         self.force_limit_n = min(force_limit_n, HARD_FORCE_LIMIT_N)
         self.force_peak_n = 0.0
         self._offsets, self._settle_s = [], 0.0
@@ -328,6 +356,17 @@ class TaskController:
                 self._physics()
             return TickResult("idle")
         self.t_s += CONTROL_PERIOD_S
+        if isinstance(self.move, JointMove):
+            q = self.move.q_at(self.t_s)
+            q_dot = (self.move.q_at(self.t_s + CONTROL_PERIOD_S) - q) / CONTROL_PERIOD_S
+            stopped = self._physics(q, q_dot)
+            if stopped is not None:
+                return stopped
+            if self.t_s < self.move.duration_s:
+                return TickResult("moving")
+            self.world.q_dot_target = np.zeros(6)
+            self.move = None
+            return TickResult("done")
         X = self.move.pose_at(self.t_s)
         X[:3, 3] += self.offset_W
         result = ik_tcp(X, self.world.q_target, self.robot, self.X_WB, self.geometry)

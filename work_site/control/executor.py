@@ -47,7 +47,7 @@ from work_site.control.controller import (
     TaskController,
     compliant_projector,
 )
-from work_site.control.kinematics import follow_line_tcp
+from work_site.control.kinematics import PathFollow, follow_line_tcp, plan_approach
 
 GRIPPER_OPEN_M = 0.08
 MAX_CONTACT_SPEED_MPS = 0.02
@@ -82,6 +82,15 @@ def contact_forces_n(force_W: np.ndarray, normals_W: np.ndarray) -> np.ndarray:
 
 class CheckCancelledError(Exception):
     """A program's check was abandoned (a stop came meanwhile)."""
+
+
+def later_targets_WG(program: MotionProgram, index: int, skip: int) -> list[np.ndarray]:
+    """The TCP targets of the straight moves of command ``index`` after its first ``skip``, and
+    of every command after it, in order."""
+    after = [a for a in expand(program, index) if isinstance(a, MoveTo)][skip:]
+    for k in range(index + 1, len(program.commands)):
+        after += [a for a in expand(program, k) if isinstance(a, MoveTo)]
+    return [a.X_WG for a in after]
 
 
 def program_refusal(
@@ -154,13 +163,29 @@ def program_refusal(
             if isinstance(action, MoveTo):
                 # The whole line, as the controller will follow it: a target reachable only
                 # through a joint limit or a swing to another configuration is refused too.
-                result = follow_line_tcp(
-                    X_WG_before,
-                    action.X_WG,
-                    q,
-                    controller.robot,
-                    controller.X_WB,
-                    controller.geometry,
+                if action.approach:
+                    plan = plan_approach(
+                        X_WG_before,
+                        q,
+                        action.X_WG,
+                        later_targets_WG(program, i, 1),
+                        controller.robot,
+                        controller.X_WB,
+                        controller.geometry,
+                    )
+                    if not plan.ok:
+                        return f"{where}: on the way, {plan.reason}"
+                result = (
+                    PathFollow(True, plan.q_joint)
+                    if action.approach and plan.q_joint is not None
+                    else follow_line_tcp(
+                        X_WG_before,
+                        action.X_WG,
+                        q,
+                        controller.robot,
+                        controller.X_WB,
+                        controller.geometry,
+                    )
                 )
                 if not result.ok:
                     return f"{where}: on the way, {result.reason}"
@@ -189,6 +214,9 @@ class MoveTo:
     impedance: Impedance | None = None
     touch_fails: str = ""
     must_touch: bool = False
+    approach: bool = False
+    """The empty hand's way to a grasp, its command's first move: through joint space where no
+    straight move goes (:func:`~models.kinematics.plan_approach`)."""
 
 
 @dataclass(frozen=True)
@@ -312,7 +340,7 @@ def expand(program: MotionProgram, index: int, impedance: Impedance | None = Non
         return [
             ForgetPayload(),
             SetFingers(GRIPPER_OPEN_M / 2),
-            MoveTo(above, cmd.speed_mps, limit),
+            MoveTo(above, cmd.speed_mps, limit, approach=True),
             MoveTo(
                 X_WG,
                 min(cmd.speed_mps, GRASP_DESCENT_MPS),
@@ -444,6 +472,28 @@ class Execution:
                 c.sensor.clear_payload()
             elif isinstance(action, LockGrip):
                 c.world.lock_fingers()
+            elif isinstance(action, MoveTo) and action.approach:
+                plan = plan_approach(
+                    c.commanded_tcp_W(),
+                    c.world.q_target,
+                    action.X_WG,
+                    later_targets_WG(self.program, self.index, 1),
+                    c.robot,
+                    c.X_WB,
+                    c.geometry,
+                )
+                try:
+                    if not plan.ok:
+                        raise ValueError(f"on the way to the grasp: {plan.reason}")
+                    if plan.q_joint is not None:
+                        c.start_joint_move(plan.q_joint, action.force_limit_n)
+                    else:
+                        c.start_move(
+                            action.X_WG, action.speed_mps, force_limit_n=action.force_limit_n
+                        )
+                except ValueError as e:
+                    self._finish("failed", f"command {self.index}: {e}")
+                return
             elif isinstance(action, MoveTo):
                 try:
                     c.start_move(

@@ -3,26 +3,34 @@
 
 from models.kinematics import (
     BRANCH_JUMP_RAD,
+    Approach,
     ArmGeometry,
     IkResult,
     PathFollow,
     arm_geometry,
     follow_line_tcp,
+    follow_tcp,
     geometric_jacobian_W,
+    ik_all_tcp,
     ik_flange,
     ik_nearest,
     ik_tcp,
+    plan_approach,
 )
 
 __all__ = [
     "BRANCH_JUMP_RAD",
+    "Approach",
     "ArmGeometry",
     "IkResult",
     "PathFollow",
     "arm_geometry",
     "follow_line_tcp",
+    "follow_tcp",
     "geometric_jacobian_W",
+    "ik_all_tcp",
     "ik_flange",
     "ik_nearest",
     "ik_tcp",
+    "plan_approach",
 ]
