@@ -78,6 +78,13 @@ Seq = Annotated[int, Meta(ge=0, le=2**63 - 1)]
 Real = Annotated[float, FINITE]
 NonNegative = Annotated[float, NON_NEGATIVE]
 Name = Annotated[str, Meta(max_length=MAX_NAME_LEN, pattern=anchored(NAME_PATTERN))]
+STOP_REPLY_ID = "stop"
+"""The program id under which a work site answers a stop that found no program running."""
+INVALID_PROGRAM_ID = "invalid"
+"""The program id under which a work site refuses a program it cannot tell the id of."""
+RESERVED_PROGRAM_IDS = frozenset({STOP_REPLY_ID, INVALID_PROGRAM_ID})
+"""Program ids the work site answers under itself: a program named so is refused, or these
+answers would be taken for its reports."""
 NameOrNone = Annotated[str, Meta(max_length=MAX_NAME_LEN, pattern=anchored(f"(?:{NAME_PATTERN})?"))]
 """A name, or "" for none."""
 SiteId = Annotated[str, Meta(max_length=MAX_NAME_LEN, pattern=anchored(SITE_ID_PATTERN))]

@@ -12,7 +12,14 @@ import zenoh
 
 from models.robot import load_robot
 from models.scene import load_scene
-from protocol import ExecutionReport, MotionCommand, MotionProgram, decode, encode
+from protocol import (
+    RESERVED_PROGRAM_IDS,
+    ExecutionReport,
+    MotionCommand,
+    MotionProgram,
+    decode,
+    encode,
+)
 from tests.conftest import one_move_program
 from work_site import journal
 from work_site.control.controller import TaskController
@@ -164,3 +171,20 @@ def test_a_rewrite_keeps_every_report_once(tmp_path) -> None:
     again = load_journal(path, 1000)
     assert dict(again.reports) == reports
     assert again.seen == set(reports)
+
+
+@pytest.mark.parametrize("reserved", sorted(RESERVED_PROGRAM_IDS))
+def test_a_program_named_as_the_work_sites_own_answers_is_refused(
+    tmp_path, world, reserved: str
+) -> None:
+    """Stops that find nothing running are answered under ``stop``, programs without a valid id
+    under ``invalid``: a program so named would have those answers taken for its reports."""
+    server = server_on(tmp_path / "programs.jsonl", world)
+    try:
+        reports = send(server, one_move_program(reserved))
+        assert server._execution is None and not server._ready
+        assert [r[:3] for r in reports] == [("invalid", -1, "refused")], reports
+        assert repr(reserved) in reports[0][3] and "choose another" in reports[0][3]
+        assert [r[2] for r in send(server, one_move_program("fine"))] == ["accepted"]
+    finally:
+        server._journal.close()

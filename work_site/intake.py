@@ -14,6 +14,8 @@ import threading
 import time
 
 from protocol import (
+    INVALID_PROGRAM_ID,
+    RESERVED_PROGRAM_IDS,
     ExecutionReport,
     MotionProgram,
     ProtocolError,
@@ -73,7 +75,7 @@ class ProgramIntake:
             pid = claimed_program_id(payload)
             with self._lock:
                 known = pid is None or pid in self._seen
-            pid = "invalid" if known else pid  # never add to a real program's reports
+            pid = INVALID_PROGRAM_ID if known else pid  # never add to a real program's reports
             self._report(pid, -1, "refused", f"program refused: {error}", fresh=False)
 
     def _check_programs(self, inbox_program, done: threading.Event) -> None:
@@ -106,6 +108,15 @@ class ProgramIntake:
         """Answer a re-send from the reports kept, refuse a program while another is checked
         or runs, else check it whole and hand it to the control loop."""
         pid = program.program_id
+        if pid in RESERVED_PROGRAM_IDS:
+            self.stats["refused"] += 1
+            self._report(
+                INVALID_PROGRAM_ID, -1, "refused",
+                f"program id {pid!r} is the work site's own (it answers under "
+                f"{', '.join(sorted(RESERVED_PROGRAM_IDS))}): choose another",
+                fresh=False,
+            )  # fmt: skip
+            return
         with self._lock:
             replay = list(self._reports.get(pid, ())) if pid in self._reports else None
             forgotten = replay is None and pid in self._seen

@@ -25,6 +25,7 @@ import zenoh
 from models.robot import load_robot
 from models.scene import Scene
 from protocol import (
+    STOP_REPLY_ID,
     ExecutionReport,
     Heartbeat,
     MotionProgram,
@@ -54,6 +55,7 @@ from work_site.intake import (
 from work_site.journal import JournalWriter, journal_line, load_journal
 from work_site.lease import ControlLease
 from work_site.options import ServerOptions
+from work_site.outbox import Outbox
 from work_site.recognition import VisionProcess
 from work_site.world import World
 
@@ -70,8 +72,6 @@ FINAL_STATUSES = ("done", "failed", "refused", "stopped")
 SWITCH_INTERVAL_S = 0.001
 """The interpreter's thread switch interval while serving: a program being checked on the
 checking thread hands the control loop the GIL back within this (Python's default is 5 ms)."""
-STOP_REPLY_ID = "stop"
-"""The program id under which a stop that found no program running is answered."""
 STOP_REPLY_PERIOD_S = 0.2
 """Such answers go at most this often: a stream of stops gets a stream of holds, not of
 reports."""
@@ -262,6 +262,7 @@ class WorkSiteServer(ProgramIntake):
         finally:
             checking_done.set()
             checker.join()
+            self._pub_report.close()
             inbox_program.undeclare()
             inbox_stop.undeclare()
             inbox_heartbeat.undeclare()
@@ -287,8 +288,12 @@ class WorkSiteServer(ProgramIntake):
             if self.options.publish_truth
             else None
         )
-        self._pub_report = session.declare_publisher(
-            key(site, "report"), priority=zenoh.Priority.INTERACTIVE_HIGH
+        self._pub_report = Outbox(
+            session.declare_publisher(
+                key(site, "report"),
+                priority=zenoh.Priority.INTERACTIVE_HIGH,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
         )
         self._seq_state = self._seq_frame = self._seq_heartbeat = 0
         self._next_frame_s = self._next_heartbeat_s = self._next_vision_s = 0.0
