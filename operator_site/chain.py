@@ -9,6 +9,7 @@ the judging.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import re
@@ -33,6 +34,9 @@ from operator_site.task import TaskSession
 from protocol import Recognition, Recognitions, TruthPoses, decode, key, make_config
 from protocol.messages import contact_directions
 from protocol.session import free_port_pair, link_endpoints
+
+_RUN_NUMBERS = itertools.count()
+"""Numbers the runs of this process (their work sites' ids and logs)."""
 
 CONNECT_TIMEOUT_S = 60.0
 VISION_TIMEOUT_S = 120.0
@@ -233,9 +237,11 @@ def run_chain(
     out: dict = {"task": task.label, "seed": seed, "success": False, "failure": None}
     out["stage_s"] = stage_s
     proc = None
-    # The started work site's id names this process too: two runs of one seed on one machine
-    # (two benchmarks at once) must not hear each other's ground truth, nor share a log.
-    site_id = site_id or (f"e2e-{seed}-{os.getpid()}" if connect is None else "site1")
+    # The started work site's id names this process and this run too: two runs of one seed on
+    # one machine (two benchmarks at once, or two tasks of one benchmark) must not hear each
+    # other's ground truth, nor share a log.
+    run = next(_RUN_NUMBERS)
+    site_id = site_id or (f"e2e-{seed}-{os.getpid()}-{run}" if connect is None else "site1")
     if connect is None:
         connect = f"tcp/127.0.0.1:{free_port_pair()}"
         log_path = Path(tempfile.gettempdir()) / f"telerobot-{site_id}-work-site.log"
