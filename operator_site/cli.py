@@ -6,6 +6,7 @@ operator-site demo                                       # both sites on this ma
 operator-site demo --scripted corner --seed 3 --json     # the whole chain, no person
 operator-site run examples/tasks/cube-corner.json --seed 3 --json   # a task file, no person
 operator-site recover retract                                  # back off after a failure
+operator-site recover resume --program program.msgpack         # go on after a stop
 """
 
 from __future__ import annotations
@@ -156,14 +157,29 @@ def build_parser() -> argparse.ArgumentParser:
     )
     recover = sub.add_parser(
         "recover",
-        help="release, back off or go home after a failure or a stop",
+        help="release, back off, go home or resume after a failure or a stop",
         description="A way back without restarting anything, sent to a running work site as "
         "a short program made from the robot's latest state (checked and run like any other; "
         "STOP ends it): release opens the fingers; retract backs the gripper away from what "
         "it presses, along the force it feels, and up; home rises clear of the blocks and "
-        "parks the arm. Exit code 0 when done, 1 otherwise, 2 for options that cannot be used.",
+        "parks the arm; resume goes on with a stopped program from the command it was stopped "
+        "in, if no other program ran since. Exit code 0 when done, 1 otherwise, 2 for options "
+        "that cannot be used.",
     )
-    recover.add_argument("action", choices=["release", "retract", "home"], help="what to do")
+    recover.add_argument(
+        "action",
+        choices=["release", "retract", "home", "resume"],
+        help="what to do (resume: go on with the stopped program --program, from the command it "
+        "was stopped in)",
+    )
+    recover.add_argument(
+        "--program",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="with resume: the stopped program, as saved (the page's program files, or "
+        "run --save-program)",
+    )
     recover.add_argument(
         "--connect",
         default=DEFAULT_WORK_SITE_ENDPOINT,
@@ -321,7 +337,7 @@ def recover(args: argparse.Namespace) -> int:
     import time
 
     from operator_site.link import WorkSiteLink
-    from operator_site.session import OperatorSession
+    from operator_site.session import OperatorSession, load_program
 
     try:
         check_site_id(args.site_id)
@@ -331,7 +347,10 @@ def recover(args: argparse.Namespace) -> int:
             )
         scene = load_scene(args.scene)
         config, connect, _ = _link_config(args)
-    except (ModelError, ProtocolError, ValueError) as e:
+        if (args.action == "resume") != (args.program is not None):
+            raise ValueError("--program FILE goes with resume, and resume needs it")
+        stopped = load_program(args.program) if args.program is not None else None
+    except (ModelError, ProtocolError, ValueError, OSError) as e:
         print(f"operator-site: {e}", file=sys.stderr)
         return 2
     link = WorkSiteLink(config, args.site_id, args.operator_id)
@@ -348,7 +367,7 @@ def recover(args: argparse.Namespace) -> int:
             )
             return 1
         op = OperatorSession(scene, link)
-        program = op.recover(args.action)
+        program = op.resume(stopped) if stopped is not None else op.recover(args.action)
         print(f"{args.action}: sent as {program.program_id}", flush=True)
         deadline, shown = time.monotonic() + RECOVER_DONE_TIMEOUT_S, 0
         while time.monotonic() < deadline:

@@ -365,6 +365,19 @@ class OperatorSession:
         )
         return self.send(program)
 
+    def resume(self, program: MotionProgram) -> MotionProgram:
+        """Send ``program``, which the work site stopped, to go on from the command it was
+        stopped in (a new id that ``continues`` it; the work site refuses it, saying why, when
+        another program ran since or it was not stopped). The program as sent."""
+        if self.link is None:
+            raise RuntimeError("no work site to send to")
+        resumed = dataclasses.replace(
+            program,
+            program_id=self.new_program_id(f"{program.program_id}-resumed"),
+            continues=program.program_id,
+        )
+        return self.send(resumed)
+
     def outcome(self, program_id: str) -> ExecutionReport | None:
         """The whole-program report that ended ``program_id`` (done, failed, refused, stopped),
         or None while it has not ended."""

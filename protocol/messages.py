@@ -29,7 +29,7 @@ from ._schema import (
 )
 from .images import DEFAULT_JPEG_QUALITY, ImageEncoding
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 """Version of the wire schema; bump on any incompatible change to a message.
 2: ``CameraFrame`` carries its image's ``encoding`` and ``quality``.
 3: ``ExecutionReport`` carries its number within its program (``seq``).
@@ -234,13 +234,17 @@ class MotionCommand(Record):
 class MotionProgram(Message):
     """A robot program: the grasp ``X_GP`` (workpiece in gripper frame) and 1..1000 commands;
     ``operator`` is the sending operator site's id, which the control lease goes by ("": an
-    anonymous sender, which holds no lease)."""
+    anonymous sender, which holds no lease). ``continues``: the id of a stopped program this one
+    resumes ("": none): with the same grasp and commands, it starts at the command that one was
+    stopped in, holding what it held; the work site runs it only while no other program has run
+    since."""
 
     TYPE: ClassVar[str] = "motion_program"
     program_id: Name
     X_GP: Pose
     commands: Annotated[tuple[MotionCommand, ...], Meta(min_length=1, max_length=MAX_COMMANDS)]
     operator: NameOrNone = ""
+    continues: NameOrNone = ""
 
 
 @dataclass(frozen=True, eq=False)

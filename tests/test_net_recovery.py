@@ -105,3 +105,53 @@ def test_after_a_failure_in_contact_the_arm_backs_off_releases_and_parks(work_si
         assert reports[0].status == "accepted", reports[0]  # (the cube is elsewhere now)
     finally:
         link.close()
+
+
+def test_a_program_stopped_while_carrying_resumes_from_the_command_line(work_site, tmp_path):
+    """STOP while the cube is carried; ``operator-site recover resume --program FILE`` goes on
+    from the command it was stopped in, the cube still held, and puts it in the corner."""
+    from operator_site.session import save_program
+
+    ws = work_site("--no-camera", "--publish-truth")
+    link = WorkSiteLink(make_config(connect=[ws.endpoint]), ws.site_id)
+    scene = load_scene()
+    try:
+        assert wait_until(lambda: (link.poll(), link.robot_state is not None)[1], 30), ws.log()
+        cube = next(o for o in scene.objects if o.name == "cube")
+        program, _ = corner_program(cube.X_WO)
+        program = dataclasses.replace(program, program_id="stopped-mid-carry")
+        carry = 2  # the grasp, the lift, then this: the block is in the hand
+
+        def reports(pid: str) -> list:
+            link.poll()
+            return [r for r in link.status.reports if r.program_id == pid]
+
+        link.send_program(program)
+        assert wait_until(
+            lambda: any(r.command_index == carry and r.status == "started"
+                        for r in reports(program.program_id)), 120
+        ), ws.log()  # fmt: skip
+        link.send_stop("operator pressed stop")
+        assert wait_until(
+            lambda: any(r.command_index == -1 and r.status == "stopped"
+                        for r in reports(program.program_id)), 10
+        ), ws.log()  # fmt: skip
+        assert link.robot_state.gripper_opening_m < 0.06  # still holding the cube
+        path = tmp_path / "program.msgpack"
+        save_program(path, program)
+        out = subprocess.run(
+            [sys.executable, "-m", "operator_site", "recover", "resume", "--program", str(path),
+             "--connect", ws.endpoint, "--single-link", "--site-id", ws.site_id,
+             "--operator-id", link.operator_id],
+            capture_output=True, text=True, timeout=300, cwd=REPO,
+        )  # fmt: skip
+        assert out.returncode == 0, (out.stdout, out.stderr, ws.log()[-3000:])
+        assert "resume: sent as stopped-mid-carry-resumed-" in out.stdout, out.stdout
+        started = [
+            int(line.split()[1].rstrip(":"))
+            for line in out.stdout.splitlines()
+            if line.strip().startswith("command") and ": started" in line
+        ]
+        assert started and min(i for i in started if i >= 0) == carry, out.stdout
+    finally:
+        link.close()

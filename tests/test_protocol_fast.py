@@ -88,6 +88,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, ...]]] = {
         "X_GP": POSE,
         "commands": ("records", "MotionCommand", 1, 1000),
         "operator": NAME_OR_NONE,
+        "continues": NAME_OR_NONE,
     },
     "ExecutionReport": {
         "program_id": NAME,
@@ -232,7 +233,7 @@ def ref_decode(payload: bytes) -> tuple[str, dict[str, Any]]:
     except Exception:
         raise RefusedError from None
     need(isinstance(env, dict) and sorted(env) == ["b", "t", "v"])
-    need(type(env["v"]) is int and env["v"] == 4)
+    need(type(env["v"]) is int and env["v"] == 5)
     need(isinstance(env["t"], str) and env["t"] in TAGS)
     name = TAGS[env["t"]]
     return name, ref_wire_record(name, env["b"])

@@ -292,6 +292,24 @@ def test_a_recovery_without_robot_state_says_why(page: OperatorPage) -> None:
     assert "back off" in page.program_md.content and "no robot state" in page.program_md.content
 
 
+def test_resume_with_nothing_sent_says_so_and_a_loaded_program_is_resumed_by_its_id(
+    page: OperatorPage, tmp_path
+) -> None:
+    from operator_site.session import save_program
+    from tests.conftest import one_move_program
+
+    page.on_resume()
+    assert "no program sent or loaded" in page.program_md.content
+    save_program(tmp_path / "p.msgpack", one_move_program("stopped-one"))
+    page.on_load_program(str(tmp_path / "p.msgpack"))
+    sent = []
+    page.link.send_program = sent.append  # no work site here: what the page would send
+    page.on_resume()
+    (resumed,) = sent
+    assert resumed.continues == "stopped-one" and resumed.program_id != "stopped-one"
+    assert "resume" in page.program_md.content
+
+
 def test_a_watcher_s_controls_are_disabled_but_stop(page: OperatorPage) -> None:
     page.link.status.work_site_alive = True
     page.link.status.holder = "someone-else"

@@ -23,7 +23,12 @@ from protocol import (
     decode,
     encode,
 )
-from work_site.control.executor import CheckCancelledError, program_refusal
+from work_site.control.executor import (
+    CheckCancelledError,
+    Execution,
+    program_refusal,
+    same_program,
+)
 
 log = logging.getLogger("work-site")
 
@@ -77,6 +82,31 @@ class ProgramIntake:
                 known = pid is None or pid in self._seen
             pid = INVALID_PROGRAM_ID if known else pid  # never add to a real program's reports
             self._report(pid, -1, "refused", f"program refused: {error}", fresh=False)
+
+    def _resumed(self, program: MotionProgram) -> tuple[Execution | None, str]:
+        """For a program that resumes a stopped one: the stopped execution, or why it may not
+        run (the one it names must be the last to have run, stopped, with the same grasp and
+        commands)."""
+        if not program.continues:
+            return None, ""
+        last = self._execution
+        if last is None or last.program.program_id != program.continues:
+            ran = "no program" if last is None else f"program {last.program.program_id}"
+            return None, (
+                f"cannot resume program {program.continues}: {ran} ran last on this work "
+                "site (a program resumes only the last one, when nothing moved the arm since)"
+            )
+        if last.end_status != "stopped":
+            how = {"done": "ran to its end", "": "is still running"}.get(
+                last.end_status, last.end_status
+            )
+            return None, f"cannot resume program {program.continues}: it {how}, not stopped"
+        if not same_program(last.program, program):
+            return None, (
+                f"cannot resume program {program.continues}: this program's grasp or commands "
+                "are not that program's"
+            )
+        return last, ""
 
     def _check_programs(self, inbox_program, done: threading.Event) -> None:
         """The checking thread: take programs off the wire until ``done``."""
@@ -169,6 +199,13 @@ class ProgramIntake:
             self.stats["refused"] += 1
             self._report(pid, -1, "refused", f"busy with program {busy}", fresh=False)
             return
+        resumed, why_not = self._resumed(program)
+        if why_not:
+            with self._lock:
+                self._busy = None
+            self.stats["refused"] += 1
+            self._report(pid, -1, "refused", why_not, fresh=False)
+            return
         try:
 
             def cancelled() -> bool:
@@ -177,7 +214,13 @@ class ProgramIntake:
                 time.sleep(CHECK_YIELD_S)
                 return self._stops_seen != stops_seen
 
-            reason = program_refusal(program, self._controller, cancelled=cancelled)
+            reason = program_refusal(
+                program,
+                self._controller,
+                cancelled=cancelled,
+                holding=resumed is not None and resumed.holding,
+                start=0 if resumed is None else resumed.index,
+            )
         except CheckCancelledError:
             self._cancel(pid, "while it was being checked")
             return

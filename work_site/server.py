@@ -505,7 +505,17 @@ class WorkSiteServer(ProgramIntake):
             return
         surface = self.options.surface_stiffness_n_per_m
         impedance = Impedance(tangential_stiffness_n_per_m=surface)
-        self._execution = Execution(program, self._controller, self._report, impedance=impedance)
+        # A resumed program goes on where the stopped one was (the intake made sure it is the
+        # last to have run): holding what it held, at the command it was in.
+        last = self._execution if program.continues else None
+        self._execution = Execution(
+            program,
+            self._controller,
+            self._report,
+            impedance=impedance,
+            holding=last is not None and last.holding,
+            start=0 if last is None else last.index,
+        )
         self._execution_started_s = time.monotonic()
 
     def _check_deadman(self, inbox_heartbeat) -> None:

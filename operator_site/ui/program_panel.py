@@ -20,7 +20,8 @@ RECOVERY_BUTTONS = {"retract": "back off", "release": "open the gripper", "home"
 RECOVERY_HELP = (
     "**After a failure or a stop**: *back off* moves the gripper away from what it presses; "
     "*open the gripper* lets the block go; *go home* lifts clear of the blocks and parks the "
-    "arm. Each is a short program the work site checks and runs; STOP ends it."
+    "arm. Each is a short program the work site checks and runs; STOP ends it. *Resume* goes "
+    "on with a stopped program from the command it was stopped in, if nothing ran since."
 )
 
 
@@ -53,6 +54,9 @@ class ProgramPanel:
             button = gui.add_button(label)
             button.on_click(lambda _, a=action: self.on_recover(a))
             self.recovery_buttons.append(button)
+        resume = gui.add_button("resume the stopped program")
+        resume.on_click(lambda _: self.on_resume())
+        self.recovery_buttons.append(resume)
         self.program_button.on_click(lambda _: self.on_make_program())
         self.send_button.on_click(lambda _: self.on_send_program())
 
@@ -84,6 +88,21 @@ class ProgramPanel:
             return
         self.program_md.content = (
             f"**{plain(RECOVERY_BUTTONS[action])}** sent as {plain(program.program_id)}: "
+            "follow it in the execution log"
+        )
+
+    def on_resume(self) -> None:
+        """Go on with the last program sent (or loaded), stopped, from the command it was
+        stopped in: the work site refuses, saying why, if another program ran since."""
+        program = self.last_program
+        if program is None:
+            self.program_md.content = "⚠ resume: no program sent or loaded to resume"
+            return
+        with self._lock:
+            sent = self.op.resume(program)
+        self.last_program = sent
+        self.program_md.content = (
+            f"**resume** of {plain(program.program_id)} sent as {plain(sent.program_id)}: "
             "follow it in the execution log"
         )
 
@@ -162,6 +181,7 @@ class ProgramPanel:
         except ValueError as e:
             self.program_md.content = f"⚠ {plain(e)}"
             return
+        self.last_program = program  # as it was sent, for a resume after a restart
         self.pending_program = program = self.op.renamed(program)
         self._show_path(None, None)
         lines = [

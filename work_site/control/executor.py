@@ -84,6 +84,24 @@ class CheckCancelledError(Exception):
     """A program's check was abandoned (a stop came meanwhile)."""
 
 
+def same_program(a: MotionProgram, b: MotionProgram) -> bool:
+    """Whether ``a`` and ``b`` have the same grasp and commands (their ids may differ)."""
+    if not np.array_equal(a.X_GP, b.X_GP) or len(a.commands) != len(b.commands):
+        return False
+    return all(
+        p.kind == q.kind
+        and np.array_equal(p.X_WP, q.X_WP)
+        and p.speed_mps == q.speed_mps
+        and p.force_limit_n == q.force_limit_n
+        and len(p.contacts) == len(q.contacts)
+        and all(
+            c.object == d.object and np.array_equal(c.normals_W, d.normals_W)
+            for c, d in zip(p.contacts, q.contacts, strict=True)
+        )
+        for p, q in zip(a.commands, b.commands, strict=True)
+    )
+
+
 def later_targets_WG(program: MotionProgram, index: int, skip: int) -> list[np.ndarray]:
     """The TCP targets of the straight moves of command ``index`` after its first ``skip``, and
     of every command after it, in order."""
@@ -97,20 +115,24 @@ def program_refusal(
     program: MotionProgram,
     controller: TaskController,
     cancelled: Callable[[], bool] | None = None,
+    holding: bool = False,
+    start: int = 0,
 ) -> str:
     """Why ``program`` must not run ("" if it may): a contact move with nothing held, targets
     outside the workspace or unreachable, speeds or force limits beyond the work site's.
     Checked whole, before any motion; raises :class:`CheckCancelledError` as soon as ``cancelled()``
     (asked before each command) holds. Reads the controller's joint targets and kinematics
-    only, so it may run on another thread while the arm holds still."""
+    only, so it may run on another thread while the arm holds still. A program that resumes a
+    stopped one is checked from command ``start`` on, the hand ``holding`` a block or not."""
     if not program.commands:
         return "empty program"
     X_PG = invert_pose(program.X_GP)
     q = np.array(controller.world.q_target, copy=True)
     X_WG_before = controller.robot.tcp_pose_W(q, controller.X_WB)
     duration_s = 0.0
-    holding = False
     for i, cmd in enumerate(program.commands):
+        if i < start:
+            continue
         if cancelled is not None and cancelled():
             raise CheckCancelledError(f"cancelled at command {i}")
         where = f"command {i} ({cmd.kind})"
@@ -369,8 +391,16 @@ class Execution:
     finished: bool = False
     impedance: Impedance = field(default_factory=lambda: default_impedance())
     """The contact moves' impedance (its ``compliant_W`` is set per move)."""
+    holding: bool = False
+    """Whether the hand holds a block: from a grasp's lock to the next opening (at the start:
+    the stopped program's, when this one resumes it)."""
+    start: int = 0
+    """The command it starts at (that of the stopped program it resumes, else 0)."""
+    end_status: str = ""
+    """How it finished (done, failed, stopped); "" while it runs."""
 
     def __post_init__(self) -> None:
+        self.index = self.start - 1
         self._actions: list = []
         self._fingers_last = -1.0
         self._fingers_still = 0
@@ -437,7 +467,7 @@ class Execution:
         c = self.controller
         while True:
             while not self._actions:
-                if self.index >= 0:
+                if self.index >= self.start:
                     self.report(self.program.program_id, self.index, "done", "")
                 self.index += 1
                 if self.index >= len(self.program.commands):
@@ -470,8 +500,10 @@ class Execution:
             elif isinstance(action, ForgetPayload):
                 c.world.unlock_fingers()
                 c.sensor.clear_payload()
+                self.holding = False
             elif isinstance(action, LockGrip):
                 c.world.lock_fingers()
+                self.holding = True
             elif isinstance(action, MoveTo) and action.approach:
                 plan = plan_approach(
                     c.commanded_tcp_W(),
@@ -544,5 +576,5 @@ class Execution:
             self._finish("stopped", reason)
 
     def _finish(self, status: str, message: str) -> None:
-        self.finished = True
+        self.finished, self.end_status = True, status
         self.report(self.program.program_id, -1, status, message)
