@@ -28,6 +28,10 @@ from models.geometry import (
 )
 from models.transforms import ROTATION_ORTHONORMAL_TOL, is_rigid_transform, make_pose, rpy_to_R
 
+GRAVITY_W = (0.0, 0.0, -9.81)
+"""Gravity (m/s², W): the work site's physics, and what both sites take off the wrist's
+reading as the hand's and the block's weight."""
+
 MODELS_DIR = Path(__file__).resolve().parent
 DEFAULT_SCENE = MODELS_DIR / "scenes" / "puzzle.json"
 MAX_IMAGE_SIDE_PX = 8192

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from models.robot import FT_SENSOR_JOINT, TCP_LINK, load_robot
-from models.scene import Scene
+from models.scene import GRAVITY_W, Scene
 from operator_site.program import CommandParams, park_pose_W
 from protocol import MotionCommand, MotionProgram, RobotState
 
@@ -30,7 +30,6 @@ starts pressed, and must fail if it presses harder."""
 SAFE_TCP_HEIGHT_M = 0.22
 """Going home, the gripper first rises to at least this height of its centre above the table:
 the tallest block (0.10 m) held below the fingertips still clears every other block."""
-GRAVITY_W = np.array([0.0, 0.0, -9.81])
 
 
 def external_force_W(state: RobotState, hand_mass_kg: float) -> np.ndarray:
@@ -38,7 +37,7 @@ def external_force_W(state: RobotState, hand_mass_kg: float) -> np.ndarray:
     weight removed (a held block's weight is not: it is vertical, and only the horizontal force
     picks the retreat's direction)."""
     R_WS = state.X_WF[:3, :3]  # the sensor is fixed at the flange, unrotated
-    return -R_WS @ state.wrench_S[:3] - hand_mass_kg * GRAVITY_W
+    return -R_WS @ state.wrench_S[:3] - hand_mass_kg * np.asarray(GRAVITY_W)
 
 
 def recovery_program(

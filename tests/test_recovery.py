@@ -8,11 +8,10 @@ import pytest
 
 from models.kinematics import ik_tcp
 from models.robot import FT_SENSOR_JOINT, TCP_LINK, load_robot
-from models.scene import load_scene
+from models.scene import GRAVITY_W, load_scene
 from models.transforms import make_pose
 from operator_site.program import park_pose_W
 from operator_site.recovery import (
-    GRAVITY_W,
     RETRACT_M,
     SAFE_TCP_HEIGHT_M,
     external_force_W,
@@ -31,7 +30,7 @@ def _state(q: np.ndarray, force_W: np.ndarray) -> RobotState:
     """The state of the arm at ``q`` with the wrist feeling external force ``force_W``."""
     X_WF = ROBOT.link_poses_W(q, 0.0, SCENE.robot.X_WB)["flange"]
     hand_kg = ROBOT.mass_beyond_kg(FT_SENSOR_JOINT)
-    f_S = -X_WF[:3, :3].T @ (np.asarray(force_W) + hand_kg * GRAVITY_W)
+    f_S = -X_WF[:3, :3].T @ (np.asarray(force_W) + hand_kg * np.asarray(GRAVITY_W))
     return RobotState(seq=0, stamp_s=0.0, q=q, X_WF=X_WF, gripper_opening_m=0.05,
                       wrench_S=np.concatenate([f_S, np.zeros(3)]))  # fmt: skip
 

@@ -16,7 +16,7 @@ import pybullet as p
 
 from models.geometry import mass_properties, write_obj
 from models.robot import FT_SENSOR_JOINT
-from models.scene import Scene, SceneObject
+from models.scene import GRAVITY_W, Scene, SceneObject
 from models.transforms import (
     R_to_quat_wxyz,
     invert_pose,
@@ -26,7 +26,6 @@ from models.transforms import (
     quat_xyzw_to_wxyz,
 )
 
-GRAVITY_W = (0.0, 0.0, -9.81)
 ARM_JOINTS = ("joint_1", "joint_2", "joint_3", "joint_4", "joint_5", "joint_6")
 FINGER_JOINTS = ("finger_left", "finger_right")
 FLANGE_LINK = "flange"

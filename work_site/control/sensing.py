@@ -16,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from models.robot import FT_SENSOR_JOINT, RobotModel
-from work_site.world import GRAVITY_W, RobotSnapshot
+from models.scene import GRAVITY_W
+from work_site.world import RobotSnapshot
 
 
 class WristSensor:
