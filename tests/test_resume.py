@@ -94,3 +94,22 @@ def test_a_resume_is_refused_with_the_reason_unless_it_goes_on_from_the_last_sto
     done = dataclasses.replace(program, program_id="done-one", continues="between")
     (refusal,) = send(server, done)
     assert refusal[2] == "refused" and "ran to its end, not stopped" in refusal[3]
+
+
+def test_the_approach_the_check_planned_is_the_one_the_execution_takes(server) -> None:
+    """A grasp whose approach needs a joint-space move: the check plans it on its own thread
+    and hands it over, so the control loop does not plan (it may take longer than a period)."""
+    from models.transforms import rpy_to_R
+
+    X_WP = make_pose(rpy_to_R(np.radians([0.0, 0.0, 20.0])), (0.2, 0.22, 0.025))
+    X_GP = make_pose(rpy_to_R(np.array([0.0, 0.0, np.pi]))) @ make_pose(
+        rpy_to_R(np.array([np.pi, 0.0, np.pi]))
+    )
+    grasp = MotionCommand(
+        kind="guarded_grasp", X_WP=X_WP, speed_mps=0.05, force_limit_n=10.0, contacts=()
+    )
+    program = MotionProgram(program_id="turned-grasp", X_GP=X_GP, commands=(grasp,))
+    assert [r[2] for r in send(server, program)] == ["accepted"]
+    approach = server._execution.approaches[0]
+    assert approach.ok and approach.q_joint is not None
+    server._execution.stop("enough")

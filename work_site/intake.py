@@ -214,12 +214,14 @@ class ProgramIntake:
                 time.sleep(CHECK_YIELD_S)
                 return self._stops_seen != stops_seen
 
+            approaches: dict = {}
             reason = program_refusal(
                 program,
                 self._controller,
                 cancelled=cancelled,
                 holding=resumed is not None and resumed.holding,
                 start=0 if resumed is None else resumed.index,
+                approaches=approaches,
             )
         except CheckCancelledError:
             self._cancel(pid, "while it was being checked")
@@ -232,7 +234,7 @@ class ProgramIntake:
             return
         self._report(pid, -1, "accepted", f"{len(program.commands)} commands", fresh=False)
         with self._lock:
-            self._ready.append((program, stops_seen))
+            self._ready.append((program, stops_seen, approaches))
         wake = getattr(self, "_wake", None)
         if wake is not None:
             wake.set()

@@ -114,7 +114,7 @@ class WorkSiteServer(ProgramIntake):
         """The id of the program being checked, waiting to start or running."""
         self._stops_seen = 0
         """Stops acted on so far: a program whose check began before the latest one is cancelled."""
-        self._ready: collections.deque[tuple[MotionProgram, int]] = collections.deque()
+        self._ready: collections.deque[tuple[MotionProgram, int, dict]] = collections.deque()
         """Programs that passed their check, with ``_stops_seen`` when their check began."""
         self._last_stop_reason = ""
         self._execution_started_s = 0.0
@@ -499,7 +499,7 @@ class WorkSiteServer(ProgramIntake):
             item = self._ready.popleft() if self._ready else None
         if item is None:
             return
-        program, stops_seen = item
+        program, stops_seen, approaches = item
         if stops_seen != self._stops_seen:
             self._cancel(program.program_id, "before it started")
             return
@@ -515,6 +515,7 @@ class WorkSiteServer(ProgramIntake):
             impedance=impedance,
             holding=last is not None and last.holding,
             start=0 if last is None else last.index,
+            approaches=approaches,
         )
         self._execution_started_s = time.monotonic()
 

@@ -47,7 +47,7 @@ from work_site.control.controller import (
     TaskController,
     compliant_projector,
 )
-from work_site.control.kinematics import PathFollow, follow_line_tcp, plan_approach
+from work_site.control.kinematics import Approach, PathFollow, follow_line_tcp, plan_approach
 
 GRIPPER_OPEN_M = 0.08
 MAX_CONTACT_SPEED_MPS = 0.02
@@ -117,13 +117,16 @@ def program_refusal(
     cancelled: Callable[[], bool] | None = None,
     holding: bool = False,
     start: int = 0,
+    approaches: dict[int, Approach] | None = None,
 ) -> str:
     """Why ``program`` must not run ("" if it may): a contact move with nothing held, targets
     outside the workspace or unreachable, speeds or force limits beyond the work site's.
     Checked whole, before any motion; raises :class:`CheckCancelledError` as soon as ``cancelled()``
     (asked before each command) holds. Reads the controller's joint targets and kinematics
     only, so it may run on another thread while the arm holds still. A program that resumes a
-    stopped one is checked from command ``start`` on, the hand ``holding`` a block or not."""
+    stopped one is checked from command ``start`` on, the hand ``holding`` a block or not.
+    ``approaches`` (if given) receives each grasp's approach as planned, by command index: the
+    execution takes them from there, for planning one can take longer than a control period."""
     if not program.commands:
         return "empty program"
     X_PG = invert_pose(program.X_GP)
@@ -197,6 +200,8 @@ def program_refusal(
                     )
                     if not plan.ok:
                         return f"{where}: on the way, {plan.reason}"
+                    if approaches is not None:
+                        approaches[i] = plan
                 result = (
                     PathFollow(True, plan.q_joint)
                     if action.approach and plan.q_joint is not None
@@ -396,6 +401,9 @@ class Execution:
     the stopped program's, when this one resumes it)."""
     start: int = 0
     """The command it starts at (that of the stopped program it resumes, else 0)."""
+    approaches: dict[int, Approach] = field(default_factory=dict)
+    """The grasps' approaches as the check planned them, by command index (see
+    :func:`program_refusal`); one missing is planned when its command starts."""
     end_status: str = ""
     """How it finished (done, failed, stopped); "" while it runs."""
 
@@ -505,7 +513,7 @@ class Execution:
                 c.world.lock_fingers()
                 self.holding = True
             elif isinstance(action, MoveTo) and action.approach:
-                plan = plan_approach(
+                plan = self.approaches.get(self.index) or plan_approach(
                     c.commanded_tcp_W(),
                     c.world.q_target,
                     action.X_WG,
