@@ -304,8 +304,12 @@ def follow_line_tcp(
     n = math.ceil(
         max(np.linalg.norm(p1 - p0) / PATH_SAMPLE_M, np.linalg.norm(w) / PATH_SAMPLE_RAD, 1.0)
     )
-    if n > MAX_PATH_SAMPLES:
-        return PathFollow(False, None, reason=f"a move {np.linalg.norm(p1 - p0):.2f} m long")
+    if n > MAX_PATH_SAMPLES:  # only a move far beyond the workspace gets here
+        return PathFollow(
+            False,
+            None,
+            reason=f"a move of {np.linalg.norm(p1 - p0):.2f} m is longer than any in reach",
+        )
     q = np.asarray(q_from, dtype=np.float64)
     lo, hi = robot.q_lower, robot.q_upper
     margin = float(np.min(np.minimum(q - lo, hi - q)))

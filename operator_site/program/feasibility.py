@@ -289,11 +289,10 @@ def reach_feasibility(
         for j, X_WG in enumerate(gripper_targets_W(program, k)):
             if cmd.kind == "guarded_grasp" and j == 0:  # the empty hand's approach
                 then = [*gripper_targets_W(program, k)[1:]]
-                then += [
-                    X
-                    for i in range(k + 1, len(program.commands))
-                    for X in gripper_targets_W(program, i)
-                ]
+                for i in range(k + 1, len(program.commands)):
+                    if program.commands[i].kind == "guarded_grasp":
+                        break  # the next grasp's approach is planned again
+                    then += gripper_targets_W(program, i)
                 plan = plan_approach(X_WG_here, q, X_WG, then, robot, X_WB, geometry)
                 result = (
                     PathFollow(plan.ok, plan.q_joint, reason=plan.reason)

@@ -104,9 +104,11 @@ def same_program(a: MotionProgram, b: MotionProgram) -> bool:
 
 def later_targets_WG(program: MotionProgram, index: int, skip: int) -> list[np.ndarray]:
     """The TCP targets of the straight moves of command ``index`` after its first ``skip``, and
-    of every command after it, in order."""
+    of the commands after it up to the next grasp (whose approach is planned again), in order."""
     after = [a for a in expand(program, index) if isinstance(a, MoveTo)][skip:]
     for k in range(index + 1, len(program.commands)):
+        if program.commands[k].kind == "guarded_grasp":
+            break
         after += [a for a in expand(program, k) if isinstance(a, MoveTo)]
     return [a.X_WG for a in after]
 
@@ -188,32 +190,29 @@ def program_refusal(
             if isinstance(action, MoveTo):
                 # The whole line, as the controller will follow it: a target reachable only
                 # through a joint limit or a swing to another configuration is refused too.
-                if action.approach:
-                    plan = plan_approach(
-                        X_WG_before,
-                        q,
-                        action.X_WG,
-                        later_targets_WG(program, i, 1),
-                        controller.robot,
-                        controller.X_WB,
-                        controller.geometry,
-                    )
-                    if not plan.ok:
-                        return f"{where}: on the way, {plan.reason}"
+                result = follow_line_tcp(
+                    X_WG_before,
+                    action.X_WG,
+                    q,
+                    controller.robot,
+                    controller.X_WB,
+                    controller.geometry,
+                )
+                if action.approach:  # the empty hand may go through joint space instead
+                    plan = Approach(True)
+                    if not result.ok:
+                        plan = plan_approach(
+                            X_WG_before,
+                            q,
+                            action.X_WG,
+                            later_targets_WG(program, i, 1),
+                            controller.robot,
+                            controller.X_WB,
+                            controller.geometry,
+                        )
+                        result = PathFollow(plan.ok, plan.q_joint, reason=plan.reason)
                     if approaches is not None:
                         approaches[i] = plan
-                result = (
-                    PathFollow(True, plan.q_joint)
-                    if action.approach and plan.q_joint is not None
-                    else follow_line_tcp(
-                        X_WG_before,
-                        action.X_WG,
-                        q,
-                        controller.robot,
-                        controller.X_WB,
-                        controller.geometry,
-                    )
-                )
                 if not result.ok:
                     return f"{where}: on the way, {result.reason}"
                 q = result.q
