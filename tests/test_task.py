@@ -97,6 +97,14 @@ def page():
     link.close()
 
 
+def test_every_block_is_labelled_and_coloured_its_own(page: OperatorPage) -> None:
+    movable = [o.name for o in page.scene.movable]
+    assert sorted(page.labels) == sorted(movable)
+    assert page.labels["tall_block"].text == "tall block"
+    colours = {tuple(page.object_meshes[n][0].color) for n in movable}
+    assert len(colours) == len(movable)
+
+
 def test_page_callbacks_pick_drag_capture_and_reset(page: OperatorPage) -> None:
     page.on_click_object("frame")  # fixed, no capture mode: nothing to pick
     assert page.session.workpiece is None and not page.dragger.visible

@@ -15,6 +15,25 @@ from operator_site.task import TaskSession
 
 CONTACT_RGB = (230, 40, 40)
 FINGER_RGB = (40, 40, 48)
+BLOCK_RGBS = (
+    (214, 160, 92),
+    (96, 150, 205),
+    (120, 180, 110),
+    (200, 110, 120),
+    (160, 130, 200),
+    (210, 190, 90),
+    (110, 185, 180),
+    (190, 140, 160),
+)
+"""The movable blocks' colours in the 3D view, one each in the scene's order (the camera sees
+them all the same wood): which block is which at a glance."""
+LABEL_ABOVE_M = 0.01
+"""A block's name floats this far above its top."""
+
+
+def block_label(name: str) -> str:
+    """A block's name as the page writes it ("tall block" for ``tall_block``)."""
+    return name.replace("_", " ")
 
 
 def rgb255(rgba) -> tuple[int, int, int]:
@@ -42,19 +61,36 @@ class SceneView:
     def _build_scene(self) -> None:
         scene = self.server.scene
         self.object_frames = {}
+        self.object_meshes: dict[str, list] = {}
+        self.labels = {}
+        movable = [o.name for o in self.scene.movable]
         for obj in self.scene.objects:
             frame = scene.add_frame(f"/world/{obj.name}", show_axes=False)
             set_pose(frame, obj.X_WO)
             self.object_frames[obj.name] = frame
+            color = (
+                BLOCK_RGBS[movable.index(obj.name) % len(BLOCK_RGBS)]
+                if obj.name in movable
+                else rgb255(obj.model.rgba)
+            )
             for k, part in enumerate(obj.model.parts):
                 mesh = scene.add_mesh_simple(
                     f"/world/{obj.name}/part_{k}",
                     part.vertices_O,
                     part.triangles(),
-                    color=rgb255(obj.model.rgba),
+                    color=color,
                     flat_shading=True,
                 )
                 mesh.on_click(lambda _, name=obj.name: self.on_click_object(name))
+                self.object_meshes.setdefault(obj.name, []).append(mesh)
+            if obj.name in movable:
+                top_O = max(float(part.vertices_O[:, 2].max()) for part in obj.model.parts)
+                self.labels[obj.name] = scene.add_label(
+                    f"/world/{obj.name}/label",
+                    block_label(obj.name),
+                    position=(0.0, 0.0, top_O + LABEL_ABOVE_M),
+                    anchor="bottom-center",
+                )
         self.dragger = scene.add_transform_controls("/dragger", scale=0.12, visible=False)
         self.dragger.on_update(lambda _: self.on_drag())
         self.contact_points = scene.add_point_cloud(
