@@ -56,6 +56,9 @@ HEARTBEAT_PERIOD_S = 0.1
 """Heartbeats go this often while a program of ours is unfinished: several within the work
 site's dead-man timeout (``work-site serve --deadman-s``, 0.5 s by default), so that one lost
 or late beat stops nothing."""
+LATE_WAKE_S = 0.25
+"""The heartbeat thread warns when it wakes this much later than asked: the beats it could not
+send meanwhile are what a dead-man stop at the work site reports missing (half its default)."""
 LEASE_BEAT_PERIOD_S = 1.0
 """While this operator holds the work site's control lease and runs nothing, it beats this
 often, so that the lease stays its own while its page is open (``work_site/lease.py``)."""
@@ -194,8 +197,14 @@ class WorkSiteLink:
     def _beat(self) -> None:
         """The heartbeat thread, until closed: beat while a program of ours is unfinished (the
         dead-man), and now and then while we hold the control lease (to keep it)."""
-        idle_s = 0.0
+        idle_s, woke_s = 0.0, time.monotonic()
         while not self._closing.wait(HEARTBEAT_PERIOD_S):
+            now = time.monotonic()
+            late_s, woke_s = now - woke_s - HEARTBEAT_PERIOD_S, now
+            if late_s > LATE_WAKE_S:
+                # This process did not run this thread for that long (the machine, or another
+                # thread holding the interpreter): say so, as the work site's dead-man will.
+                log.warning("heartbeat thread woke %.3f s late", late_s)
             idle_s += HEARTBEAT_PERIOD_S
             if (
                 self._unanswered
