@@ -233,10 +233,14 @@ class WorkSiteLink:
             operator=self.operator_id,
         )
         self._heartbeat_seq += 1
+        t0 = time.monotonic()
         try:
             self._pub_heartbeat.put(encode(beat))
         except zenoh.ZError:  # the session is closing
             return
+        took_s = time.monotonic() - t0
+        if took_s > LATE_WAKE_S:  # the publisher blocks while the link is congested
+            log.warning("heartbeat #%d took %.3f s to send", beat.seq, took_s)
         log.debug("heartbeat #%d sent", beat.seq)
 
     def _decode(self, sample: zenoh.Sample, expected: type, what: str):
