@@ -17,6 +17,7 @@ from models.robot import FT_SENSOR_JOINT, TCP_LINK, load_robot
 from models.scene import GRAVITY_W, Scene
 from operator_site.program import CommandParams, park_pose_W
 from protocol import MotionCommand, MotionProgram, RobotState
+from protocol.execution import SAFE_TCP_HEIGHT_M
 
 RECOVERY_ACTIONS = ("release", "retract", "home")
 RETRACT_M = 0.03
@@ -27,9 +28,6 @@ retreat is straight up."""
 RETRACT_FORCE_MARGIN_N = 5.0
 """The retreat may meet this much more force than the gripper feels when it begins (N): it
 starts pressed, and must fail if it presses harder."""
-SAFE_TCP_HEIGHT_M = 0.22
-"""Going home, the gripper first rises to at least this height of its centre above the table:
-the tallest block (0.10 m) held below the fingertips still clears every other block."""
 
 
 def external_force_W(state: RobotState, hand_mass_kg: float) -> np.ndarray:

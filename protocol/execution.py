@@ -27,5 +27,10 @@ GUARD_OVERTRAVEL_M = 0.01
 the guard, not the target, ends it; a contact further off than this fails the command."""
 GRASP_APPROACH_M = 0.06
 """The grasp approaches from this far above the grasp pose, straight down (m)."""
+SAFE_TCP_HEIGHT_M = 0.22
+"""The hand travels between places at least this high (its centre above the table, m): to a
+grasp it goes over the top and comes straight down, from a release it rises this high before
+it parks, and going home it first rises this high. The tallest block (0.10 m) held below the
+fingertips (15 mm below the centre) still clears every other block."""
 GRASP_LIFT_M = 0.005
 """After closing, the block is lifted this far and weighed (m)."""

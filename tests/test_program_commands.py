@@ -29,6 +29,7 @@ from operator_site.program import (
 from operator_site.program.commands import CORNER_CLEARANCE_M, _force_limit, park_pose_W
 from operator_site.program.poses import interpolate
 from protocol import ContactState, MotionCommand, MotionProgram, decode, encode
+from protocol.execution import SAFE_TCP_HEIGHT_M
 from work_site.control.controller import HARD_FORCE_LIMIT_N
 
 
@@ -48,11 +49,16 @@ def test_program_starts_with_a_guarded_grasp_and_ends_released(fig12) -> None:
     path = gen.deformed.path
     assert cmds[0].kind == "guarded_grasp"
     np.testing.assert_array_equal(cmds[0].X_WP, path.nodes[0].X_WO)
-    assert [c.kind for c in cmds[-3:]] == ["release", "move", "move"]
-    np.testing.assert_array_equal(cmds[-3].X_WP, path.nodes[-1].X_WO)
-    # The departure lifts the gripper straight up from the goal, then it parks at home.
-    np.testing.assert_allclose(cmds[-2].X_WP[:3, 3] - cmds[-3].X_WP[:3, 3], [0, 0, 0.06])
-    X_WG_park = cmds[-1].X_WP @ np.linalg.inv(gen.program.X_GP)
+    assert [c.kind for c in cmds[-4:]] == ["release", "move", "move", "move"]
+    np.testing.assert_array_equal(cmds[-4].X_WP, path.nodes[-1].X_WO)
+    # The departure lifts the gripper straight up from the goal, on up to the height the hand
+    # travels at, then it parks at home.
+    np.testing.assert_allclose(cmds[-3].X_WP[:3, 3] - cmds[-4].X_WP[:3, 3], [0, 0, 0.06])
+    X_PG = np.linalg.inv(gen.program.X_GP)
+    risen, departed = cmds[-2].X_WP @ X_PG, cmds[-3].X_WP @ X_PG
+    np.testing.assert_allclose(risen[:2, 3], departed[:2, 3], atol=1e-12)
+    assert risen[2, 3] == pytest.approx(SAFE_TCP_HEIGHT_M)
+    X_WG_park = cmds[-1].X_WP @ X_PG
     np.testing.assert_allclose(X_WG_park, park_pose_W(fig12[0].scene), atol=1e-12)
     assert gen.check.ok
     assert len(cmds) < 15 < len(path) + len(gen.raw) // 10
@@ -61,10 +67,10 @@ def test_program_starts_with_a_guarded_grasp_and_ends_released(fig12) -> None:
 def test_moves_in_contact_are_slow_contact_moves_with_their_contact_states(fig12) -> None:
     _, gen = fig12
     params = CommandParams()
-    moves = gen.program.commands[1:-3]
+    moves = gen.program.commands[1:-4]
     assert moves[-1].kind == "contact_move"
     assert {c.object for c in moves[-1].contacts} == {"frame", "table"}
-    for prev, cmd in zip(gen.program.commands[:-4], moves, strict=True):
+    for prev, cmd in zip(gen.program.commands[:-5], moves, strict=True):
         assert (cmd.kind == "contact_move") == bool(cmd.contacts)
         if cmd.contacts or prev.contacts:
             assert cmd.speed_mps == params.contact_speed_mps
@@ -85,7 +91,7 @@ def test_program_round_trips_the_wire_and_exports_readable_json(fig12) -> None:
     assert [c.kind for c in back.commands] == [c.kind for c in gen.program.commands]
     doc = json.loads(json.dumps(program_to_json(gen.program)))
     assert doc["program_id"] == "fig12"
-    last_move = doc["commands"][-4]
+    last_move = doc["commands"][-5]
     assert last_move["kind"] == "contact_move"
     # Biased 5 mm into each of the three contact normals (+x, +y, +z): −5 mm along each.
     np.testing.assert_allclose(last_move["target_bias_m"], [-0.005, -0.005, -0.005], atol=1e-6)
@@ -270,7 +276,7 @@ def test_a_task_session_task_with_fingers_becomes_a_checked_program() -> None:
     )
     assert gen.check.ok
     assert gen.program.commands[0].kind == "guarded_grasp"
-    assert {c.object for c in gen.program.commands[-4].contacts} == {"table"}
+    assert {c.object for c in gen.program.commands[-5].contacts} == {"table"}
     assert gen.deformed.path.length_m() <= gen.raw.length_m() + 1e-9
 
 
@@ -350,8 +356,8 @@ def test_around_corner_demonstrations_become_programs_that_pass_the_check(seed: 
     demo = layout_demonstration("around-corner", seed)
     program = generated_program(demo.session, f"around-{seed}").program
     kinds = [c.kind for c in program.commands]
-    assert kinds[0] == "guarded_grasp" and kinds[-3:] == ["release", "move", "move"]
-    last = program.commands[-4]
+    assert kinds[0] == "guarded_grasp" and kinds[-4:] == ["release", "move", "move", "move"]
+    last = program.commands[-5]
     assert last.kind == "contact_move"
     assert {c.object for c in last.contacts} == {"frame", "table"}
     X_end = np.asarray(last.X_WP)
@@ -363,7 +369,7 @@ def test_around_corner_demonstrations_become_programs_that_pass_the_check(seed: 
     first = with_frame.index(True)
     back = first + with_frame[first:].index(False)
     rejoin = back + with_frame[back:].index(True)
-    assert all(with_frame[rejoin:-2]), "the frame is kept from the rejoin to the release"
+    assert all(with_frame[rejoin:-3]), "the frame is kept from the rejoin to the release"
     session = demo.session
     sweeper = Sweeper(
         session.scene, demo.workpiece, attached_O=session.fingers_O, X_WO=session.X_WO

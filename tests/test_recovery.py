@@ -13,11 +13,11 @@ from models.transforms import make_pose
 from operator_site.program import park_pose_W
 from operator_site.recovery import (
     RETRACT_M,
-    SAFE_TCP_HEIGHT_M,
     external_force_W,
     recovery_program,
 )
 from protocol import RobotState
+from protocol.execution import SAFE_TCP_HEIGHT_M
 
 SCENE = load_scene()
 ROBOT = load_robot(SCENE.robot.urdf_path)

@@ -21,12 +21,13 @@ import numpy as np
 
 from models.robot import TCP_LINK, load_robot
 from models.scene import Scene
+from models.transforms import invert_pose
 from operator_site.program.check import Sweeper
 from operator_site.program.contact_step import away_normal, held_towards
 from operator_site.program.path import NodeContact, PathNode, WorkpiecePath
 from operator_site.program.poses import interpolate, log_batch
 from protocol import ContactState, MotionCommand, MotionProgram
-from protocol.execution import TARGET_BIAS_M
+from protocol.execution import SAFE_TCP_HEIGHT_M, TARGET_BIAS_M
 from protocol.messages import (
     MAX_CONTACT_NORMALS,
     MAX_CONTACTS,
@@ -401,6 +402,16 @@ def build_program(
     ]
     X_GP = np.asarray(X_GP, dtype=np.float64)
     if park_X_WG is not None:
+        # Up to the height the hand travels at, then to the park: a straight line from low
+        # beside the placed block may sweep the open fingers through its neighbours.
+        X_WG_up = up @ invert_pose(X_GP)
+        if X_WG_up[2, 3] < SAFE_TCP_HEIGHT_M:
+            X_WG_up[2, 3] = SAFE_TCP_HEIGHT_M
+            commands.append(
+                MotionCommand(
+                    "move", X_WG_up @ X_GP, params.free_speed_mps, params.force_limit_n, ()
+                )
+            )
         park = np.asarray(park_X_WG, dtype=np.float64) @ X_GP  # the gripper's target as X_WP
         commands.append(
             MotionCommand("move", park, params.free_speed_mps, params.force_limit_n, ())

@@ -47,6 +47,7 @@ from protocol.execution import (
     GRASP_LIFT_M,
     GUARD_OVERTRAVEL_M,
     NORMAL_STIFFNESS_N_PER_M,
+    SAFE_TCP_HEIGHT_M,
     TARGET_BIAS_M,
     TARGET_BIAS_MAX_M,
     WORKSPACE_MAX_W,
@@ -232,8 +233,8 @@ def grasp_feasibility(
 
 def gripper_targets_W(program: MotionProgram, k: int) -> list[np.ndarray]:
     """The TCP poses ``X_WG`` command ``k``'s motions aim at, in order, as the work site
-    expands it: a grasp's approach from above, the grasp and its lift; a guarded move's
-    overtravel; a contact move's biased target; a move's target."""
+    expands it: a grasp's approach over the top and from above, the grasp and its lift; a
+    guarded move's overtravel; a contact move's biased target; a move's target."""
     cmd = program.commands[k]
     if cmd.kind not in _CARRYING:
         return []
@@ -242,7 +243,9 @@ def gripper_targets_W(program: MotionProgram, k: int) -> list[np.ndarray]:
         above, lifted = X_WG.copy(), X_WG.copy()
         above[2, 3] += GRASP_APPROACH_M
         lifted[2, 3] += GRASP_LIFT_M
-        return [above, X_WG, lifted]
+        over = above.copy()  # over the top, then straight down
+        over[2, 3] = max(above[2, 3], SAFE_TCP_HEIGHT_M)
+        return [over, above, X_WG, lifted] if over[2, 3] > above[2, 3] else [above, X_WG, lifted]
     if cmd.kind == "contact_move" and cmd.contacts:
         biased = X_WG.copy()
         N = np.array([n for _, n in contact_directions(cmd.contacts)])

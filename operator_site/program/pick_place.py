@@ -10,7 +10,7 @@ from models.kinematics import PathFollow, arm_geometry, follow_tcp, plan_approac
 from models.robot import RobotModel
 from models.transforms import invert_pose, make_pose, rpy_to_R
 from protocol import ContactState, MotionCommand, MotionProgram
-from protocol.execution import GRASP_APPROACH_M
+from protocol.execution import GRASP_APPROACH_M, SAFE_TCP_HEIGHT_M
 
 CLEARANCE_M = 0.06
 """Lift, carry and lower this high above the start and goal poses (clears the 30 mm bars)."""
@@ -38,16 +38,18 @@ def carried_arm_path(
     grasp = np.asarray(X_WP_start) @ X_PG
     above = grasp.copy()
     above[2, 3] += GRASP_APPROACH_M
+    over = above.copy()  # as the work site comes: over the top, then straight down
+    over[2, 3] = max(above[2, 3], SAFE_TCP_HEIGHT_M)
     geometry = arm_geometry(robot)
     q = np.asarray(q_start, dtype=np.float64)
     here = robot.tcp_pose_W(q, X_WB)
-    then = [grasp, *(np.asarray(X) @ X_PG for X in path_X_WP)]
-    plan = plan_approach(here, q, above, then, robot, X_WB, geometry)
+    then = [above, grasp, *(np.asarray(X) @ X_PG for X in path_X_WP)]
+    plan = plan_approach(here, q, over, then, robot, X_WB, geometry)
     if not plan.ok:
         return PathFollow(False, None, reason=plan.reason)
     if plan.q_joint is not None:
-        return follow_tcp(above, plan.q_joint, then, robot, X_WB, geometry)
-    return follow_tcp(here, q, [above, *then], robot, X_WB, geometry)
+        return follow_tcp(over, plan.q_joint, then, robot, X_WB, geometry)
+    return follow_tcp(here, q, [over, *then], robot, X_WB, geometry)
 
 
 def choose_grasp_yaw(

@@ -32,6 +32,7 @@ from protocol.execution import (
     GRASP_APPROACH_M,
     GRASP_LIFT_M,
     GUARD_OVERTRAVEL_M,
+    SAFE_TCP_HEIGHT_M,
     TARGET_BIAS_M,
     TARGET_BIAS_MAX_M,
     WORKSPACE_MAX_W,
@@ -363,10 +364,17 @@ def expand(program: MotionProgram, index: int, impedance: Impedance | None = Non
         above[2, 3] += GRASP_APPROACH_M
         lifted = X_WG.copy()
         lifted[2, 3] += GRASP_LIFT_M
+        # Over the top, then straight down: a straight line from where the hand is may pass
+        # low over the blocks on the way.
+        over = above.copy()
+        over[2, 3] = max(above[2, 3], SAFE_TCP_HEIGHT_M)
+        approach = [MoveTo(over, cmd.speed_mps, limit, approach=True)]
+        if over[2, 3] > above[2, 3]:
+            approach.append(MoveTo(above, cmd.speed_mps, limit))
         return [
             ForgetPayload(),
             SetFingers(GRIPPER_OPEN_M / 2),
-            MoveTo(above, cmd.speed_mps, limit, approach=True),
+            *approach,
             MoveTo(
                 X_WG,
                 min(cmd.speed_mps, GRASP_DESCENT_MPS),
