@@ -63,6 +63,7 @@ from bench.netsafety import (
 from operator_site.link import HEARTBEAT_PERIOD_S, WorkSiteLink
 from protocol import make_config
 from protocol.messages import MAX_COMMANDS
+from work_site.lease import LEASE_IDLE_S
 
 STILL_RAD = 2e-4
 """Joint motion a control period that counts as still (rad)."""
@@ -269,12 +270,23 @@ def _deadman_row(name: str, i: int, pid: str, site: Scenario, event_s: float) ->
                 ws_loop_gap_ms=_ms(loop_gap_s))  # fmt: skip
 
 
+def _wait_lease_free(observer) -> None:
+    """Until the work site's heartbeat names no lease holder: a dead operator's lease lapses
+    :data:`~work_site.lease.LEASE_IDLE_S` after its last beat, and the next trial's operator,
+    a new one, is refused until then."""
+    if not wait_until(
+        lambda: (observer.poll(), observer.link.status.holder == "")[1], LEASE_IDLE_S + 5.0
+    ):
+        raise TimeoutError(f"the lease is still held by {observer.link.status.holder!r}")
+
+
 def run_deadman_kill(run_dir: Path, index: int, trials: int, rng) -> list[dict]:
     """An operator process SIGKILLed mid-program, each trial a new process."""
     site, rows = Scenario(run_dir, index, "deadman_kill"), []
 
     def trial(i: int) -> dict[str, Any]:
         pid = f"killed{i}"
+        _wait_lease_free(site.observer)
         a, b = TARGETS[i % 2], TARGETS[(i + 1) % 2]
         points = [",".join(f"{v:g}" for v in p) for p in (a, b, a, b)]
         proc = subprocess.Popen(
@@ -313,6 +325,7 @@ def run_deadman_cut(run_dir: Path, index: int, trials: int, rng) -> list[dict]:
 
     def trial(i: int) -> dict[str, Any]:
         pid = f"cut{i}"
+        _wait_lease_free(site.observer)
         relay = Relay.to(site.ws.endpoint)
         operator = None
         try:
