@@ -183,7 +183,8 @@ def test_each_new_block_pushed_against_a_wall_runs_end_to_end(name, yaw_deg) -> 
         assert reports[-1][2:] == ("done", "program complete"), reports[-1]
         verified = [r[3] for r in reports if r[2] == "contact_verified"]
         assert verified and "frame" in verified[-1]
-        goal = program.commands[-3].X_WP  # the release (then up, then park)
+        kinds = [c.kind for c in program.commands]
+        goal = program.commands[kinds.index("release")].X_WP  # (then up, rise, park)
         np.testing.assert_allclose(world.object_pose(name)[:3, 3], goal[:3, 3], atol=2e-3)
     finally:
         world.close()
