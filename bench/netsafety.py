@@ -207,6 +207,7 @@ class Relay:
         self.target = target
         self.server = socket.create_server(("127.0.0.1", port))
         self.cut_event, self.done = threading.Event(), threading.Event()
+        self._forwarding = threading.Lock()
         self.threads = [threading.Thread(target=self._accept, daemon=True)]
         self.threads[0].start()
 
@@ -220,8 +221,12 @@ class Relay:
     def endpoint(self) -> str:
         return f"tcp/127.0.0.1:{self.server.getsockname()[1]}"
 
-    def cut(self) -> None:
-        self.cut_event.set()
+    def cut(self) -> float:
+        """Stop forwarding; the time (``time.time()``) after which nothing more got through:
+        bytes being forwarded as the cut comes are through before it counts."""
+        with self._forwarding:
+            self.cut_event.set()
+            return time.time()
 
     def _accept(self) -> None:
         self.server.settimeout(0.1)
@@ -244,8 +249,9 @@ class Relay:
                     data = s.recv(65536)
                     if not data:
                         return
-                    if not self.cut_event.is_set():
-                        peer[s].sendall(data)
+                    with self._forwarding:
+                        if not self.cut_event.is_set():
+                            peer[s].sendall(data)
 
     def close(self) -> None:
         self.done.set()

@@ -335,8 +335,7 @@ def run_deadman_cut(run_dir: Path, index: int, trials: int, rng) -> list[dict]:
             _wait_moving(site.observer, time.monotonic() + rng.uniform(*DEADMAN_DELAY_S))
             if site.observer.report(pid, -1, "stopped") is not None:
                 raise RuntimeError("stopped before the cut (the operator was beating)")
-            cut_s = time.time()
-            relay.cut()
+            cut_s = relay.cut()
             return _deadman_row("deadman_cut", i, pid, site, cut_s)
         finally:
             if operator is not None:

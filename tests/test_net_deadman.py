@@ -117,8 +117,7 @@ def test_a_link_cut_during_a_contact_move_stops_and_eases_the_press(work_site) -
                 break
             time.sleep(0.005)
         assert observer.report("corner", contact, "contact_verified") is None  # still moving
-        silent_s = time.time()
-        relay.cut()
+        silent_s = relay.cut()
         # In contact the hand first eases off the press (EASE_S), then holds still.
         delay_s = check_deadman_stop(ws, observer, "corner", silent_s, EASE_S + CONTROL_PERIOD_S)
         stopped = observer.report("corner", -1, "stopped")
