@@ -34,3 +34,17 @@ it parks, and going home it first rises this high. The tallest block (0.10 m) he
 fingertips (15 mm below the centre) still clears every other block."""
 GRASP_LIFT_M = 0.005
 """After closing, the block is lifted this far and weighed (m)."""
+
+
+def grasp_approach_W(X_WG: np.ndarray) -> list[np.ndarray]:
+    """The TCP poses the empty hand comes to a grasp at ``X_WG`` through, in order: over the top
+    at :data:`SAFE_TCP_HEIGHT_M` (a straight line from where the hand is may pass low over the
+    blocks), then :data:`GRASP_APPROACH_M` above the grasp, from where it is guarded down; only the
+    latter when it is already that high."""
+    above = np.array(X_WG, dtype=np.float64)
+    above[2, 3] += GRASP_APPROACH_M
+    if above[2, 3] >= SAFE_TCP_HEIGHT_M:
+        return [above]
+    over = above.copy()
+    over[2, 3] = SAFE_TCP_HEIGHT_M
+    return [over, above]

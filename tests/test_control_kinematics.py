@@ -211,7 +211,7 @@ def test_every_block_of_a_seeded_layout_can_be_grasped_from_above() -> None:
     from models.transforms import invert_pose
     from operator_site.model_editor import WorkSiteModel
     from operator_site.task import TaskSession
-    from work_site.control.executor import GRASP_APPROACH_M
+    from protocol.execution import GRASP_APPROACH_M
 
     scene = load_scene()
     robot = load_robot(PUMA_URDF)

@@ -309,8 +309,8 @@ def test_a_grasp_the_short_turn_cannot_reach_is_approached_through_joint_space(s
     joint-space move (no joint faster than its joint-move speed) and lifts the cube."""
     from models.kinematics import follow_line_tcp, plan_approach
     from models.transforms import invert_pose
+    from protocol.execution import GRASP_APPROACH_M
     from work_site.control.controller import CONTROL_PERIOD_S, JOINT_MOVE_RPS
-    from work_site.control.executor import GRASP_APPROACH_M
 
     world, controller = site
     # Left of the robot, clear of the other blocks, turned 20°: there a grasp of the cube

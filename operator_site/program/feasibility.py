@@ -43,15 +43,14 @@ from operator_site.simulator.world import SimWorld
 from protocol import MotionCommand, MotionProgram
 from protocol.execution import (
     CONTACT_VERIFY_N,
-    GRASP_APPROACH_M,
     GRASP_LIFT_M,
     GUARD_OVERTRAVEL_M,
     NORMAL_STIFFNESS_N_PER_M,
-    SAFE_TCP_HEIGHT_M,
     TARGET_BIAS_M,
     TARGET_BIAS_MAX_M,
     WORKSPACE_MAX_W,
     WORKSPACE_MIN_W,
+    grasp_approach_W,
 )
 from protocol.messages import contact_directions, target_bias
 
@@ -240,12 +239,9 @@ def gripper_targets_W(program: MotionProgram, k: int) -> list[np.ndarray]:
         return []
     X_WG = np.asarray(cmd.X_WP) @ invert_pose(np.asarray(program.X_GP))
     if cmd.kind == "guarded_grasp":
-        above, lifted = X_WG.copy(), X_WG.copy()
-        above[2, 3] += GRASP_APPROACH_M
+        lifted = X_WG.copy()
         lifted[2, 3] += GRASP_LIFT_M
-        over = above.copy()  # over the top, then straight down
-        over[2, 3] = max(above[2, 3], SAFE_TCP_HEIGHT_M)
-        return [over, above, X_WG, lifted] if over[2, 3] > above[2, 3] else [above, X_WG, lifted]
+        return [*grasp_approach_W(X_WG), X_WG, lifted]
     if cmd.kind == "contact_move" and cmd.contacts:
         biased = X_WG.copy()
         N = np.array([n for _, n in contact_directions(cmd.contacts)])

@@ -10,7 +10,7 @@ from models.kinematics import PathFollow, arm_geometry, follow_tcp, plan_approac
 from models.robot import RobotModel
 from models.transforms import invert_pose, make_pose, rpy_to_R
 from protocol import ContactState, MotionCommand, MotionProgram
-from protocol.execution import GRASP_APPROACH_M, SAFE_TCP_HEIGHT_M
+from protocol.execution import grasp_approach_W
 
 CLEARANCE_M = 0.06
 """Lift, carry and lower this high above the start and goal poses (clears the 30 mm bars)."""
@@ -36,14 +36,11 @@ def carried_arm_path(
     the work site does (:func:`~models.kinematics.follow_line_tcp`)."""
     X_PG = invert_pose(X_GP)
     grasp = np.asarray(X_WP_start) @ X_PG
-    above = grasp.copy()
-    above[2, 3] += GRASP_APPROACH_M
-    over = above.copy()  # as the work site comes: over the top, then straight down
-    over[2, 3] = max(above[2, 3], SAFE_TCP_HEIGHT_M)
+    over, *above = grasp_approach_W(grasp)  # as the work site comes to it
     geometry = arm_geometry(robot)
     q = np.asarray(q_start, dtype=np.float64)
     here = robot.tcp_pose_W(q, X_WB)
-    then = [above, grasp, *(np.asarray(X) @ X_PG for X in path_X_WP)]
+    then = [*above, grasp, *(np.asarray(X) @ X_PG for X in path_X_WP)]
     plan = plan_approach(here, q, over, then, robot, X_WB, geometry)
     if not plan.ok:
         return PathFollow(False, None, reason=plan.reason)

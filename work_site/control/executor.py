@@ -29,14 +29,13 @@ from models.transforms import invert_pose
 from protocol import ContactState, MotionProgram
 from protocol.execution import (
     CONTACT_VERIFY_N,
-    GRASP_APPROACH_M,
     GRASP_LIFT_M,
     GUARD_OVERTRAVEL_M,
-    SAFE_TCP_HEIGHT_M,
     TARGET_BIAS_M,
     TARGET_BIAS_MAX_M,
     WORKSPACE_MAX_W,
     WORKSPACE_MIN_W,
+    grasp_approach_W,
 )
 from protocol.messages import contact_directions, target_bias
 from work_site.control.controller import (
@@ -360,17 +359,11 @@ def expand(program: MotionProgram, index: int, impedance: Impedance | None = Non
             VerifyContacts(cmd.contacts),
         ]
     if cmd.kind == "guarded_grasp":
-        above = X_WG.copy()
-        above[2, 3] += GRASP_APPROACH_M
         lifted = X_WG.copy()
         lifted[2, 3] += GRASP_LIFT_M
-        # Over the top, then straight down: a straight line from where the hand is may pass
-        # low over the blocks on the way.
-        over = above.copy()
-        over[2, 3] = max(above[2, 3], SAFE_TCP_HEIGHT_M)
-        approach = [MoveTo(over, cmd.speed_mps, limit, approach=True)]
-        if over[2, 3] > above[2, 3]:
-            approach.append(MoveTo(above, cmd.speed_mps, limit))
+        first, *then = grasp_approach_W(X_WG)
+        approach = [MoveTo(first, cmd.speed_mps, limit, approach=True)]
+        approach += [MoveTo(X, cmd.speed_mps, limit) for X in then]
         return [
             ForgetPayload(),
             SetFingers(GRIPPER_OPEN_M / 2),
