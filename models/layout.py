@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 from models.scene import Scene
@@ -28,6 +29,10 @@ folds the elbow past joint 3's limit, and a block may be set anywhere on another
 CLEARANCE_M = 0.012
 """Blocks start at least this far apart (between their bounding circles), room for fingers."""
 MAX_TRIES = 2000
+CAMERA_SHIFT_M = 0.002
+"""How far the real camera is from its calibrated pose in seeded runs (m)."""
+CAMERA_TURN_RAD = math.radians(0.2)
+"""How far the real camera is turned from its calibrated pose in seeded runs (rad)."""
 
 
 def _radius_xy(scene: Scene, name: str) -> float:
@@ -35,14 +40,51 @@ def _radius_xy(scene: Scene, name: str) -> float:
     return float(np.max(np.linalg.norm(V[:, :2], axis=1)))
 
 
+def _image_hull_px(scene: Scene, name: str, X_WO: np.ndarray) -> tuple[np.ndarray, float]:
+    """The convex hull (k, 2) of the object's image in the scene's camera (px), and how far
+    that image may move when the real camera is off its calibration as
+    :func:`perturbed_camera_pose` puts it (px)."""
+    V_O = np.vstack([p.vertices_O for p in scene.object(name).model.parts])
+    X_CW = np.linalg.inv(scene.camera.X_WC)
+    p_C = (X_CW[:3, :3] @ (X_WO[:3, :3] @ V_O.T + X_WO[:3, 3:4]) + X_CW[:3, 3:4]).T
+    uv = (scene.camera.K @ p_C.T).T
+    uv = uv[:, :2] / uv[:, 2:3]
+    focal_px = float(scene.camera.K[0, 0])
+    slack_px = focal_px * (CAMERA_TURN_RAD + CAMERA_SHIFT_M / float(p_C[:, 2].min()))
+    hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+    return hull, slack_px
+
+
+def _gap_px(a: np.ndarray, b: np.ndarray) -> float:
+    """The distance between two convex polygons (px; 0 where they overlap)."""
+    area, _ = cv2.intersectConvexConvex(a.astype(np.float32), b.astype(np.float32))
+    if area > 0.0:
+        return 0.0
+
+    def vertex_to_edges(p: np.ndarray, q: np.ndarray) -> float:
+        e0, e1 = q, np.roll(q, -1, axis=0)
+        d = e1 - e0
+        t = np.clip(
+            np.einsum("ijk,jk->ij", p[:, None, :] - e0[None], d) / np.sum(d * d, axis=1), 0, 1
+        )
+        closest = e0[None] + t[..., None] * d[None]
+        return float(np.min(np.linalg.norm(p[:, None, :] - closest, axis=2)))
+
+    return min(vertex_to_edges(a, b), vertex_to_edges(b, a))
+
+
 def random_layout(scene: Scene, seed: int) -> dict[str, np.ndarray]:
     """``X_WO`` for every movable object: standing as in the scene file, turned by a random yaw,
     at a random place on the table at least :data:`LANE_M` outside the frame, none touching
-    another."""
+    another, and each seen whole by the camera (inside its image, not behind another block's
+    image) wherever :func:`perturbed_camera_pose` may put the real camera. A block the camera
+    cannot see is not in the operator's model; that refusal is tested on its own, not drawn
+    here by chance."""
     rng = np.random.default_rng(seed)
     (x0, x1), (y0, y1) = LAYOUT_REGION_W
     (fx0, fx1), (fy0, fy1) = FRAME_OUTLINE_W
     placed: dict[str, tuple[np.ndarray, float]] = {}
+    hulls: dict[str, tuple[np.ndarray, float]] = {}
     out: dict[str, np.ndarray] = {}
     for obj in scene.movable:
         r = _radius_xy(scene, obj.name)
@@ -55,18 +97,26 @@ def random_layout(scene: Scene, seed: int) -> dict[str, np.ndarray]:
                 continue
             if any(np.linalg.norm(xy - c) < r + rc + CLEARANCE_M for c, rc in placed.values()):
                 continue
+            yaw = rng.uniform(-math.pi, math.pi)
+            R = rpy_to_R(np.array([0.0, 0.0, yaw])) @ obj.X_WO[:3, :3]
+            X_WO = make_pose(R, (xy[0], xy[1], obj.X_WO[2, 3]))
+            hull, slack_px = _image_hull_px(scene, obj.name, X_WO)
+            size = np.array([scene.camera.width - 1, scene.camera.height - 1], dtype=np.float64)
+            if np.any(hull < slack_px) or np.any(hull > size - slack_px):
+                continue
+            if any(_gap_px(hull, h) < slack_px + s for h, s in hulls.values()):
+                continue
             break
         else:
             raise ValueError(f"seed {seed}: no room for {obj.name} in {LAYOUT_REGION_W}")
-        yaw = rng.uniform(-math.pi, math.pi)
-        R = rpy_to_R(np.array([0.0, 0.0, yaw])) @ obj.X_WO[:3, :3]
-        out[obj.name] = make_pose(R, (xy[0], xy[1], obj.X_WO[2, 3]))
+        out[obj.name] = X_WO
         placed[obj.name] = (xy, r)
+        hulls[obj.name] = (hull, slack_px)
     return out
 
 
 def perturbed_camera_pose(
-    X_WC: np.ndarray, seed: int, shift_m: float = 0.002, turn_rad: float = math.radians(0.2)
+    X_WC: np.ndarray, seed: int, shift_m: float = CAMERA_SHIFT_M, turn_rad: float = CAMERA_TURN_RAD
 ) -> np.ndarray:
     """``X_WC`` moved by a random ``shift_m`` and turned by a random ``turn_rad`` (the real
     camera's offset from its calibration)."""

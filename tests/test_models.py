@@ -355,3 +355,39 @@ def test_every_block_has_the_symmetries_of_its_shape() -> None:
         for R in S:  # each maps every corner onto a corner, and each is a rotation
             d = np.linalg.norm((corners @ R.T)[:, None] - corners[None], axis=2).min(axis=1)
             assert d.max() < 1e-9 and abs(np.linalg.det(R) - 1.0) < 1e-12, name
+
+
+@pytest.mark.parametrize("seed", [0, 7, 13])
+def test_random_layouts_show_every_block_whole_to_the_off_calibration_camera(seed: int) -> None:
+    """Rendered, not re-derived: each block covers as many pixels among the others as alone,
+    and none touches the image's border, with the real camera where the seed puts it."""
+    from models.layout import perturbed_camera_pose, random_layout
+    from work_site.camera import render_grey
+    from work_site.world import World
+
+    scene = load_scene()
+    camera = dataclasses.replace(
+        scene.camera, X_WC=perturbed_camera_pose(scene.camera.X_WC, seed)
+    )
+    layout = random_layout(scene, seed)
+    world = World(dataclasses.replace(scene, camera=camera))
+    try:
+        away = {n: X.copy() for n, X in layout.items()}
+        for X in away.values():
+            X[2, 3] -= 5.0  # far below the table, out of sight
+        for name, X_WO in layout.items():
+            world.set_object_pose(name, X_WO)
+        _, seg = render_grey(world.cid, camera, segmentation=True)
+        among = {n: int(np.sum(seg == world.bodies[n])) for n in layout}
+        for name in layout:
+            assert not np.any(seg[[0, -1], :] == world.bodies[name]), name
+            assert not np.any(seg[:, [0, -1]] == world.bodies[name]), name
+        alone = {}
+        for name in layout:
+            for other, X in away.items():
+                world.set_object_pose(other, layout[other] if other == name else X)
+            _, seg = render_grey(world.cid, camera, segmentation=True)
+            alone[name] = int(np.sum(seg == world.bodies[name]))
+    finally:
+        world.close()
+    assert among == alone
