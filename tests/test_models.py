@@ -366,9 +366,7 @@ def test_random_layouts_show_every_block_whole_to_the_off_calibration_camera(see
     from work_site.world import World
 
     scene = load_scene()
-    camera = dataclasses.replace(
-        scene.camera, X_WC=perturbed_camera_pose(scene.camera.X_WC, seed)
-    )
+    camera = dataclasses.replace(scene.camera, X_WC=perturbed_camera_pose(scene.camera.X_WC, seed))
     layout = random_layout(scene, seed)
     world = World(dataclasses.replace(scene, camera=camera))
     try:
