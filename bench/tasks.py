@@ -1,7 +1,9 @@
 """``python -m bench tasks``: every shipped task file end to end over seeded layouts.
 
 Each (task, seed) runs :func:`operator_site.runner.run_task` against its own freshly started
-work site, blocks laid out by the seed. Writes ``tasks.jsonl`` (one JSON row per run, appended
+work site, blocks laid out by the seed. A task runs on the first seeds whose layouts leave it
+room (:func:`operator_site.runner.room_for_task`); the seeds passed over are in ``tasks.json``
+with the reason. Writes ``tasks.jsonl`` (one JSON row per run, appended
 as each run ends), ``tasks.csv`` (the same rows), ``tasks.json`` (a list, one summary object per
 task) and ``tasks.png`` (successes and failure kinds per task, final errors) into the output
 directory.
@@ -19,10 +21,39 @@ from pathlib import Path
 import numpy as np
 
 from bench.e2e import _read_rows, _tree, add_time_scale_argument
-from operator_site.runner import run_task
-from operator_site.taskfile import TaskFileError, load_task
+from models.layout import random_layout
+from models.scene import Scene, load_scene
+from operator_site.runner import room_for_task, run_task
+from operator_site.taskfile import Task, TaskFileError, load_task
 
 TASKS_DIR = Path(__file__).resolve().parents[1] / "examples" / "tasks"
+PASSED_OVER_FILE = "tasks_passed_over.json"
+"""Per task file, the seeds passed over for want of room, with why."""
+MAX_SEEDS_PASSED_OVER = 10
+"""A task may pass over at most this many layouts per layout it runs on."""
+
+
+def seeds_with_room(
+    task: Task, scene: Scene, first_seed: int, count: int
+) -> tuple[list[int], dict[int, str]]:
+    """The first ``count`` seeds from ``first_seed`` on whose layouts leave ``task`` room, and
+    the seeds passed over with why; ValueError when too few do."""
+    seeds: list[int] = []
+    passed_over: dict[int, str] = {}
+    for seed in range(first_seed, first_seed + count * (1 + MAX_SEEDS_PASSED_OVER)):
+        if len(seeds) == count:
+            break
+        reason = room_for_task(task, scene, random_layout(scene, seed))
+        if reason is None:
+            seeds.append(seed)
+        else:
+            passed_over[seed] = reason
+    if len(seeds) < count:
+        raise ValueError(
+            f"{task.name}: only {len(seeds)} of {len(seeds) + len(passed_over)} layouts from "
+            f"seed {first_seed} leave it room"
+        )
+    return seeds, passed_over
 
 
 def _stat(values: list[float], how) -> float | None:
@@ -110,16 +141,23 @@ def run(
     ``keep``)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     tasks = {f.name: load_task(f) for f in files}  # refused here, before any run, if malformed
+    scene = load_scene()
+    chosen = {name: seeds_with_room(task, scene, first_seed, seeds) for name, task in tasks.items()}
+    passed_path = out_dir / PASSED_OVER_FILE
+    passed = json.loads(passed_path.read_text()) if keep and passed_path.exists() else {}
+    passed |= {name: passed_over for name, (_, passed_over) in chosen.items()}
+    passed_path.write_text(json.dumps(passed, indent=1))
     rows_path = out_dir / "tasks.jsonl"
-    todo = {(name, seed) for name in tasks for seed in range(first_seed, first_seed + seeds)}
+    todo = {(name, seed) for name, (task_seeds, _) in chosen.items() for seed in task_seeds}
     kept = [r for r in _read_rows(rows_path) if (r["file"], r["seed"]) not in todo] if keep else []
     with rows_path.open("w") as f:
         f.writelines(json.dumps(r) + "\n" for r in kept)
     tree = _tree()
     summaries: list[dict] = []
-    # Seed by seed, every task at each: a run stopped early has as many layouts of each task.
-    for seed in range(first_seed, first_seed + seeds):
+    # Layout by layout, every task at each: a run stopped early has as many layouts of each task.
+    for i in range(seeds):
         for k, (name, task) in enumerate(tasks.items(), 1):
+            seed = chosen[name][0][i]
             r = run_task(task, seed, log=lambda _: None, time_scale=time_scale)
             r |= {"file": name, "workpiece": task.workpiece, "tree": tree}
             with rows_path.open("a") as f:
@@ -173,7 +211,12 @@ def write_summaries(out_dir: Path, rows_path: Path) -> list[dict]:
                         "failure_message": failure.get("message"),
                     }
                 )
-    summaries = [summarise(f, rows[0]["workpiece"], rows) for f, rows in rows_by_file.items()]
+    passed_path = out_dir / PASSED_OVER_FILE
+    passed = json.loads(passed_path.read_text()) if passed_path.exists() else {}
+    summaries = [
+        summarise(f, rows[0]["workpiece"], rows) | {"passed_over_seeds": passed.get(f, {})}
+        for f, rows in rows_by_file.items()
+    ]
     (out_dir / "tasks.json").write_text(json.dumps(summaries, indent=1))
     _plot(out_dir, summaries, rows_by_file)
     return summaries
@@ -214,7 +257,7 @@ def main(args: argparse.Namespace) -> int:
     files = args.tasks or sorted(TASKS_DIR.glob("*.json"))
     try:
         summaries = run(args.out, args.seeds, files, args.first_seed, args.time_scale, args.keep)
-    except TaskFileError as e:
+    except (TaskFileError, ValueError) as e:
         print(e, file=sys.stderr)
         return 2
     print(json.dumps(summaries))

@@ -35,7 +35,8 @@ CAMERA_TURN_RAD = math.radians(0.2)
 """How far the real camera is turned from its calibrated pose in seeded runs (rad)."""
 
 
-def _radius_xy(scene: Scene, name: str) -> float:
+def radius_xy(scene: Scene, name: str) -> float:
+    """The radius of the object's footprint's bounding circle about its origin (m)."""
     V = np.vstack([p.vertices_O for p in scene.object(name).model.parts])
     return float(np.max(np.linalg.norm(V[:, :2], axis=1)))
 
@@ -87,7 +88,7 @@ def random_layout(scene: Scene, seed: int) -> dict[str, np.ndarray]:
     hulls: dict[str, tuple[np.ndarray, float]] = {}
     out: dict[str, np.ndarray] = {}
     for obj in scene.movable:
-        r = _radius_xy(scene, obj.name)
+        r = radius_xy(scene, obj.name)
         for _ in range(MAX_TRIES):
             xy = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
             outside = np.maximum([fx0 - xy[0], fy0 - xy[1]], [xy[0] - fx1, xy[1] - fy1])

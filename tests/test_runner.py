@@ -239,6 +239,31 @@ def test_an_occupied_goal_place_is_infeasible(scene) -> None:
     assert info.value.kind == "infeasible"
 
 
+def test_a_block_beside_the_path_round_the_corner_leaves_no_room(scene) -> None:
+    """The cube passes round the frame's near left corner: the L-block just outside it is in
+    the way, the same block a hand further out is not, and the task's own reference never is."""
+    from models.layout import CLEARANCE_M
+    from operator_site.runner import room_for_task
+
+    task = load_task(TASKS_DIR / "cube-around-corner.json")
+    X_WF = scene.object("frame").X_WO
+    corner = X_WF @ task.steps[2].X_RD  # the cube past the corner, before it turns round it
+    layout = {o.name: o.X_WO for o in scene.movable}
+    # Far from the corner, everything else: the scene file's own layout is a puzzle inside.
+    for k, name in enumerate(n for n in layout if n not in ("cube", "l_block")):
+        layout[name] = make_pose(np.eye(3), (0.25 + 0.09 * k, 0.28, layout[name][2, 3]))
+    cube_r = 0.025 * math.sqrt(2)
+    l_half_x = 0.05  # the L-block is 0.10 m long along its x
+    for gap_m, room in ((CLEARANCE_M / 2, False), (3 * CLEARANCE_M, True)):
+        x = corner[0, 3] - cube_r - gap_m - l_half_x
+        layout["l_block"] = make_pose(np.eye(3), (x, corner[1, 3], 0.05))
+        reason = room_for_task(task, scene, layout)
+        assert (reason is None) == room, (gap_m, reason)
+    assert reason is None
+    layout["l_block"] = make_pose(np.eye(3), (corner[0, 3] - 0.04, corner[1, 3], 0.05))
+    assert "the l_block lies in the way of the cube's path" in room_for_task(task, scene, layout)
+
+
 # ------------------------------------------------------------------------- the command
 
 

@@ -75,3 +75,36 @@ def test_runs_go_seed_by_seed_and_the_summary_is_written_after_each(
     assert calls == [(names[0], 0), (names[1], 0), (names[0], 1), (names[1], 1)]
     assert seen_runs == [{"cube-corner.json": 1, "cube-wall.json": 1}]
     assert [s["runs"] for s in summaries] == [2, 2]
+
+
+def test_a_task_runs_on_the_first_layouts_that_leave_it_room(tmp_path: Path, monkeypatch) -> None:
+    """Seeds whose layouts put a block in the task's way are passed over, with the reason, in
+    tasks.json; the task still runs on as many layouts as asked."""
+    blocked = {1, 3}
+    monkeypatch.setattr(
+        tasks,
+        "room_for_task",
+        lambda _t, _s, X_WO: "in the way" if X_WO["seed"] in blocked else None,
+    )
+    monkeypatch.setattr(tasks, "random_layout", lambda _scene, seed: {"seed": seed})
+    monkeypatch.setattr(tasks, "_plot", lambda *_args: None)
+    ran: list[int] = []
+
+    def fake_run_task(task, seed, **_kwargs) -> dict:
+        ran.append(seed)
+        return {"task": task.name, "seed": seed, "success": True, "failure": None,
+                "final_error_mm": 0.1, "final_error_deg": 0.1, "stage_s": {}}  # fmt: skip
+
+    monkeypatch.setattr(tasks, "run_task", fake_run_task)
+    (summary,) = tasks.run(tmp_path, 3, [tasks.TASKS_DIR / "cube-corner.json"])
+    assert ran == [0, 2, 4]
+    assert summary["runs"] == 3
+    assert summary["passed_over_seeds"] == {"1": "in the way", "3": "in the way"}
+
+
+def test_too_few_layouts_with_room_is_a_clear_error(monkeypatch) -> None:
+    monkeypatch.setattr(tasks, "room_for_task", lambda *_args: "in the way")
+    monkeypatch.setattr(tasks, "random_layout", lambda _scene, seed: {})
+    task = tasks.load_task(tasks.TASKS_DIR / "cube-corner.json")
+    with pytest.raises(ValueError, match="only 0 of 22 layouts from seed 0 leave it room"):
+        tasks.seeds_with_room(task, None, 0, 2)
