@@ -203,14 +203,18 @@ this fraction of the largest: nearly opposite walls) get no target bias: the lea
 bias there is large, along the surfaces, and presses nothing."""
 
 
-def target_bias(normals_W: np.ndarray, d_m: float, max_m: float = np.inf) -> np.ndarray:
-    """The impedance target bias Δp (3,) of §VI-B, the same at both sites: ``N Δp ≈ −d·1`` (rows
-    of ``normals_W`` point into the workpiece) in the least-squares, least-norm sense over the
-    directions the normals agree on (:data:`BIAS_RCOND`), its norm bounded by ``max_m``."""
+def target_bias(
+    normals_W: np.ndarray, d_m: float | np.ndarray, max_m: float = np.inf
+) -> np.ndarray:
+    """The impedance target bias Δp (3,) of §VI-B, the same at both sites: ``N Δp ≈ −d`` (rows
+    of ``normals_W`` point into the workpiece; ``d_m`` one depth for all, or one a row) in the
+    least-squares, least-norm sense over the directions the normals agree on
+    (:data:`BIAS_RCOND`), its norm bounded by ``max_m``."""
     N = np.asarray(normals_W, dtype=np.float64).reshape(-1, 3)
     if len(N) == 0:
         return np.zeros(3)
-    dp = np.linalg.lstsq(N, -d_m * np.ones(len(N)), rcond=BIAS_RCOND)[0]
+    d = np.broadcast_to(np.asarray(d_m, dtype=np.float64), (len(N),))
+    dp = np.linalg.lstsq(N, -d, rcond=BIAS_RCOND)[0]
     size = float(np.linalg.norm(dp))
     return dp * (max_m / size) if size > max_m else dp
 

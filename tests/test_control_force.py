@@ -280,3 +280,19 @@ def test_the_impedance_presses_along_its_normals_with_at_most_max_press(site) ->
     c._window = [np.zeros(3)] * 4
     c._admittance(1e-3)
     assert (c.offset_W[0] - 0.0005) / 1e-3 == pytest.approx(-2.5 / 200.0)
+
+
+def test_a_capped_normal_presses_with_at_most_its_cap_and_the_others_as_before(site) -> None:
+    """A movable object's sideways normal capped at 1.5 N: 2 mm into it, 3 N measured, the hand
+    backs off along it at (3 − 1.5)/B; along the table's normal, uncapped, 2 mm balance 2 N."""
+    _, c = site
+    side, up = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    c.impedance = Impedance(
+        compliant_W=compliant_projector(np.array([side, up])), press_caps=((side, 1.5),)
+    )
+    c.offset_W = np.array([0.002, 0.0, 0.002])
+    c._window = [np.array([3.0, 0.0, 2.0])] * 4
+    c._admittance(1e-3)
+    rate_mps = (c.offset_W - [0.002, 0.0, 0.002]) / 1e-3
+    B = c.impedance.damping_n_s_per_m
+    np.testing.assert_allclose(rate_mps, [(3.0 - 1.5) / B, 0.0, 0.0], atol=1e-12)

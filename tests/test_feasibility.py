@@ -239,3 +239,29 @@ def test_the_grasp_yaw_is_chosen_for_the_whole_way_not_only_the_start() -> None:
     chosen = choose_grasp_yaw(start, X_GP, path)
     assert max(x_W(X, chosen) for X in [start, *path]) < 0.2
     assert x_W(path[-1], X_GP) == pytest.approx(1.0)  # what the start alone would have done
+
+
+def test_a_movable_object_is_predicted_pressed_as_the_work_site_presses_it() -> None:
+    """The work site caps a sideways press on a movable block at MOVABLE_PRESS_N: the operator
+    site predicts that force (and the table's 5 N), so a contact 1 mm off in the model still
+    verifies, and one 1.6 mm off does not."""
+    from operator_site.program.feasibility import predicted_contact_forces_n
+    from protocol import ContactState, MotionCommand, MotionProgram
+    from protocol.execution import MOVABLE_PRESS_N
+
+    contacts = (
+        ContactState(object="l_block", normals_W=np.array([[-1.0, 0.0, 0.0]])),
+        ContactState(object="table", normals_W=np.array([[0.0, 0.0, 1.0]])),
+    )
+    move = MotionCommand("contact_move", np.eye(4), 0.01, 10.0, contacts)
+    program = MotionProgram(program_id="p", X_GP=np.eye(4), commands=(move,))
+    forces = predicted_contact_forces_n(program, 0, {"l_block": 0.0}, {"l_block"})
+    assert [(name, round(f, 9)) for name, _, f in forces] == [
+        ("l_block", MOVABLE_PRESS_N),
+        ("table", 5.0),
+    ]
+    near = predicted_contact_forces_n(program, 0, {"l_block": 0.001}, {"l_block"})
+    far = predicted_contact_forces_n(program, 0, {"l_block": 0.0016}, {"l_block"})
+    assert near[0][2] == pytest.approx(MOVABLE_PRESS_N) and far[0][2] < 1.0
+    fixed = predicted_contact_forces_n(program, 0, {"l_block": 0.0}, set())
+    assert fixed[0][2] == pytest.approx(5.0)

@@ -215,3 +215,30 @@ def test_messages_compare_by_identity() -> None:
     assert state() != state()
     s = state()
     assert s == s
+
+
+def test_a_movable_object_is_pressed_sideways_gently_and_everything_else_as_before() -> None:
+    """The L-block's upright (sideways, movable): capped at 1.5 N, aimed 2.5 mm past; its step
+    (pressed down onto it) and the frame's wall (fixed): d = 5 mm, uncapped."""
+    from protocol.execution import (
+        MOVABLE_PRESS_N,
+        TARGET_BIAS_M,
+        TARGET_BIAS_MOVABLE_M,
+        contact_bias_W,
+        contact_depths_m,
+        press_caps_n,
+    )
+
+    upright = ("l_block", np.array([-1.0, 0.0, 0.0]))
+    step = ("l_block", np.array([0.0, 0.0, 1.0]))
+    wall = ("frame", np.array([0.0, 1.0, 0.0]))
+    movable = {"l_block", "cube"}
+    caps = press_caps_n([upright, step, wall], movable)
+    assert caps.tolist() == [MOVABLE_PRESS_N, np.inf, np.inf]
+    depths = contact_depths_m([upright, step, wall], movable)
+    assert depths.tolist() == [TARGET_BIAS_MOVABLE_M, TARGET_BIAS_M, TARGET_BIAS_M]
+    assert TARGET_BIAS_MOVABLE_M == pytest.approx(0.0025)
+    # Orthogonal normals: Δp reaches each exactly its own depth into it.
+    dp = contact_bias_W([upright, step, wall], movable)
+    np.testing.assert_allclose(dp, [TARGET_BIAS_MOVABLE_M, -TARGET_BIAS_M, -TARGET_BIAS_M])
+    np.testing.assert_array_equal(contact_bias_W([], movable), np.zeros(3))

@@ -86,7 +86,9 @@ class CommandParams:
     """After the release the gripper rises this far (clears the 30 mm frame bars)."""
     target_bias_m: float = TARGET_BIAS_M
     """d of §VI-B: the impedance target is biased this far into each contact normal (the work
-    site applies its own d; :func:`program_to_json` shows the bias for reference)."""
+    site applies its own d, and presses movable objects sideways more gently:
+    :func:`protocol.execution.contact_bias_W`; :func:`program_to_json` shows this bias for
+    reference)."""
 
 
 def park_pose_W(scene: Scene) -> np.ndarray:

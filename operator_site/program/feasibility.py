@@ -20,7 +20,7 @@ Three questions, each answered with the work site's own rules:
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Container, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -46,13 +46,13 @@ from protocol.execution import (
     GRASP_LIFT_M,
     GUARD_OVERTRAVEL_M,
     NORMAL_STIFFNESS_N_PER_M,
-    TARGET_BIAS_M,
-    TARGET_BIAS_MAX_M,
     WORKSPACE_MAX_W,
     WORKSPACE_MIN_W,
+    contact_bias_W,
     grasp_approach_W,
+    press_caps_n,
 )
-from protocol.messages import contact_directions, target_bias
+from protocol.messages import contact_directions
 
 FROM_ABOVE_COS = float(np.cos(np.pi / 4))
 """A grasp comes from above when the gripper's z is within 45° of straight down: the work site
@@ -90,7 +90,10 @@ def _gaps_m(world: SimWorld, X_WP: np.ndarray, names: set[str]) -> dict[str, flo
 
 
 def predicted_contact_forces_n(
-    program: MotionProgram, k: int, gaps_m: dict[str, float]
+    program: MotionProgram,
+    k: int,
+    gaps_m: dict[str, float],
+    movable: Container[str] = frozenset(),
 ) -> list[tuple[str, np.ndarray, float]]:
     """The force (N) the work site would read along each contact direction of command ``k``
     when it verifies it, as (object, unit normal, force) in :func:`contact_directions` order.
@@ -103,9 +106,12 @@ def predicted_contact_forces_n(
     directions = contact_directions(cmd.contacts)
     N = np.array([n for _, n in directions]).reshape(-1, 3)
     if cmd.kind == "contact_move":
-        dp = target_bias(N, TARGET_BIAS_M, TARGET_BIAS_MAX_M)
+        dp = contact_bias_W(directions, movable)
         depth = np.array([-(n @ dp) - gaps_m.get(name, 0.0) for name, n in directions])
-        force_W = NORMAL_STIFFNESS_N_PER_M * np.maximum(depth, 0.0) @ N
+        press = np.minimum(
+            NORMAL_STIFFNESS_N_PER_M * np.maximum(depth, 0.0), press_caps_n(directions, movable)
+        )
+        force_W = press @ N
     else:  # guarded_move: the force that stops it is against its motion
         here = program.commands[k - 1].X_WP if k > 0 else cmd.X_WP
         direction = np.asarray(cmd.X_WP)[:3, 3] - np.asarray(here)[:3, 3]
@@ -130,11 +136,12 @@ def contact_feasibility(
     guarded move's) but that its motion does not press with :data:`CONTACT_VERIFY_N`."""
     poses = {o.name: o.X_WO for o in scene.objects} | (X_WO or {})
     world = SimWorld(scene, workpiece, poses, attached_O)
+    movable = movable_names(scene)
     for k, cmd in enumerate(program.commands):
         if cmd.kind not in ("contact_move", "guarded_move") or not cmd.contacts:
             continue
         gaps = _gaps_m(world, np.asarray(cmd.X_WP), {c.object for c in cmd.contacts})
-        for name, n, force_n in predicted_contact_forces_n(program, k, gaps):
+        for name, n, force_n in predicted_contact_forces_n(program, k, gaps, movable):
             if force_n >= CONTACT_VERIFY_N:
                 continue
             how = (
@@ -230,10 +237,18 @@ def grasp_feasibility(
     return Feasibility(True)
 
 
-def gripper_targets_W(program: MotionProgram, k: int) -> list[np.ndarray]:
+def movable_names(scene: Scene) -> frozenset[str]:
+    """The objects of ``scene`` a program may push about (the work site presses them gently)."""
+    return frozenset(o.name for o in scene.movable)
+
+
+def gripper_targets_W(
+    program: MotionProgram, k: int, movable: Container[str] = frozenset()
+) -> list[np.ndarray]:
     """The TCP poses ``X_WG`` command ``k``'s motions aim at, in order, as the work site
     expands it: a grasp's approach over the top and from above, the grasp and its lift; a
-    guarded move's overtravel; a contact move's biased target; a move's target."""
+    guarded move's overtravel; a contact move's biased target (``movable``: the objects it may
+    push); a move's target."""
     cmd = program.commands[k]
     if cmd.kind not in _CARRYING:
         return []
@@ -244,8 +259,7 @@ def gripper_targets_W(program: MotionProgram, k: int) -> list[np.ndarray]:
         return [*grasp_approach_W(X_WG), X_WG, lifted]
     if cmd.kind == "contact_move" and cmd.contacts:
         biased = X_WG.copy()
-        N = np.array([n for _, n in contact_directions(cmd.contacts)])
-        biased[:3, 3] += target_bias(N, TARGET_BIAS_M, TARGET_BIAS_MAX_M)
+        biased[:3, 3] += contact_bias_W(contact_directions(cmd.contacts), movable)
         return [biased]
     if cmd.kind == "guarded_move":
         here = program.commands[k - 1].X_WP if k > 0 else cmd.X_WP
@@ -266,11 +280,13 @@ def reach_feasibility(
     program: MotionProgram,
     q_start: np.ndarray,
     X_WB: np.ndarray | None = None,
+    movable: Container[str] = frozenset(),
 ) -> Feasibility:
     """Refuse a program with a gripper target outside the work site's workspace box, or a move
     the arm cannot follow within its joint limits without swinging to another configuration,
     followed from ``q_start`` (rad) move after move as the work site's acceptance check does
-    (the empty hand's approach to the grasp through joint space where it must)."""
+    (the empty hand's approach to the grasp through joint space where it must); ``movable``
+    as for :func:`gripper_targets_W`."""
     geometry = arm_geometry(robot)
     q = np.asarray(q_start, dtype=np.float64)
     X_WG_here = robot.tcp_pose_W(q, X_WB)
@@ -285,13 +301,13 @@ def reach_feasibility(
                 k,
                 "reach",
             )
-        for j, X_WG in enumerate(gripper_targets_W(program, k)):
+        for j, X_WG in enumerate(gripper_targets_W(program, k, movable)):
             if cmd.kind == "guarded_grasp" and j == 0:  # the empty hand's approach
-                then = [*gripper_targets_W(program, k)[1:]]
+                then = [*gripper_targets_W(program, k, movable)[1:]]
                 for i in range(k + 1, len(program.commands)):
                     if program.commands[i].kind == "guarded_grasp":
                         break  # the next grasp's approach is planned again
-                    then += gripper_targets_W(program, i)
+                    then += gripper_targets_W(program, i, movable)
                 plan = plan_approach(X_WG_here, q, X_WG, then, robot, X_WB, geometry)
                 result = (
                     PathFollow(plan.ok, plan.q_joint, reason=plan.reason)
@@ -318,13 +334,17 @@ joint (rad): each straight move between them then stays on the arm's configurati
 
 
 def parked_through_joints(
-    robot: RobotModel, program: MotionProgram, q_start: np.ndarray, X_WB: np.ndarray | None
+    robot: RobotModel,
+    program: MotionProgram,
+    q_start: np.ndarray,
+    X_WB: np.ndarray | None,
+    movable: Container[str] = frozenset(),
 ) -> MotionProgram:
     """``program``, or, when its last move (the park at the arm's home) cannot be followed as
     one straight move (the shortest turn of the gripper would take the wrist past a limit),
     the same program parking through waypoints on the straight line in joint space from where
     the arm is to its home ``q_start``. Unchanged when an earlier move cannot be followed:
-    :func:`reach_feasibility` says why."""
+    :func:`reach_feasibility` says why; ``movable`` as for :func:`gripper_targets_W`."""
     commands = program.commands
     if len(commands) < 2 or commands[-1].kind != "move":
         return program
@@ -332,7 +352,7 @@ def parked_through_joints(
     q = np.asarray(q_start, dtype=np.float64)
     here = robot.tcp_pose_W(q, X_WB)
     for k in range(len(commands) - 1):
-        for X_WG in gripper_targets_W(program, k):
+        for X_WG in gripper_targets_W(program, k, movable):
             result = follow_line_tcp(here, X_WG, q, robot, X_WB, geometry)
             if not result.ok:
                 return program
@@ -368,7 +388,7 @@ def check_feasibility(
     q0 = scene.robot.q_home_rad if q_start is None else np.asarray(q_start, dtype=np.float64)
     for result in (
         grasp_feasibility(robot, scene, workpiece, program, X_WO),
-        reach_feasibility(robot, program, q0, scene.robot.X_WB),
+        reach_feasibility(robot, program, q0, scene.robot.X_WB, movable_names(scene)),
         contact_feasibility(scene, workpiece, program, attached_O, X_WO),
     ):
         if not result.ok:

@@ -16,6 +16,7 @@ from operator_site.program.deform import Deformer, DeformParams, DeformResult
 from operator_site.program.feasibility import (
     Feasibility,
     check_feasibility,
+    movable_names,
     parked_through_joints,
 )
 from operator_site.program.path import WorkpiecePath, path_from_history
@@ -97,6 +98,7 @@ def generate_program(
             ),
             scene.robot.q_home_rad,
             scene.robot.X_WB,
+            movable_names(scene),
         )
         say(0.85, "checking every move for collisions")
         check = sweeper.program(program)

@@ -113,6 +113,10 @@ class Impedance:
     twice what it presses with when the model is right, so that where the real contact lies
     further than d past the hand's target (the block turned in the grip, a model off) the hand
     yields rather than pressing on until the move's force limit stops it."""
+    press_caps: tuple[tuple[np.ndarray, float], ...] = ()
+    """(unit normal, N): along each of these contact normals (into the workpiece) the spring
+    presses with at most that force, as :data:`max_press_n` bounds the whole press: a movable
+    object is pressed only as hard as verifying the contact needs."""
 
 
 NORMAL_RANK_TOL = 1e-3
@@ -337,6 +341,10 @@ class TaskController:
         press_n = float(np.linalg.norm(press_W))
         if press_n > imp.max_press_n:
             press_W *= imp.max_press_n / press_n
+        for n_W, cap_n in imp.press_caps:
+            excess_n = float(press_W @ n_W) - cap_n
+            if excess_n > 0.0:
+                press_W = press_W - excess_n * n_W
         spring_W = press_W + k_surface * (self.offset_W - along)
         rate = (f_W - spring_W) / imp.damping_n_s_per_m
         speed = float(np.linalg.norm(rate))

@@ -35,7 +35,9 @@ from protocol.execution import (
     TARGET_BIAS_MAX_M,
     WORKSPACE_MAX_W,
     WORKSPACE_MIN_W,
+    contact_bias_W,
     grasp_approach_W,
+    press_caps_n,
 )
 from protocol.messages import contact_directions, target_bias
 from work_site.control.controller import (
@@ -102,14 +104,22 @@ def same_program(a: MotionProgram, b: MotionProgram) -> bool:
     )
 
 
-def later_targets_WG(program: MotionProgram, index: int, skip: int) -> list[np.ndarray]:
+def movable_objects(controller: TaskController) -> frozenset[str]:
+    """The names of the objects a program may push about at this work site."""
+    return frozenset(o.name for o in controller.world.scene.movable)
+
+
+def later_targets_WG(
+    program: MotionProgram, index: int, skip: int, movable: frozenset[str] = frozenset()
+) -> list[np.ndarray]:
     """The TCP targets of the straight moves of command ``index`` after its first ``skip``, and
-    of the commands after it up to the next grasp (whose approach is planned again), in order."""
-    after = [a for a in expand(program, index) if isinstance(a, MoveTo)][skip:]
+    of the commands after it up to the next grasp (whose approach is planned again), in order;
+    ``movable`` as for :func:`expand`."""
+    after = [a for a in expand(program, index, movable=movable) if isinstance(a, MoveTo)][skip:]
     for k in range(index + 1, len(program.commands)):
         if program.commands[k].kind == "guarded_grasp":
             break
-        after += [a for a in expand(program, k) if isinstance(a, MoveTo)]
+        after += [a for a in expand(program, k, movable=movable) if isinstance(a, MoveTo)]
     return [a.X_WG for a in after]
 
 
@@ -134,6 +144,7 @@ def program_refusal(
     X_PG = invert_pose(program.X_GP)
     q = np.array(controller.world.q_target, copy=True)
     X_WG_before = controller.robot.tcp_pose_W(q, controller.X_WB)
+    movable = movable_objects(controller)
     duration_s = 0.0
     for i, cmd in enumerate(program.commands):
         if i < start:
@@ -186,7 +197,7 @@ def program_refusal(
         # Every pose the command's motions aim at (a grasp's approach from above and lift, a
         # guard's overtravel, a contact move's bias), not only its target: a program refused
         # here never stops half done on a pose it cannot reach.
-        for action in expand(program, i):
+        for action in expand(program, i, movable=movable):
             if isinstance(action, MoveTo):
                 # The whole line, as the controller will follow it: a target reachable only
                 # through a joint limit or a swing to another configuration is refused too.
@@ -205,7 +216,7 @@ def program_refusal(
                             X_WG_before,
                             q,
                             action.X_WG,
-                            later_targets_WG(program, i, 1),
+                            later_targets_WG(program, i, 1, movable),
                             controller.robot,
                             controller.X_WB,
                             controller.geometry,
@@ -315,9 +326,15 @@ def default_impedance() -> Impedance:
     return Impedance(tangential_stiffness_n_per_m=DEFAULT_SURFACE_STIFFNESS_N_PER_M)
 
 
-def expand(program: MotionProgram, index: int, impedance: Impedance | None = None) -> list:
+def expand(
+    program: MotionProgram,
+    index: int,
+    impedance: Impedance | None = None,
+    movable: frozenset[str] = frozenset(),
+) -> list:
     """The primitive actions of command ``index``; contact moves use ``impedance`` (default
-    :class:`Impedance`) compliant along their contact normals."""
+    :class:`Impedance`) compliant along their contact normals, and press the ``movable``
+    objects sideways more gently (:func:`~protocol.execution.press_caps_n`)."""
     cmd = program.commands[index]
     if cmd.kind in ("open_gripper", "release"):
         return [ForgetPayload(), SetFingers(GRIPPER_OPEN_M / 2)]
@@ -345,15 +362,23 @@ def expand(program: MotionProgram, index: int, impedance: Impedance | None = Non
         return [guarded, VerifyContacts(cmd.contacts, at_guard=True)] if cmd.contacts else [guarded]
     if cmd.kind == "contact_move":
         biased = X_WG.copy()
-        normals = np.array([n for _, n in contact_directions(cmd.contacts)])
-        biased[:3, 3] += target_bias_W(normals)
+        directions = contact_directions(cmd.contacts)
+        normals = np.array([n for _, n in directions])
+        biased[:3, 3] += contact_bias_W(directions, movable)
+        caps = press_caps_n(directions, movable)
         return [
             MoveTo(
                 biased,
                 cmd.speed_mps,
                 limit,
                 impedance=replace(
-                    impedance or default_impedance(), compliant_W=compliant_projector(normals)
+                    impedance or default_impedance(),
+                    compliant_W=compliant_projector(normals),
+                    press_caps=tuple(
+                        (n, float(cap))
+                        for n, cap in zip(normals, caps, strict=True)
+                        if cap < np.inf
+                    ),
                 ),
             ),
             VerifyContacts(cmd.contacts),
@@ -481,7 +506,7 @@ class Execution:
                 if self.index >= len(self.program.commands):
                     self._finish("done", "program complete")
                     return
-                self._actions = expand(self.program, self.index, self.impedance)
+                self._actions = expand(self.program, self.index, self.impedance, movable_objects(c))
                 self.report(
                     self.program.program_id,
                     self.index,
@@ -517,7 +542,7 @@ class Execution:
                     c.commanded_tcp_W(),
                     c.world.q_target,
                     action.X_WG,
-                    later_targets_WG(self.program, self.index, 1),
+                    later_targets_WG(self.program, self.index, 1, movable_objects(c)),
                     c.robot,
                     c.X_WB,
                     c.geometry,
