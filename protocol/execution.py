@@ -30,9 +30,9 @@ MOVABLE_PRESS_N = 1.5 * CONTACT_VERIFY_N
 """A contact move presses a movable object sideways with at most this force (N): half again the
 verification threshold. §VI-B's impedance presses each contact with about 5 N, which slides a
 light block across the table and drags the workpiece along its face with it (docs/tuning.md).
-The hand aims d past the contact as before, so that a model a few millimetres off still
-verifies; the impedance's spring along that normal just stops at this force. Pressed down onto
-its support a block cannot slide: those presses are not capped."""
+The hand aims :data:`TARGET_BIAS_MOVABLE_M` past the contact, so that a model a little off
+still verifies, and the impedance's spring along that normal stops at this force. Pressed down
+onto its support a block cannot slide: those presses are not capped."""
 SIDEWAYS_MAX_NORMAL_Z = float(np.cos(np.radians(45.0)))
 """A contact normal whose upward component is below this presses its object sideways."""
 MODEL_ERROR_ALLOWANCE_M = 0.0015
