@@ -11,6 +11,7 @@ import itertools
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from models.errors import ModelError
@@ -318,3 +319,54 @@ def shape_symmetries(corners_O: np.ndarray, tol_m: float = SYMMETRY_TOL_M) -> np
     moved = np.einsum("cij,nj->cni", _CANDIDATE_SYMMETRIES, corners_O)  # (c, n, 3)
     d = np.linalg.norm(moved[:, :, None, :] - corners_O[None, None, :, :], axis=3).min(axis=2)
     return _CANDIDATE_SYMMETRIES[np.all(d < tol_m, axis=1)]
+
+
+def convex_gap_2d(A: np.ndarray, B: np.ndarray) -> float:
+    """The distance between the convex hulls of point sets ``A`` and ``B`` (each (n, 2), n ≥ 1:
+    polygons, segments or points), 0 where they meet: a vertex of one inside the other, or two
+    edges crossing; else the nearest vertex of either to an edge of the other."""
+
+    def hull(P: np.ndarray) -> np.ndarray:
+        P = np.asarray(P, dtype=np.float64).reshape(-1, 2)
+        if len(P) <= 2:
+            return P
+        return cv2.convexHull(P.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+
+    def edges(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return (H, np.roll(H, -1, axis=0)) if len(H) > 2 else (H[:1], H[-1:])
+
+    def inside(P: np.ndarray, H: np.ndarray) -> bool:
+        if len(H) < 3:
+            return False
+        e0, e1 = edges(H)
+        d = e1 - e0
+        cross = d[None, :, 0] * (P[:, None, 1] - e0[None, :, 1]) - d[None, :, 1] * (
+            P[:, None, 0] - e0[None, :, 0]
+        )
+        return bool(np.any(np.all(cross >= 0, axis=1) | np.all(cross <= 0, axis=1)))
+
+    def vertex_to_edges(P: np.ndarray, H: np.ndarray) -> float:
+        e0, e1 = edges(H)
+        d = e1 - e0
+        length2 = np.maximum(np.sum(d * d, axis=1), 1e-300)
+        t = np.clip(np.einsum("ijk,jk->ij", P[:, None, :] - e0[None], d) / length2, 0.0, 1.0)
+        closest = e0[None] + t[..., None] * d[None]
+        return float(np.min(np.linalg.norm(P[:, None, :] - closest, axis=2)))
+
+    def crossing(H: np.ndarray, G: np.ndarray) -> bool:
+        (a, b), (p, q) = edges(H), edges(G)
+
+        def side(u, v, w):
+            return (v[..., 0] - u[..., 0]) * (w[..., 1] - u[..., 1]) - (v[..., 1] - u[..., 1]) * (
+                w[..., 0] - u[..., 0]
+            )
+
+        a, b, p, q = a[:, None], b[:, None], p[None], q[None]
+        return bool(
+            np.any((side(a, b, p) * side(a, b, q) < 0) & (side(p, q, a) * side(p, q, b) < 0))
+        )
+
+    HA, HB = hull(A), hull(B)
+    if inside(HA, HB) or inside(HB, HA) or crossing(HA, HB):
+        return 0.0
+    return min(vertex_to_edges(HA, HB), vertex_to_edges(HB, HA))

@@ -8,6 +8,7 @@ import math
 import cv2
 import numpy as np
 
+from models.geometry import convex_gap_2d
 from models.scene import Scene
 from models.transforms import make_pose, rpy_to_R, so3_exp
 
@@ -56,24 +57,6 @@ def _image_hull_px(scene: Scene, name: str, X_WO: np.ndarray) -> tuple[np.ndarra
     return hull, slack_px
 
 
-def _gap_px(a: np.ndarray, b: np.ndarray) -> float:
-    """The distance between two convex polygons (px; 0 where they overlap)."""
-    area, _ = cv2.intersectConvexConvex(a.astype(np.float32), b.astype(np.float32))
-    if area > 0.0:
-        return 0.0
-
-    def vertex_to_edges(p: np.ndarray, q: np.ndarray) -> float:
-        e0, e1 = q, np.roll(q, -1, axis=0)
-        d = e1 - e0
-        t = np.clip(
-            np.einsum("ijk,jk->ij", p[:, None, :] - e0[None], d) / np.sum(d * d, axis=1), 0, 1
-        )
-        closest = e0[None] + t[..., None] * d[None]
-        return float(np.min(np.linalg.norm(p[:, None, :] - closest, axis=2)))
-
-    return min(vertex_to_edges(a, b), vertex_to_edges(b, a))
-
-
 def random_layout(scene: Scene, seed: int) -> dict[str, np.ndarray]:
     """``X_WO`` for every movable object: standing as in the scene file, turned by a random yaw,
     at a random place on the table at least :data:`LANE_M` outside the frame, none touching
@@ -105,7 +88,7 @@ def random_layout(scene: Scene, seed: int) -> dict[str, np.ndarray]:
             size = np.array([scene.camera.width - 1, scene.camera.height - 1], dtype=np.float64)
             if np.any(hull < slack_px) or np.any(hull > size - slack_px):
                 continue
-            if any(_gap_px(hull, h) < slack_px + s for h, s in hulls.values()):
+            if any(convex_gap_2d(hull, h) < slack_px + s for h, s in hulls.values()):
                 continue
             break
         else:

@@ -13,9 +13,9 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-import cv2
 import numpy as np
 
+from models.geometry import convex_gap_2d
 from models.layout import CLEARANCE_M, radius_xy
 from models.scene import Scene, load_scene
 from operator_site.chain import ChainTask, Judgement, ProgramMaker, run_chain
@@ -72,7 +72,9 @@ def room_for_task(task: Task, scene: Scene, X_WO: dict[str, np.ndarray]) -> str 
             continue
         V_O = np.vstack([p.vertices_O for p in scene.object(name).model.parts])
         footprint = (X[:3, :3] @ V_O.T + X[:3, 3:4]).T[:, :2]
-        gap_m = min(_segment_to_points_m(a, b, footprint) for a, b in itertools.pairwise(points))
+        gap_m = min(
+            convex_gap_2d(np.array([a, b]), footprint) for a, b in itertools.pairwise(points)
+        )
         gap_m -= r_workpiece
         if gap_m < CLEARANCE_M:
             return (
@@ -80,34 +82,6 @@ def room_for_task(task: Task, scene: Scene, X_WO: dict[str, np.ndarray]) -> str 
                 f"({gap_m * 1e3:.0f} mm from it, less than {CLEARANCE_M * 1e3:.0f} mm)"
             )
     return None
-
-
-def _segment_to_points_m(a: np.ndarray, b: np.ndarray, P: np.ndarray) -> float:
-    """The distance from segment ``a``–``b`` to the convex hull of points ``P`` (n, 2) (m;
-    0 where they meet)."""
-    hull = cv2.convexHull(P.astype(np.float32)).reshape(-1, 2).astype(np.float64)
-    if cv2.pointPolygonTest(hull.astype(np.float32), (float(a[0]), float(a[1])), False) >= 0:
-        return 0.0
-    edges = list(zip(hull, np.roll(hull, -1, axis=0), strict=True))
-    if any(_segments_cross(a, b, p, q) for p, q in edges):
-        return 0.0
-    return min(
-        min(_point_to_segment_m(v, a, b) for v in hull),
-        min(_point_to_segment_m(e, p, q) for p, q in edges for e in (a, b)),
-    )
-
-
-def _point_to_segment_m(c: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
-    d = b - a
-    t = float(np.clip(np.dot(c - a, d) / np.dot(d, d), 0.0, 1.0)) if np.dot(d, d) > 0 else 0.0
-    return float(np.linalg.norm(c - (a + t * d)))
-
-
-def _segments_cross(a: np.ndarray, b: np.ndarray, p: np.ndarray, q: np.ndarray) -> bool:
-    def side(u: np.ndarray, v: np.ndarray, w: np.ndarray) -> float:
-        return float((v[0] - u[0]) * (w[1] - u[1]) - (v[1] - u[1]) * (w[0] - u[0]))
-
-    return side(a, b, p) * side(a, b, q) < 0 and side(p, q, a) * side(p, q, b) < 0
 
 
 def judge_on_truth(

@@ -389,3 +389,18 @@ def test_random_layouts_show_every_block_whole_to_the_off_calibration_camera(see
     finally:
         world.close()
     assert among == alone
+
+
+def test_convex_gap_2d_on_hand_worked_cases() -> None:
+    from models.geometry import convex_gap_2d
+
+    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    assert convex_gap_2d(square, square + np.array([2.0, 0.0])) == pytest.approx(1.0)
+    assert convex_gap_2d(square, square + np.array([2.0, 2.0])) == pytest.approx(np.sqrt(2.0))
+    assert convex_gap_2d(square, square + np.array([0.5, 0.5])) == 0.0  # overlapping
+    assert convex_gap_2d(np.array([[-1.0, 0.5], [2.0, 0.5]]), square) == 0.0  # a segment across
+    assert convex_gap_2d(np.array([[-1.0, 1.5], [2.0, 1.5]]), square) == pytest.approx(0.5)
+    assert convex_gap_2d(np.array([[0.5, 0.5]]), square) == 0.0  # a point inside
+    assert convex_gap_2d(np.array([[3.0, 0.5]]), square) == pytest.approx(2.0)
+    # The order the points come in does not matter: the hull is taken.
+    assert convex_gap_2d(square[[0, 2, 1, 3]], square + np.array([2.0, 0.0])) == pytest.approx(1.0)
