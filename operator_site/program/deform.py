@@ -24,9 +24,10 @@ mobility halved until it stops overshooting; and the path is deformed coarse to 
 40, 20, 10 mm by default), because constant tension shortens a path by at most one step per
 sweep. Between sweeps nodes are inserted where the path has stretched (dragged there by the
 contact step where the straight midpoint is not admissible) and removed where it has shrunk.
-The sweeps repeat until no node moves more than ``settle_m``, or until the path stops getting
-shorter (``patience_sweeps``; reported as not settled: round a corner in contact, nodes keep
-sliding slowly along the path, where any spacing is an equilibrium).
+A coarse level ends when a sweep no longer shortens the path by a fifth of its spacing; at the
+finest, the sweeps repeat until no node moves more than ``settle_m``, or until the path stops
+getting shorter (``patience_sweeps``; reported as not settled: round a corner in contact, nodes
+keep sliding slowly along the path, where any spacing is an equilibrium).
 """
 
 from __future__ import annotations
@@ -103,8 +104,10 @@ class DeformParams:
     max_sweeps_coarse: int = 15
     """Sweeps allowed at each level but the finest (they only prepare it)."""
     settle_coarse_fraction: float = 0.2
-    """A coarse level is done when no node moved further than this fraction of its spacing in
-    a sweep (it only prepares the next level)."""
+    """A coarse level is done when a sweep shortened the path by less than this fraction of the
+    level's spacing (it only prepares the next level, whose sweeps shorten by half as much).
+    Its nodes' displacements are no measure: on a gently bent path they are a fraction of a
+    step while the path still shortens by centimetres a sweep."""
     settle_m: float = 3e-4
     """The path has settled when no point of any node moved further than this in a sweep (m)."""
     patience_sweeps: int = 10
@@ -223,28 +226,34 @@ class Deformer:
                 node.gain, node.last = 1.0, None
             settled = False
             first_fine = len(lengths)
-            cap = p.max_sweeps if level == levels[-1] else sweeps + p.max_sweeps_coarse
+            finest = level == levels[-1]
+            cap = p.max_sweeps if finest else sweeps + p.max_sweeps_coarse
+            before_m = self._length(nodes)
             while sweeps < min(cap, p.max_sweeps):
                 sweeps += 1
                 moved = self._sweep(nodes)
                 nodes = self._insert(self._remove_close(nodes))
-                X = np.array([n.X for n in nodes])
-                C = centres(X, self.c_O)
-                lengths.append(float(np.sum(np.linalg.norm(np.diff(C, axis=0), axis=1))))
-                finest = level == levels[-1]
-                if moved < (
-                    p.settle_m if finest else p.settle_coarse_fraction * p.spacing_m * level
-                ):
+                lengths.append(self._length(nodes))
+                if not finest:
+                    if before_m - lengths[-1] < p.settle_coarse_fraction * p.spacing_m * level:
+                        break
+                    before_m = lengths[-1]
+                elif moved < p.settle_m:
                     settled = True
                     break
-                fine = lengths[first_fine:] if finest else []
-                k = p.patience_sweeps
-                if len(fine) > k and min(fine[-k:]) > min(fine[:-k]) - p.progress_m:
-                    break
+                else:
+                    fine, k = lengths[first_fine:], p.patience_sweeps
+                    if len(fine) > k and min(fine[-k:]) > min(fine[:-k]) - p.progress_m:
+                        break
         out = WorkpiecePath(path.workpiece, tuple(self._finish(n) for n in nodes), self.c_O)
         return DeformResult(
             out, sweeps, settled, time.perf_counter() - t0, self.stepper.probes - probes0, lengths
         )
+
+    def _length(self, nodes: list[_Node]) -> float:
+        """The path's length: its centres' polyline (m)."""
+        C = centres(np.array([n.X for n in nodes]), self.c_O)
+        return float(np.sum(np.linalg.norm(np.diff(C, axis=0), axis=1)))
 
     def node_contacts(self, X_WO: np.ndarray, required: frozenset[str]) -> tuple[NodeContact, ...]:
         """The contact state at ``X_WO``: objects within ε_c (ε_o if required), with normals."""
