@@ -103,6 +103,73 @@ def test_free_motion_converges_on_the_target_without_queries(scene: Scene) -> No
     assert sum(r.queries for r in results) == 0  # nothing near: the broad phase skips it all
 
 
+# x = Δt·d_t·k_t, the spring's step gain: the default is 0.25; an explicit step overshoots past 1
+# and swings for ever from 2 on.
+STEP_GAINS = (0.01, 0.25, 1.0, 2.0, 5.0, 250.0, 1e6)
+
+
+@pytest.mark.parametrize("gain", STEP_GAINS)
+def test_a_free_pull_approaches_the_target_without_overshoot_at_any_step_gain(
+    scene: Scene, gain: float
+) -> None:
+    params = SimParams(k_t=gain / (P.dt_s * P.d_t))
+    start = at(0.3, 0.3, 0.2)
+    sim = Simulator(scene, "cube", params, X_WO={"cube": start})
+    target = at(0.32, 0.31, 0.2, yaw_deg=20)
+    sim.set_target(target)
+    u = (target[:3, 3] - start[:3, 3]) / np.linalg.norm(target[:3, 3] - start[:3, 3])
+    left_m, left_rad = [], []
+    for r in run(sim, 400):
+        left_m.append(float((target[:3, 3] - r.X_WO[:3, 3]) @ u))  # < 0: past the target
+        left_rad.append(float(np.linalg.norm(so3_log(target[:3, :3] @ r.X_WO[:3, :3].T))))
+    assert min(left_m) >= -1e-12 and min(left_rad) >= 0.0
+    assert np.all(np.diff(left_m) <= 1e-12) and np.all(np.diff(left_rad) <= 1e-12)
+    if gain >= 0.25:
+        np.testing.assert_allclose(sim.X_WO, target, atol=1e-6)
+
+
+@pytest.mark.parametrize("gain", [0.01, 0.25, 1.5])
+def test_a_free_pull_follows_the_springs_exact_first_order_decay(scene, gain: float) -> None:
+    """Below the speed limit each step leaves e^(−x) of the way, as v = d_t·k_t·(c_D − c)
+    integrated exactly over Δt does."""
+    params = SimParams(k_t=gain / (P.dt_s * P.d_t))
+    start = at(0.3, 0.3, 0.2)
+    sim = Simulator(scene, "cube", params, X_WO={"cube": start})
+    target = at(0.3005, 0.3002, 0.2, yaw_deg=2)  # near: below the speed limit throughout
+    sim.set_target(target)
+    c0 = np.linalg.norm(target[:3, 3] - start[:3, 3])
+    steps = min(30, int(np.log(c0 / 1e-9) / gain))  # until 1 nm is left: a step then rests
+    for k, r in enumerate(run(sim, steps), 1):
+        assert not r.speed_limited
+        left = np.linalg.norm(target[:3, 3] - r.X_WO[:3, 3])
+        assert left == pytest.approx(c0 * np.exp(-gain * k), rel=1e-9)
+
+
+@pytest.mark.parametrize("gain", [0.25, 250.0])
+def test_a_block_pushed_into_the_corner_comes_to_rest_at_any_step_gain(
+    scene: Scene, gain: float
+) -> None:
+    """Pressed into the frame's inside corner, the block settles: no swinging against the
+    walls, the same pose step after step."""
+    params = SimParams(k_t=gain / (P.dt_s * P.d_t))
+    sim = Simulator(scene, "cube", params, X_WO={"cube": at(0.45, 0.0, CUBE_HALF + 2e-4, 5)})
+    sim.set_target(at(*(CORNER_XY + 0.02), CUBE_HALF - 0.005))
+    results = run(sim, 300)
+    assert {c.object for c in results[-1].contacts} == {"table", "frame"}
+    last = np.array([r.X_WO for r in results[-20:]])
+    assert np.max(np.abs(last - last[-1])) < 1e-9
+    gaps = sim.X_WO[:3, 3] - [*(CORNER_XY + CUBE_HALF), CUBE_HALF]
+    assert np.all(gaps >= P.eps_barrier_m / 2) and np.all(gaps < P.eps_contact_m), gaps
+
+
+def test_parameters_that_would_make_a_step_cost_without_bound_are_refused(scene) -> None:
+    with pytest.raises(ValueError, match=r"tunnel_fraction 1e-06 .* must be in \[[0-9.e-]+, 1\]"):
+        Simulator(scene, "cube", SimParams(tunnel_fraction=1e-6))
+    Simulator(scene, "cube", SimParams(tunnel_fraction=0.01))  # inside its range: made
+    with pytest.raises(ValueError, match=r"golden_rel_tol must be in \[1e-12, 1\)"):
+        SimParams(golden_rel_tol=1e-20)
+
+
 def test_block_resting_on_the_table_stays_and_the_reaction_balances_the_push(scene) -> None:
     start = at(0.2, 0.3, CUBE_HALF + 0.3 * P.eps_contact_m)
     sim = Simulator(scene, "cube", X_WO={"cube": start})

@@ -9,6 +9,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+MIN_GOLDEN_REL_TOL = 1e-12
+"""The golden-section search's bracket cannot shrink much below float64's relative precision
+(2.2e-16) times Δt: a smaller tolerance would never be met."""
+
 
 @dataclass(frozen=True)
 class SimParams:
@@ -30,7 +34,8 @@ class SimParams:
     eps_capture_m: float = 2e-3
     """ε_o: a captured object stays within this distance (§VII-B: 2 mm)."""
     golden_rel_tol: float = 1e-5
-    """Golden-section search stops when its bracket is below this fraction of Δt (§VII-B)."""
+    """Golden-section search stops when its bracket is below this fraction of Δt (§VII-B); at
+    least :data:`MIN_GOLDEN_REL_TOL`, where the bracket still shrinks in float64."""
     max_speed_mps: float = 0.4
     """Fastest any point of the workpiece may move (§VII-B: 400 mm/s); faster commands are
     scaled down and the step says so."""
@@ -83,7 +88,12 @@ class SimParams:
             )
         if not 0 < self.min_separation_fraction < 1:
             raise ValueError("min_separation_fraction must be in (0, 1)")
-        if self.golden_rel_tol >= 1 or self.tunnel_fraction > 1:
-            raise ValueError("golden_rel_tol must be < 1 and tunnel_fraction ≤ 1")
+        if not MIN_GOLDEN_REL_TOL <= self.golden_rel_tol < 1:
+            raise ValueError(
+                f"SimParams.golden_rel_tol must be in [{MIN_GOLDEN_REL_TOL:g}, 1), got "
+                f"{self.golden_rel_tol!r}"
+            )
+        if self.tunnel_fraction > 1:
+            raise ValueError(f"SimParams.tunnel_fraction must be ≤ 1, got {self.tunnel_fraction!r}")
         if not isinstance(self.max_points_per_pair, int) or self.max_points_per_pair < 1:
             raise ValueError("max_points_per_pair must be an integer ≥ 1")

@@ -32,6 +32,19 @@ MAX_LIFT_DOUBLINGS = 12
 REST_DISPLACEMENT_M = 1e-12
 """A step that would move no point of the workpiece further than this is no step: the pose and
 contacts stay as they are and no query is made (a settled block costs next to nothing)."""
+MAX_COLLISION_SAMPLES = 10_000
+"""Collision samples along one step at most: parameters that would need more (a tiny tunnelling
+fraction against a fast, long step) are refused when the simulator is made."""
+
+
+def spring_step_factor(params: SimParams) -> float:
+    """φ(x) = (1 − e^(−x))/x with x = Δt·d_t·k_t (= Δt·d_r·k_r): the dragger spring's force
+    scaled so that one explicit step of equation (1) moves the free workpiece exactly as far as
+    the spring's first-order dynamics do over Δt, a fraction 1 − e^(−x) of the way to the
+    target. Unscaled, a step moves it x times the way: past the target for x > 1, swinging
+    about it for ever for x ≥ 2, although first-order dynamics never overshoot."""
+    x = params.dt_s * params.d_t * params.k_t
+    return -math.expm1(-x) / x if x > 0 else 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,6 +112,20 @@ class Simulator:
         self.scene = scene
         poses = {o.name: o.X_WO for o in scene.objects} | (X_WO or {})
         self.world = SimWorld(scene, workpiece, poses, attached_O)
+        p = self.params
+        samples = math.ceil(
+            p.max_speed_mps * p.dt_s / (p.tunnel_fraction * self.world.thinnest_obstacle_m)
+        )
+        if samples > MAX_COLLISION_SAMPLES:
+            lowest = (
+                p.max_speed_mps * p.dt_s / (MAX_COLLISION_SAMPLES * self.world.thinnest_obstacle_m)
+            )
+            raise ValueError(
+                f"SimParams.tunnel_fraction {p.tunnel_fraction:g} would take {samples} collision "
+                f"samples a step in this scene (at most {MAX_COLLISION_SAMPLES}): it must be in "
+                f"[{lowest:.3g}, 1] at max_speed_mps {p.max_speed_mps:g} and dt_s {p.dt_s:g}"
+            )
+        self._spring_factor = spring_step_factor(p)
         model = scene.object(workpiece).model
         self.c_O = model.com_O.copy()
         self.r_max_m = float(np.max(np.linalg.norm(self.world.wp_vertices_O - self.c_O, axis=1)))
@@ -163,11 +190,13 @@ class Simulator:
     # ------------------------------------------------------------------------------ forces
 
     def _spring(self, X_WO: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        p = self.params
+        """The dragger spring's force and moment on the workpiece, scaled by
+        :func:`spring_step_factor` for the step."""
+        p, phi = self.params, self._spring_factor
         R, R_D = X_WO[:3, :3], self.state.X_WD[:3, :3]
         c = X_WO[:3, :3] @ self.c_O + X_WO[:3, 3]
         c_D = R_D @ self.c_O + self.state.X_WD[:3, 3]
-        return p.k_t * (c_D - c), p.k_r * so3_log(R_D @ R.T)
+        return phi * p.k_t * (c_D - c), phi * p.k_r * so3_log(R_D @ R.T)
 
     def _velocity(self, X_WO: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         """v, ω (W, about the centre of mass) after contact forces; False if the LCP failed."""
