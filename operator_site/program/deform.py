@@ -63,6 +63,38 @@ DRAG_STEPS = 3
 """Contact steps taken to drag a node into a gap whose straight midpoint is not admissible."""
 DRAG_FORCE_N = 10.0
 """The pull on a dragged node (N): strong, so each step goes its full length unless blocked."""
+MAX_NODES = 5000
+"""Nodes a deformation may hold: a path that would need more at its spacing is refused, and
+the sweeps stop (``node cap``) if insertions take it past this. Each sweep costs up to a
+contact step per node."""
+
+RANGES: dict[str, tuple[float, float, str]] = {
+    "spacing_m": (1e-5, 0.1, "nodes 10 µm to 10 cm apart"),
+    "insert_factor": (1.1, 4.0, "a node is inserted where two are this many spacings apart"),
+    "tension_n": (1e-3, 1e3, "N"),
+    "tension_min_fraction": (1e-3, 1.0, "of the spacing"),
+    "step_fraction": (
+        1e-3,
+        0.5,
+        "above a half, two neighbours could move a node bent back on itself further than "
+        "the spacing in one sweep",
+    ),
+    "repulsion_n": (1e-3, 1e3, "N"),
+    "repulsion_range_m": (1e-5, 0.1, "m"),
+    "hold_n": (1e-3, 1e3, "N"),
+    "max_step_fraction": (1e-3, 1.0, "of the spacing"),
+    "settle_coarse_fraction": (1e-3, 1.0, "of the level's spacing"),
+    "settle_m": (1e-9, 1e-2, "m"),
+    "progress_m": (1e-9, 1e-2, "m"),
+    "coarse_spacing_m": (1e-5, 1.0, "m"),
+}
+"""Each float knob of :class:`DeformParams`: accepted range (inclusive) and why."""
+INT_RANGES: dict[str, tuple[int, int]] = {
+    "max_sweeps": (0, 100_000),
+    "max_sweeps_coarse": (0, 10_000),
+    "patience_sweeps": (1, 10_000),
+}
+"""Each integer knob's accepted range (inclusive): the sweeps, and so the cost, are bounded."""
 
 
 @dataclass(frozen=True)
@@ -129,21 +161,20 @@ class DeformParams:
         return tuple(float(2**i) for i in range(k, -1, -1))
 
     def __post_init__(self) -> None:
-        for name in (
-            "spacing_m",
-            "tension_n",
-            "tension_min_fraction",
-            "step_fraction",
-            "repulsion_range_m",
-            "max_step_fraction",
-            "settle_m",
-        ):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"DeformParams.{name} must be > 0")
-        if self.insert_factor <= 1.0 or self.max_sweeps < 0:
-            raise ValueError("DeformParams needs insert_factor > 1 and max_sweeps ≥ 0")
-        if not self.coarse_spacing_m > 0:
-            raise ValueError("DeformParams.coarse_spacing_m must be > 0")
+        for name, (lo, hi, why) in RANGES.items():
+            value = getattr(self, name)
+            number = isinstance(value, int | float) and not isinstance(value, bool)
+            if not (number and math.isfinite(value) and lo <= value <= hi):
+                raise ValueError(
+                    f"DeformParams.{name} must be a number in [{lo:g}, {hi:g}] ({why}), "
+                    f"got {value!r}"
+                )
+        for name, (lo, hi) in INT_RANGES.items():
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and lo <= value <= hi):
+                raise ValueError(
+                    f"DeformParams.{name} must be an integer in [{lo}, {hi}], got {value!r}"
+                )
 
 
 @dataclass
@@ -158,6 +189,10 @@ class DeformResult:
     """Distance probes made (each one query per nearby pair of convex parts)."""
     history_m: list[float] = field(default_factory=list)
     """Path length after each sweep (m)."""
+    stopped: str = "settled"
+    """Why the sweeps stopped: ``settled`` (no node moved ``settle_m``), ``no progress`` (the
+    path stopped getting shorter, ``patience_sweeps``), ``sweep cap`` (``max_sweeps``) or
+    ``node cap`` (insertions took the path past :data:`MAX_NODES`)."""
 
 
 @dataclass
@@ -215,8 +250,15 @@ class Deformer:
         nodes = [
             _Node(n.X_WO.copy(), n.required, n.fixed, touching=bool(n.contacts)) for n in path.nodes
         ]
+        X = np.array([node.X for node in nodes])
+        metric_m = float(np.sum(np.linalg.norm(_metric_vectors(X, self.c_O, self.char_m), axis=1)))
+        if metric_m / p.spacing_m > MAX_NODES:
+            raise ValueError(
+                f"DeformParams.spacing_m {p.spacing_m:g} m would put {metric_m / p.spacing_m:.0f} "
+                f"nodes on this {metric_m:.3g} m path (at most {MAX_NODES}): for it, spacing_m "
+                f"must be at least {metric_m / MAX_NODES:.3g} m"
+            )
         lengths: list[float] = []
-        settled = False
         sweeps = 0
         levels = p.levels
         for level in levels:
@@ -224,7 +266,7 @@ class Deformer:
             nodes = self._decimate(nodes) if level == levels[0] else self._remove_close(nodes)
             for node in nodes:
                 node.gain, node.last = 1.0, None
-            settled = False
+            settled, stopped = False, "sweep cap"
             first_fine = len(lengths)
             finest = level == levels[-1]
             cap = p.max_sweeps if finest else sweeps + p.max_sweeps_coarse
@@ -234,20 +276,32 @@ class Deformer:
                 moved = self._sweep(nodes)
                 nodes = self._insert(self._remove_close(nodes))
                 lengths.append(self._length(nodes))
+                if len(nodes) > MAX_NODES:
+                    stopped = "node cap"
+                    break
                 if not finest:
                     if before_m - lengths[-1] < p.settle_coarse_fraction * p.spacing_m * level:
                         break
                     before_m = lengths[-1]
                 elif moved < p.settle_m:
-                    settled = True
+                    settled, stopped = True, "settled"
                     break
                 else:
                     fine, k = lengths[first_fine:], p.patience_sweeps
                     if len(fine) > k and min(fine[-k:]) > min(fine[:-k]) - p.progress_m:
+                        stopped = "no progress"
                         break
+            if stopped == "node cap":
+                break
         out = WorkpiecePath(path.workpiece, tuple(self._finish(n) for n in nodes), self.c_O)
         return DeformResult(
-            out, sweeps, settled, time.perf_counter() - t0, self.stepper.probes - probes0, lengths
+            out,
+            sweeps,
+            settled,
+            time.perf_counter() - t0,
+            self.stepper.probes - probes0,
+            lengths,
+            stopped,
         )
 
     def _length(self, nodes: list[_Node]) -> float:
