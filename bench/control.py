@@ -81,9 +81,9 @@ def frame_inner_W(scene: Scene) -> tuple[tuple[float, float], tuple[float, float
     )
 
 
-def _site() -> tuple[World, TaskController]:
+def _site(time_step_s: float = 1e-3) -> tuple[World, TaskController]:
     scene = load_scene()
-    world = World(scene)
+    world = World(scene, time_step_s=time_step_s)
     return world, TaskController(world, load_robot(scene.robot.urdf_path))
 
 
@@ -264,11 +264,12 @@ def corner() -> dict:
     }
 
 
-def slide(impedance: Impedance | None = None) -> dict:
+def slide(impedance: Impedance | None = None, time_step_s: float = 1e-3) -> dict:
     """The cube put against the frame's x = 0.35 wall, then slid 6 cm along it (+y) by a
     contact move: the force along the wall's normal at each period of the slide, and how far
-    short of its goal along the wall the cube ends (friction against the impedance)."""
-    world, c = _site()
+    short of its goal along the wall the cube ends (friction against the impedance);
+    ``time_step_s``: the physics step."""
+    world, c = _site(time_step_s)
     (x0, _), _ = frame_inner_W(world.scene)
     start_y, end_y = -0.03, 0.03
     table = ContactState(object="table", normals_W=np.array([[0.0, 0.0, 1.0]]))

@@ -296,3 +296,33 @@ def test_a_capped_normal_presses_with_at_most_its_cap_and_the_others_as_before(s
     rate_mps = (c.offset_W - [0.002, 0.0, 0.002]) / 1e-3
     B = c.impedance.damping_n_s_per_m
     np.testing.assert_allclose(rate_mps, [(3.0 - 1.5) / B, 0.0, 0.0], atol=1e-12)
+
+
+def test_an_impedance_that_would_overshoot_at_the_physics_step_is_refused(site) -> None:
+    """K·Δt/B above 1: the offset would overshoot zero at every update. 1e5 N/m against the
+    default 200 N·s/m is the stiffest a 2 ms step takes (the work site's slowest physics)."""
+    _, c = site
+    assert Impedance(tangential_stiffness_n_per_m=1e5).step_gain(2e-3) == pytest.approx(1.0)
+    X = c.commanded_tcp_W()
+    stiff = Impedance(tangential_stiffness_n_per_m=1e5, damping_n_s_per_m=50.0)
+    with pytest.raises(ValueError, match=r"the damping must be at least stiffness × step, 100"):
+        c.start_move(X, 0.01, impedance=stiff)
+    c.start_move(X, 0.01, impedance=Impedance(tangential_stiffness_n_per_m=1e5))
+    for bad in ({"damping_n_s_per_m": 0.0}, {"stiffness_n_per_m": math.nan}):
+        with pytest.raises(ValueError, match=r"Impedance\.\w+ must be finite and > 0"):
+            Impedance(**bad)
+
+
+@pytest.mark.parametrize(("stiffness_n_per_m", "physics_rate_hz"), [(1e5, 500.0), (100.0, 2000.0)])
+def test_sliding_keeps_its_force_band_at_the_ends_of_stiffness_and_physics_rate(
+    stiffness_n_per_m: float, physics_rate_hz: float
+) -> None:
+    """The work site's accepted extremes: the stiffest surface spring at the slowest physics
+    (K·Δt/B = 1) and the softest at the fastest. No swinging: the normal force stays in its
+    band and the move finishes."""
+    result = benchmark.slide(
+        Impedance(tangential_stiffness_n_per_m=stiffness_n_per_m), 1.0 / physics_rate_hz
+    )
+    assert result["slide_status"] == "done", result["slide_message"]
+    low, high = result["slide_band_n"]
+    assert low <= result["slide_normal_n_min"] <= result["slide_normal_n_max"] <= high, result

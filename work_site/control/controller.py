@@ -86,9 +86,11 @@ leaves its edge on the corner when the next face's bias begins. `work-site serve
 class Impedance:
     """Translational admittance of a contact move: ``stiffness`` (N/m) and ``damping`` (N·s/m),
     along the contact normals (``compliant_W``) or in every direction; the offset moves at most
-    ``max_rate_mps``. Updated at every 1 ms servo step, discrete stability needs
-    ``damping > (stiffness + k_env)·Δt/2`` with k_env the contacts' stiffness; the default
-    damping keeps a margin over it for a cube pressed into a corner (docs/tuning.md)."""
+    ``max_rate_mps``. Updated at every physics step Δt: in free space the offset returns
+    without overshoot while K·Δt/B ≤ 1 (:meth:`step_gain`, checked when a move starts); in
+    contact, discrete stability needs ``damping > (stiffness + k_env)·Δt/2`` with k_env the
+    contacts' stiffness, and the default damping keeps a margin over it for a cube pressed into
+    a corner (docs/tuning.md)."""
 
     stiffness_n_per_m: float = NORMAL_STIFFNESS_N_PER_M
     damping_n_s_per_m: float = 200.0
@@ -117,6 +119,33 @@ class Impedance:
     """(unit normal, N): along each of these contact normals (into the workpiece) the spring
     presses with at most that force, as :data:`max_press_n` bounds the whole press: a movable
     object is pressed only as hard as verifying the contact needs."""
+
+    def __post_init__(self) -> None:
+        for name in (
+            "stiffness_n_per_m",
+            "damping_n_s_per_m",
+            "max_rate_mps",
+            "max_press_n",
+            "settled_offset_m",
+            "max_settle_s",
+        ):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"Impedance.{name} must be finite and > 0, got {value!r}")
+        k_t = self.tangential_stiffness_n_per_m
+        if k_t is not None and not (math.isfinite(k_t) and k_t > 0):
+            raise ValueError(f"Impedance.tangential_stiffness_n_per_m must be > 0, got {k_t!r}")
+        if not (isinstance(self.settled_ticks, int) and self.settled_ticks >= 1):
+            raise ValueError(
+                f"Impedance.settled_ticks must be an integer ≥ 1, got {self.settled_ticks!r}"
+            )
+
+    def step_gain(self, dt_s: float) -> float:
+        """K·Δt/B for the stiffer of its springs: the fraction of the offset one update of
+        ``B δ̇ = −K δ`` takes back. Above 1 the offset overshoots zero each update (and swings
+        without end from 2); :meth:`TaskController.start_move` refuses it."""
+        k = max(self.stiffness_n_per_m, self.tangential_stiffness_n_per_m or 0.0)
+        return k * dt_s / self.damping_n_s_per_m
 
 
 NORMAL_RANK_TOL = 1e-3
@@ -208,6 +237,14 @@ class TaskController:
             raise ValueError(f"speed {speed_mps} m/s not in (0, {MAX_TCP_SPEED_MPS}]")
         if not (math.isfinite(force_limit_n) and force_limit_n > 0):
             raise ValueError(f"force limit {force_limit_n} N must be finite and > 0")
+        dt_s = self.world.time_step_s
+        if impedance is not None and impedance.step_gain(dt_s) > 1.0:
+            k = max(impedance.stiffness_n_per_m, impedance.tangential_stiffness_n_per_m or 0.0)
+            raise ValueError(
+                f"impedance stiffness {k:g} N/m with damping {impedance.damping_n_s_per_m:g} "
+                f"N·s/m would overshoot at the {dt_s * 1e3:g} ms physics step: the damping must "
+                f"be at least stiffness × step, {k * dt_s:g} N·s/m"
+            )
         goal = ik_tcp(X_WG_goal, self.world.q_target, self.robot, self.X_WB, self.geometry)
         if not goal.ok:
             raise ValueError(f"target cannot be reached: {goal.reason}")
