@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 
 CHROMIUM := /usr/bin/chromium
 
-.PHONY: demo test test-fast lint bench install clean browser
+.PHONY: demo test test-fast test-extremes lint bench install clean browser
 
 BENCH_STAMP := $(VENV)/.installed-bench
 
@@ -47,6 +47,11 @@ test-fast: $(STAMP)
 	$(VENV)/bin/ruff check .
 	TELEROBOT_TESTS=fast $(PY) -m pytest -q -m "not integration and not browser and not slow"
 
+# The nightly-sized property run: 25 times each property test's examples (5,000 for each of the
+# simulator's and the deformation's extremes tests; tests/conftest.py: examples).
+test-extremes: $(STAMP)
+	TELEROBOT_TESTS=extremes $(PY) -m pytest -q tests/test_simulator_extremes.py tests/test_deform_extremes.py
+
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
@@ -65,6 +70,7 @@ TRADE_SEEDS ?= 5
 TASK_SEEDS ?= 20
 bench: $(BENCH_STAMP)
 	$(PY) -m bench sim --out docs/bench
+	$(PY) -m bench step_gain --out docs/bench
 	$(PY) -m bench deform --out docs/bench
 	$(PY) -m bench control --out docs/bench
 	$(PY) -m bench vision --out docs/bench

@@ -12,6 +12,7 @@ BENCHMARKS: dict[str, str] = {
     "control": "the arm executing moves, guarded moves and contact programs",
     "vision": "recognition and pose accuracy, speed and their trades on rendered scenes",
     "net": "round trips and camera frames over zenoh beside plain TCP, loopback and emulated link",
+    "step_gain": "free pulls of each block: steps to settle against the spring's step gain",
     "lcp": "time per contact LCP solve on random contact sets",
     "program_sweeps": "the deformation's sweep cap: generator CPU time against program change",
     "safety": "STOP latency (also through a flood), the dead-man, state rate during a check",

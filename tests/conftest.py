@@ -22,11 +22,16 @@ REPO = Path(__file__).resolve().parents[1]
 FAST_TIER = os.environ.get("TELEROBOT_TESTS") == "fast"
 """``make test-fast`` sets ``TELEROBOT_TESTS=fast``: property tests then draw a tenth of their
 examples (:func:`examples`), for a quick look; ``make test`` draws them all."""
+EXTREMES_TIER = os.environ.get("TELEROBOT_TESTS") == "extremes"
+"""``make test-extremes`` sets ``TELEROBOT_TESTS=extremes``: property tests draw 25 times their
+examples (5,000 for the 200 of the extremes tests), a nightly-sized run."""
 
 
 def examples(n: int) -> int:
     """The number of hypothesis examples for a property test that draws ``n`` in the full run."""
-    return max(20, n // 10) if FAST_TIER else n
+    if FAST_TIER:
+        return max(20, n // 10)
+    return 25 * n if EXTREMES_TIER else n
 
 
 def free_port() -> int:

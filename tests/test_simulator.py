@@ -112,7 +112,7 @@ STEP_GAINS = (0.01, 0.25, 1.0, 2.0, 5.0, 250.0, 1e6)
 def test_a_free_pull_approaches_the_target_without_overshoot_at_any_step_gain(
     scene: Scene, gain: float
 ) -> None:
-    params = SimParams(k_t=gain / (P.dt_s * P.d_t))
+    params = SimParams(d_t=gain / (P.dt_s * P.k_t))
     start = at(0.3, 0.3, 0.2)
     sim = Simulator(scene, "cube", params, X_WO={"cube": start})
     target = at(0.32, 0.31, 0.2, yaw_deg=20)
@@ -132,7 +132,7 @@ def test_a_free_pull_approaches_the_target_without_overshoot_at_any_step_gain(
 def test_a_free_pull_follows_the_springs_exact_first_order_decay(scene, gain: float) -> None:
     """Below the speed limit each step leaves e^(−x) of the way, as v = d_t·k_t·(c_D − c)
     integrated exactly over Δt does."""
-    params = SimParams(k_t=gain / (P.dt_s * P.d_t))
+    params = SimParams(d_t=gain / (P.dt_s * P.k_t))
     start = at(0.3, 0.3, 0.2)
     sim = Simulator(scene, "cube", params, X_WO={"cube": start})
     target = at(0.3005, 0.3002, 0.2, yaw_deg=2)  # near: below the speed limit throughout
@@ -151,7 +151,7 @@ def test_a_block_pushed_into_the_corner_comes_to_rest_at_any_step_gain(
 ) -> None:
     """Pressed into the frame's inside corner, the block settles: no swinging against the
     walls, the same pose step after step."""
-    params = SimParams(k_t=gain / (P.dt_s * P.d_t))
+    params = SimParams(d_t=gain / (P.dt_s * P.k_t))
     sim = Simulator(scene, "cube", params, X_WO={"cube": at(0.45, 0.0, CUBE_HALF + 2e-4, 5)})
     sim.set_target(at(*(CORNER_XY + 0.02), CUBE_HALF - 0.005))
     results = run(sim, 300)
@@ -163,10 +163,11 @@ def test_a_block_pushed_into_the_corner_comes_to_rest_at_any_step_gain(
 
 
 def test_parameters_that_would_make_a_step_cost_without_bound_are_refused(scene) -> None:
-    with pytest.raises(ValueError, match=r"tunnel_fraction 1e-06 .* must be in \[[0-9.e-]+, 1\]"):
-        Simulator(scene, "cube", SimParams(tunnel_fraction=1e-6))
-    Simulator(scene, "cube", SimParams(tunnel_fraction=0.01))  # inside its range: made
-    with pytest.raises(ValueError, match=r"golden_rel_tol must be in \[1e-12, 1\)"):
+    fast = {"max_speed_mps": 10.0, "dt_s": 1.0}  # 10 m a step: 50,001 samples 0.2 mm apart
+    with pytest.raises(ValueError, match=r"tunnel_fraction 0.01 .* must be in \[[0-9.e-]+, 1\]"):
+        Simulator(scene, "cube", SimParams(tunnel_fraction=0.01, **fast))
+    Simulator(scene, "cube", SimParams(tunnel_fraction=0.1, **fast))  # 5,001: made
+    with pytest.raises(ValueError, match=r"golden_rel_tol must be a number in \[1e-12, 0.5\]"):
         SimParams(golden_rel_tol=1e-20)
 
 
@@ -256,8 +257,8 @@ def _log(lo: float, hi: float):
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     eps_b=_log(1e-7, 1e-3),
-    d_t=_log(1e-6, 1e6),
-    d_ratio=_log(1e-3, 1e3),
+    d_t=_log(3e-5, 1e6),
+    d_ratio=_log(1e-3, 3e2),
     force=_log(1e-9, 1e6),
     direction=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 0.2)),
     turn=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)),

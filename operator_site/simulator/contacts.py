@@ -22,7 +22,10 @@ MIN_SEPARATION_FOR_NORMAL_M = 1e-12
 NORMAL_SNAP_RAD = 1e-6
 """A nearest-point direction within this angle of a face normal is that face normal: the
 direction between nearest points of parallel faces 0.1 mm apart is only good to ~1e-12."""
-_COS_SNAP = float(np.cos(NORMAL_SNAP_RAD))
+NEAREST_POINT_PRECISION_M = 1e-14
+"""How far fcl's nearest points may be off in float64 on parts within metres of the origin
+(tens of ulps of their coordinates, with a margin); the direction between points d apart is
+only good to this over d, so closer than 1e-8 m the snapping angle grows as that."""
 
 
 def _plane_basis(n: np.ndarray) -> np.ndarray:
@@ -218,12 +221,12 @@ def _surface_height(S_2d: np.ndarray, h: np.ndarray, Q: np.ndarray) -> np.ndarra
     return H[0] + (Q - S_2d[0]) @ grad
 
 
-def _snap(n: np.ndarray, face_normals: np.ndarray | None) -> np.ndarray:
+def _snap(n: np.ndarray, face_normals: np.ndarray | None, cos_snap: float) -> np.ndarray:
     if face_normals is None or len(face_normals) == 0:
         return n
     cos = face_normals @ n
     best = int(np.argmax(cos))
-    return face_normals[best] if cos[best] >= _COS_SNAP else n
+    return face_normals[best] if cos[best] >= cos_snap else n
 
 
 def contact_manifold(
@@ -248,9 +251,10 @@ def contact_manifold(
     d = float(np.linalg.norm(gap))
     if d < MIN_SEPARATION_FOR_NORMAL_M:
         raise ValueError(f"parts are {d:.3g} m apart: too close for a contact normal")
-    n = -_snap(-gap / d, normals_B)
-    if normals_B is None or not np.any(normals_B @ -n >= _COS_SNAP):
-        n = _snap(n, normals_A)
+    cos_snap = math.cos(max(NORMAL_SNAP_RAD, NEAREST_POINT_PRECISION_M / d))
+    n = -_snap(-gap / d, normals_B, cos_snap)
+    if normals_B is None or not np.any(normals_B @ -n >= cos_snap):
+        n = _snap(n, normals_A, cos_snap)
     h_A, h_B = float(p_A @ n), float(p_B @ n)
     S_A = V_A[V_A @ n >= h_B - eps_contact_m]
     S_B = V_B[V_B @ n <= h_A + eps_contact_m]

@@ -13,6 +13,45 @@ MIN_GOLDEN_REL_TOL = 1e-12
 """The golden-section search's bracket cannot shrink much below float64's relative precision
 (2.2e-16) times Δt: a smaller tolerance would never be met."""
 
+STEP_GAIN_RANGE = (1e-6, 1e6)
+"""Accepted x = Δt·d_t·k_t, the fraction (before :func:`~.stepper.spring_step_factor`) of the
+way to the dragger a free step covers. Below, the workpiece needs millions of steps to follow
+the dragger; above, a step lands on the target whatever x is, so larger values buy nothing."""
+
+RANGES: dict[str, tuple[float, float, str]] = {
+    "dt_s": (1e-4, 1.0, "from a 10 kHz step to one a second"),
+    "eps_contact_m": (1e-8, 1e-2, "contact within 10 nm to 1 cm"),
+    "eps_barrier_m": (
+        1e-10,
+        1e-3,
+        "a float64 pose of a metre resolves 1e-16 m; a barrier "
+        "wider than a millimetre keeps blocks visibly apart",
+    ),
+    "eps_capture_m": (1e-7, 5e-2, "a capture looser than 5 cm no longer holds a contact"),
+    "golden_rel_tol": (
+        MIN_GOLDEN_REL_TOL,
+        0.5,
+        "below 1e-12 the bracket stops shrinking in float64; at 0.5 the search makes one cut",
+    ),
+    "max_speed_mps": (1e-4, 10.0, "0.1 mm/s to 10 m/s"),
+    "d_t": (1e-6, 1e6, "m/(N·s)"),
+    "char_length_m": (1e-5, 10.0, "the lever arm that weighs turning against moving"),
+    "k_t": (1e-6, 1e6, "N/m"),
+    "barrier_gain": (1e-6, 1e6, "multiples of the step's work"),
+    "tunnel_fraction": (
+        0.01,
+        1.0,
+        "samples further apart than the thinnest obstacle could step over it; closer than a "
+        "hundredth of it they only cost (the scene may bound it from below too: Simulator)",
+    ),
+}
+"""Each float knob's accepted range (inclusive) and why; a value outside is refused, naming it.
+The extremes are exercised by ``tests/test_simulator_extremes.py``."""
+
+POINTS_PER_PAIR_RANGE = (3, 128)
+"""Contact points per pair of convex parts: fewer than three cannot hold a face flat against a
+face; more only repeat rows of the LCP."""
+
 
 @dataclass(frozen=True)
 class SimParams:
@@ -34,8 +73,7 @@ class SimParams:
     eps_capture_m: float = 2e-3
     """ε_o: a captured object stays within this distance (§VII-B: 2 mm)."""
     golden_rel_tol: float = 1e-5
-    """Golden-section search stops when its bracket is below this fraction of Δt (§VII-B); at
-    least :data:`MIN_GOLDEN_REL_TOL`, where the bracket still shrinks in float64."""
+    """Golden-section search stops when its bracket is below this fraction of Δt (§VII-B)."""
     max_speed_mps: float = 0.4
     """Fastest any point of the workpiece may move (§VII-B: 400 mm/s); faster commands are
     scaled down and the step says so."""
@@ -63,37 +101,38 @@ class SimParams:
     def k_r(self) -> float:
         return self.k_t * self.char_length_m**2
 
+    @property
+    def step_gain(self) -> float:
+        """x = Δt·d_t·k_t (= Δt·d_r·k_r): the spring's gain over one step, dimensionless."""
+        return self.dt_s * self.d_t * self.k_t
+
     def __post_init__(self) -> None:
-        positive = (
-            "dt_s",
-            "eps_contact_m",
-            "eps_barrier_m",
-            "eps_capture_m",
-            "golden_rel_tol",
-            "max_speed_mps",
-            "d_t",
-            "char_length_m",
-            "k_t",
-            "barrier_gain",
-            "tunnel_fraction",
-        )
-        for name in positive:
+        for name, (lo, hi, why) in RANGES.items():
             value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise ValueError(f"SimParams.{name} must be a finite number > 0, got {value!r}")
+            ok = isinstance(value, int | float) and not isinstance(value, bool)
+            if not (ok and math.isfinite(value) and lo <= value <= hi):
+                raise ValueError(
+                    f"SimParams.{name} must be a number in [{lo:g}, {hi:g}] ({why}), got {value!r}"
+                )
         if not self.eps_barrier_m < self.eps_contact_m < self.eps_capture_m:
             raise ValueError(
                 "SimParams needs eps_barrier_m < eps_contact_m < eps_capture_m, got "
                 f"{self.eps_barrier_m}, {self.eps_contact_m}, {self.eps_capture_m}"
             )
         if not 0 < self.min_separation_fraction < 1:
-            raise ValueError("min_separation_fraction must be in (0, 1)")
-        if not MIN_GOLDEN_REL_TOL <= self.golden_rel_tol < 1:
             raise ValueError(
-                f"SimParams.golden_rel_tol must be in [{MIN_GOLDEN_REL_TOL:g}, 1), got "
-                f"{self.golden_rel_tol!r}"
+                "SimParams.min_separation_fraction must be in (0, 1), got "
+                f"{self.min_separation_fraction!r}"
             )
-        if self.tunnel_fraction > 1:
-            raise ValueError(f"SimParams.tunnel_fraction must be ≤ 1, got {self.tunnel_fraction!r}")
-        if not isinstance(self.max_points_per_pair, int) or self.max_points_per_pair < 1:
-            raise ValueError("max_points_per_pair must be an integer ≥ 1")
+        lo, hi = STEP_GAIN_RANGE
+        if not lo <= self.step_gain <= hi:
+            raise ValueError(
+                f"SimParams: the spring's step gain dt_s·d_t·k_t must be in [{lo:g}, {hi:g}], "
+                f"got {self.dt_s:g}·{self.d_t:g}·{self.k_t:g} = {self.step_gain:g}"
+            )
+        lo_n, hi_n = POINTS_PER_PAIR_RANGE
+        n = self.max_points_per_pair
+        if not (isinstance(n, int) and not isinstance(n, bool) and lo_n <= n <= hi_n):
+            raise ValueError(
+                f"SimParams.max_points_per_pair must be an integer in [{lo_n}, {hi_n}], got {n!r}"
+            )

@@ -32,6 +32,9 @@ MAX_LIFT_DOUBLINGS = 12
 REST_DISPLACEMENT_M = 1e-12
 """A step that would move no point of the workpiece further than this is no step: the pose and
 contacts stay as they are and no query is made (a settled block costs next to nothing)."""
+MAX_FLOOR_HALVINGS = 20
+"""A step whose chosen pose turns out under the floor is halved at most this many times (then
+not taken): see :meth:`Simulator._verified_move`."""
 MAX_COLLISION_SAMPLES = 10_000
 """Collision samples along one step at most: parameters that would need more (a tiny tunnelling
 fraction against a fast, long step) are refused when the simulator is made."""
@@ -43,8 +46,23 @@ def spring_step_factor(params: SimParams) -> float:
     the spring's first-order dynamics do over Δt, a fraction 1 − e^(−x) of the way to the
     target. Unscaled, a step moves it x times the way: past the target for x > 1, swinging
     about it for ever for x ≥ 2, although first-order dynamics never overshoot."""
-    x = params.dt_s * params.d_t * params.k_t
-    return -math.expm1(-x) / x if x > 0 else 1.0
+    x = params.step_gain
+    return -math.expm1(-x) / x
+
+
+BARRIER_RESOLUTION = 0.5
+"""The line search resolves a step to at least this fraction of ε_b, whatever
+``golden_rel_tol``: a coarser search cannot find the barrier's minimum, and a workpiece whose
+first obstacle is nearer than its resolution would stop dead short of it."""
+
+
+def _golden_fraction(params: SimParams, sweep_m: float) -> float:
+    """The golden-section search's final bracket as a fraction of Δt for a step that would
+    sweep ``sweep_m``: ``golden_rel_tol``, or finer where that would not resolve
+    :data:`BARRIER_RESOLUTION` × ε_b of the sweep."""
+    if sweep_m <= 0.0:
+        return params.golden_rel_tol
+    return min(params.golden_rel_tol, BARRIER_RESOLUTION * params.eps_barrier_m / sweep_m)
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,19 +131,24 @@ class Simulator:
         poses = {o.name: o.X_WO for o in scene.objects} | (X_WO or {})
         self.world = SimWorld(scene, workpiece, poses, attached_O)
         p = self.params
-        samples = math.ceil(
-            p.max_speed_mps * p.dt_s / (p.tunnel_fraction * self.world.thinnest_obstacle_m)
-        )
+        # A step sweeps at most max_speed·Δt, plus ε_b for each object whose barrier pushes.
+        n_objects = len(set(self.world.obstacle_object))
+        sweep_m = p.max_speed_mps * p.dt_s + n_objects * p.eps_barrier_m
+        samples = math.ceil(sweep_m / (p.tunnel_fraction * self.world.thinnest_obstacle_m))
         if samples > MAX_COLLISION_SAMPLES:
-            lowest = (
-                p.max_speed_mps * p.dt_s / (MAX_COLLISION_SAMPLES * self.world.thinnest_obstacle_m)
-            )
+            lowest = sweep_m / (MAX_COLLISION_SAMPLES * self.world.thinnest_obstacle_m)
             raise ValueError(
                 f"SimParams.tunnel_fraction {p.tunnel_fraction:g} would take {samples} collision "
                 f"samples a step in this scene (at most {MAX_COLLISION_SAMPLES}): it must be in "
                 f"[{lowest:.3g}, 1] at max_speed_mps {p.max_speed_mps:g} and dt_s {p.dt_s:g}"
             )
         self._spring_factor = spring_step_factor(p)
+        cuts = math.ceil(math.log(_golden_fraction(p, sweep_m)) / math.log(GOLDEN)) + 1
+        pairs = len(self.world.wp_parts) * len(self.world.obstacle_object)
+        self.max_queries_per_step = (samples + cuts + 4 + MAX_FLOOR_HALVINGS) * pairs
+        """A bound on :attr:`StepResult.queries`: the collision samples, the golden-section
+        cuts, its two first points, s = 0 and the contacts at the new pose (and at each halving
+        of a step found under the floor), each at most one query per pair of parts."""
         model = scene.object(workpiece).model
         self.c_O = model.com_O.copy()
         self.r_max_m = float(np.max(np.linalg.norm(self.world.wp_vertices_O - self.c_O, axis=1)))
@@ -333,10 +356,9 @@ class Simulator:
             s_best = (
                 self._line_search(X0, v, w, near, sweep, work_rate, gain) if len(near) else p.dt_s
             )
-            X1 = self._pose_at(X0, v, w, s_best)
-            X1[:3, :3] = orthonormalize(X1[:3, :3])
+            s_best, X1, contacts = self._verified_move(X0, v, w, s_best)
             st.X_WO = X1
-            st.contacts = self._contacts(X1, self._near(X1, 0.0))
+            st.contacts = contacts
         d_min = min((c.distance_m for c in st.contacts), default=math.inf)
         result = StepResult(
             time_s=st.time_s,
@@ -350,6 +372,27 @@ class Simulator:
         )
         st.history.append(result)
         return result
+
+    def _verified_move(
+        self, X0: np.ndarray, v: np.ndarray, w: np.ndarray, s: float
+    ) -> tuple[float, np.ndarray, tuple[Contact, ...]]:
+        """The pose s along the step and its contacts, the step halved while that pose is under
+        the floor (at most :data:`MAX_FLOOR_HALVINGS` times, then no step at all).
+
+        fcl's GJK can overestimate a distance to an edge by an order of magnitude at micrometre
+        gaps, and answer right for the same pose rounded differently (docs/design.md), so the
+        line search may accept a pose under the floor; the contacts of the chosen pose are a
+        second query. (A capturable object within ε_c of a pose not taken is held all the same:
+        the pose taken is nearer the last one, itself about as near.)"""
+        floor = self.params.min_separation_fraction * self.params.eps_barrier_m
+        for _ in range(MAX_FLOOR_HALVINGS + 1):
+            X1 = self._pose_at(X0, v, w, s)
+            X1[:3, :3] = orthonormalize(X1[:3, :3])
+            contacts = self._contacts(X1, self._near(X1, 0.0))
+            if min((c.distance_m for c in contacts), default=math.inf) > floor or s == 0.0:
+                return s, X1, contacts
+            s *= 0.5
+        return 0.0, X0, self.state.contacts
 
     def _line_search(
         self,
@@ -384,7 +427,7 @@ class Simulator:
                 return p.dt_s  # no barrier active at the end: U_v alone is least there
         lo = 0.0
         a, b = hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo)
-        tol = p.golden_rel_tol * p.dt_s
+        tol = p.dt_s * _golden_fraction(p, sweep_m)
         while hi - lo > tol:
             if U(a) <= U(b):  # ties (both inf: past a wall) shrink towards s = 0
                 hi, b = b, a
