@@ -82,7 +82,11 @@ def test_nearest_solution_to_q_is_q(q: np.ndarray) -> None:
         tol = max(tol, 1e-7)
     np.testing.assert_allclose(ROBOT.flange_pose_W(result.q), ROBOT.flange_pose_W(q), atol=tol)
     if not result.singular:
-        np.testing.assert_allclose(result.q, q, atol=1e-7)
+        # Near the wrist singularity q4 and q6 carry the arm's angle error over sin q5, as in
+        # the test above (hypothesis found q5 = 5e-5 rad: 3.1e-7 rad on each).
+        tol_q = np.full(6, 1e-7)
+        tol_q[[3, 5]] += ARM_ANGLE_ERR_RAD / abs(np.sin(q[4]))
+        assert np.all(np.abs(angle_diff(result.q, q)) <= tol_q), (result.q, q)
 
 
 def test_a_joint_on_its_limit_with_the_arm_stretched_is_reached() -> None:
