@@ -51,6 +51,7 @@ from operator_site.program.contact_step import (
 from operator_site.program.path import NodeContact, PathNode, WorkpiecePath
 from operator_site.program.poses import centres, exp_batch, interpolate, log_batch
 from operator_site.simulator import SimParams
+from operator_site.simulator.params import refuse_out_of_range
 from operator_site.simulator.world import PairDistance, SimWorld
 
 REST_FRACTION = 0.1
@@ -161,14 +162,7 @@ class DeformParams:
         return tuple(float(2**i) for i in range(k, -1, -1))
 
     def __post_init__(self) -> None:
-        for name, (lo, hi, why) in RANGES.items():
-            value = getattr(self, name)
-            number = isinstance(value, int | float) and not isinstance(value, bool)
-            if not (number and math.isfinite(value) and lo <= value <= hi):
-                raise ValueError(
-                    f"DeformParams.{name} must be a number in [{lo:g}, {hi:g}] ({why}), "
-                    f"got {value!r}"
-                )
+        refuse_out_of_range("DeformParams", self, RANGES)
         for name, (lo, hi) in INT_RANGES.items():
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and lo <= value <= hi):

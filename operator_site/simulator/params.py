@@ -48,6 +48,19 @@ RANGES: dict[str, tuple[float, float, str]] = {
 """Each float knob's accepted range (inclusive) and why; a value outside is refused, naming it.
 The extremes are exercised by ``tests/test_simulator_extremes.py``."""
 
+
+def refuse_out_of_range(owner: str, obj: object, ranges: dict[str, tuple]) -> None:
+    """ValueError naming the first field of ``obj`` that is not a finite number within its
+    ``ranges`` entry (lo, hi, why): the check of every parameter dataclass's float knobs."""
+    for name, (lo, hi, why) in ranges.items():
+        value = getattr(obj, name)
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not (number and math.isfinite(value) and lo <= value <= hi):
+            raise ValueError(
+                f"{owner}.{name} must be a number in [{lo:g}, {hi:g}] ({why}), got {value!r}"
+            )
+
+
 POINTS_PER_PAIR_RANGE = (3, 128)
 """Contact points per pair of convex parts: fewer than three cannot hold a face flat against a
 face; more only repeat rows of the LCP."""
@@ -107,13 +120,7 @@ class SimParams:
         return self.dt_s * self.d_t * self.k_t
 
     def __post_init__(self) -> None:
-        for name, (lo, hi, why) in RANGES.items():
-            value = getattr(self, name)
-            ok = isinstance(value, int | float) and not isinstance(value, bool)
-            if not (ok and math.isfinite(value) and lo <= value <= hi):
-                raise ValueError(
-                    f"SimParams.{name} must be a number in [{lo:g}, {hi:g}] ({why}), got {value!r}"
-                )
+        refuse_out_of_range("SimParams", self, RANGES)
         if not self.eps_barrier_m < self.eps_contact_m < self.eps_capture_m:
             raise ValueError(
                 "SimParams needs eps_barrier_m < eps_contact_m < eps_capture_m, got "
