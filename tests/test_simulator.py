@@ -294,7 +294,7 @@ def test_random_pushes_never_break_the_invariants(
 
 
 def test_faces_parallel_to_1e9_rad_at_1e9_m(scene: Scene) -> None:
-    params = SimParams(eps_barrier_m=1e-9 * 0.5, eps_contact_m=1e-8, eps_capture_m=1e-7)
+    params = SimParams(eps_barrier_m=1e-9, eps_contact_m=1e-8, eps_capture_m=1e-7)
     R = so3_exp(np.array([1e-9, 0.0, 0.0]))
     start = make_pose(R, (0.2, 0.3, CUBE_HALF + 1e-9))
     sim = Simulator(scene, "cube", params, X_WO={"cube": start})

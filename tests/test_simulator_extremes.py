@@ -31,7 +31,7 @@ MOTION_REL_TOL = 1e-9
 ROUNDING_M = 1e-15
 """Coordinates within a metre of the origin round to about a tenth of this."""
 STILL_FLOOR_M = 1e-12
-"""Below this, a pose's change is float64 rounding of coordinates within a metre."""
+"""A pose that changes by less than this (ten thousand times coordinates' rounding) is still."""
 CONTACT_CHAR_LENGTH_M = (0.01, 1.0)
 """The contact cases' characteristic lengths: within a decade of the blocks' sizes. Shorter,
 turning is over a hundred times as mobile as moving, and a tall block pushed at its centre
