@@ -377,7 +377,8 @@ class Simulator:
         self, X0: np.ndarray, v: np.ndarray, w: np.ndarray, s: float
     ) -> tuple[float, np.ndarray, tuple[Contact, ...]]:
         """The pose s along the step and its contacts, the step halved while that pose is under
-        the floor (at most :data:`MAX_FLOOR_HALVINGS` times, then no step at all).
+        the floor or outside a capture (at most :data:`MAX_FLOOR_HALVINGS` times, then no step
+        at all).
 
         fcl's GJK can overestimate a distance to an edge by an order of magnitude at micrometre
         gaps, and answer right for the same pose rounded differently (docs/design.md), so the
@@ -385,11 +386,13 @@ class Simulator:
         second query. (A capturable object within ε_c of a pose not taken is held all the same:
         the pose taken is nearer the last one, itself about as near.)"""
         floor = self.params.min_separation_fraction * self.params.eps_barrier_m
+        held = set(self.state.held)
         for _ in range(MAX_FLOOR_HALVINGS + 1):
             X1 = self._pose_at(X0, v, w, s)
             X1[:3, :3] = orthonormalize(X1[:3, :3])
             contacts = self._contacts(X1, self._near(X1, 0.0))
-            if min((c.distance_m for c in contacts), default=math.inf) > floor or s == 0.0:
+            clear = min((c.distance_m for c in contacts), default=math.inf) > floor
+            if (clear and held <= {c.object for c in contacts}) or s == 0.0:
                 return s, X1, contacts
             s *= 0.5
         return 0.0, X0, self.state.contacts
