@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import functools
 import json
 from pathlib import Path
 
@@ -36,6 +37,7 @@ SWING_STEPS = 500
 error shrinks by |1 − x| a step, which is ≥ 1 there): stopped early."""
 
 
+@functools.cache
 def _scene(block: str) -> Scene:
     scene = load_scene()
     keep = {"table", "frame", block}

@@ -23,7 +23,7 @@ from operator_site.simulator import SimParams
 from operator_site.simulator.world import SimWorld
 
 P = SimParams()
-FLOOR_M = P.min_separation_fraction * P.eps_barrier_m
+FLOOR_M = P.floor_m
 
 
 @dataclasses.dataclass

@@ -28,7 +28,7 @@ from operator_site.simulator import SimParams, Simulator
 from tests.conftest import examples
 
 SIM = SimParams()
-FLOOR_M = SIM.min_separation_fraction * SIM.eps_barrier_m
+FLOOR_M = SIM.floor_m
 CUBE_HALF_M = 0.025
 BAR_OUTER_Y_M = -0.12
 """The frame's −y bar's outer face (DESIGN.md: bars 20 mm wide round a 0.20 m opening)."""

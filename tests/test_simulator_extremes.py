@@ -140,8 +140,7 @@ def _check_step(sim: Simulator, r: StepResult) -> None:
     assert np.all(np.isfinite(r.X_WO))
     R = r.X_WO[:3, :3]
     assert np.max(np.abs(R.T @ R - np.eye(3))) < ORTHONORMAL_TOL
-    floor_m = sim.params.min_separation_fraction * sim.params.eps_barrier_m
-    assert r.min_distance_m >= floor_m * (1 - 1e-12)
+    assert r.min_distance_m >= sim.params.floor_m * (1 - 1e-12)
     assert r.queries <= sim.max_queries_per_step
 
 

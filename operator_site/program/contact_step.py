@@ -79,7 +79,7 @@ class ContactStepper:
         self.c_O = np.asarray(c_O, dtype=np.float64)
         self.reach_m = max(float(reach_m), params.eps_capture_m)
         self.r_max_m = float(np.max(np.linalg.norm(world.wp_vertices_O - self.c_O, axis=1)))
-        self.floor_m = params.min_separation_fraction * params.eps_barrier_m
+        self.floor_m = params.floor_m
         self.sample_m = params.tunnel_fraction * world.thinnest_obstacle_m
         """Longer moves are also checked at intermediate poses this far apart (§VII-B)."""
         self.probes = 0

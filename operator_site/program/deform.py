@@ -146,7 +146,8 @@ class DeformParams:
     patience_sweeps: int = 10
     """… or, at the finest level, stop when the path has not become ``progress_m`` shorter in
     this many sweeps (nodes jostling round a corner in contact never settle; §VII-B notes the
-    same sticking for captures going round corners). The result then says ``settled=False``."""
+    same sticking for captures going round corners). The result then says it stopped on
+    ``no progress``."""
     progress_m: float = 5e-4
     coarse_spacing_m: float = 0.04
     """Coarse to fine: the path is first deformed with about this spacing, then with half of
@@ -177,16 +178,20 @@ class DeformResult:
 
     path: WorkpiecePath
     sweeps: int
-    settled: bool
+    stopped: str
+    """Why the sweeps stopped: ``settled`` (no node moved ``settle_m``), ``no progress`` (the
+    path stopped getting shorter, ``patience_sweeps``), ``sweep cap`` (``max_sweeps``) or
+    ``node cap`` (insertions took the path past :data:`MAX_NODES`)."""
     elapsed_s: float
     probes: int
     """Distance probes made (each one query per nearby pair of convex parts)."""
     history_m: list[float] = field(default_factory=list)
     """Path length after each sweep (m)."""
-    stopped: str = "settled"
-    """Why the sweeps stopped: ``settled`` (no node moved ``settle_m``), ``no progress`` (the
-    path stopped getting shorter, ``patience_sweeps``), ``sweep cap`` (``max_sweeps``) or
-    ``node cap`` (insertions took the path past :data:`MAX_NODES`)."""
+
+    @property
+    def settled(self) -> bool:
+        """Whether the sweeps stopped because the path settled."""
+        return self.stopped == "settled"
 
 
 @dataclass
@@ -260,7 +265,7 @@ class Deformer:
             nodes = self._decimate(nodes) if level == levels[0] else self._remove_close(nodes)
             for node in nodes:
                 node.gain, node.last = 1.0, None
-            settled, stopped = False, "sweep cap"
+            stopped = "sweep cap"
             first_fine = len(lengths)
             finest = level == levels[-1]
             cap = p.max_sweeps if finest else sweeps + p.max_sweeps_coarse
@@ -278,7 +283,7 @@ class Deformer:
                         break
                     before_m = lengths[-1]
                 elif moved < p.settle_m:
-                    settled, stopped = True, "settled"
+                    stopped = "settled"
                     break
                 else:
                     fine, k = lengths[first_fine:], p.patience_sweeps
@@ -289,13 +294,7 @@ class Deformer:
                 break
         out = WorkpiecePath(path.workpiece, tuple(self._finish(n) for n in nodes), self.c_O)
         return DeformResult(
-            out,
-            sweeps,
-            settled,
-            time.perf_counter() - t0,
-            self.stepper.probes - probes0,
-            lengths,
-            stopped,
+            out, sweeps, stopped, time.perf_counter() - t0, self.stepper.probes - probes0, lengths
         )
 
     def _length(self, nodes: list[_Node]) -> float:

@@ -24,9 +24,9 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "eps_barrier_m": (
         1e-9,
         1e-3,
-        "fcl's distances between rotated parts in contact are good to about 1e-11 m, and the "
-        "floor (half of ε_b) must stand well above that; a barrier wider than a millimetre "
-        "keeps blocks visibly apart",
+        "at 1e-10 m a rotated L-block ended under the floor (half of ε_b), fcl's distance "
+        "near contact not repeating that finely; a barrier wider than a millimetre keeps "
+        "blocks visibly apart",
     ),
     "eps_capture_m": (1e-7, 5e-2, "a capture looser than 5 cm no longer holds a contact"),
     "golden_rel_tol": (
@@ -114,6 +114,11 @@ class SimParams:
     @property
     def k_r(self) -> float:
         return self.k_t * self.char_length_m**2
+
+    @property
+    def floor_m(self) -> float:
+        """No step ends closer to anything than this: ``min_separation_fraction`` × ε_b (m)."""
+        return self.min_separation_fraction * self.eps_barrier_m
 
     @property
     def step_gain(self) -> float:

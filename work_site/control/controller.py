@@ -140,12 +140,16 @@ class Impedance:
                 f"Impedance.settled_ticks must be an integer ≥ 1, got {self.settled_ticks!r}"
             )
 
+    @property
+    def stiffest_n_per_m(self) -> float:
+        """The stiffer of its springs, along the normals or across them (N/m)."""
+        return max(self.stiffness_n_per_m, self.tangential_stiffness_n_per_m or 0.0)
+
     def step_gain(self, dt_s: float) -> float:
         """K·Δt/B for the stiffer of its springs: the fraction of the offset one update of
         ``B δ̇ = −K δ`` takes back. Above 1 the offset overshoots zero each update (and swings
         without end from 2); :meth:`TaskController.start_move` refuses it."""
-        k = max(self.stiffness_n_per_m, self.tangential_stiffness_n_per_m or 0.0)
-        return k * dt_s / self.damping_n_s_per_m
+        return self.stiffest_n_per_m * dt_s / self.damping_n_s_per_m
 
 
 NORMAL_RANK_TOL = 1e-3
@@ -239,7 +243,7 @@ class TaskController:
             raise ValueError(f"force limit {force_limit_n} N must be finite and > 0")
         dt_s = self.world.time_step_s
         if impedance is not None and impedance.step_gain(dt_s) > 1.0:
-            k = max(impedance.stiffness_n_per_m, impedance.tangential_stiffness_n_per_m or 0.0)
+            k = impedance.stiffest_n_per_m
             raise ValueError(
                 f"impedance stiffness {k:g} N/m with damping {impedance.damping_n_s_per_m:g} "
                 f"N·s/m would overshoot at the {dt_s * 1e3:g} ms physics step: the damping must "
