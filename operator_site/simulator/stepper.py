@@ -59,9 +59,7 @@ first obstacle is nearer than its resolution would stop dead short of it."""
 def _golden_fraction(params: SimParams, sweep_m: float) -> float:
     """The golden-section search's final bracket as a fraction of Δt for a step that would
     sweep ``sweep_m``: ``golden_rel_tol``, or finer where that would not resolve
-    :data:`BARRIER_RESOLUTION` × ε_b of the sweep."""
-    if sweep_m <= 0.0:
-        return params.golden_rel_tol
+    :data:`BARRIER_RESOLUTION` × ε_b of the sweep (``sweep_m`` > 0: a step that moves)."""
     return min(params.golden_rel_tol, BARRIER_RESOLUTION * params.eps_barrier_m / sweep_m)
 
 
@@ -209,6 +207,8 @@ class Simulator:
         self.state.capturable.discard(name)
         self.state.held.discard(name)
         self.state.resting = False
+        X = self.state.X_WO
+        self.state.contacts = self._contacts(X, self._near(X, 0.0))
 
     # ------------------------------------------------------------------------------ forces
 
@@ -266,7 +266,7 @@ class Simulator:
     def _potential(self, pairs: list[PairDistance], gain: float) -> float:
         """Σ U_i over obstacle objects (excluding U_v); ``inf`` closer than the hard floor."""
         p, total = self.params, 0.0
-        floor = p.min_separation_fraction * p.eps_barrier_m
+        floor = p.floor_m
         for name, d in self._object_distances(pairs).items():
             if d <= floor:
                 return math.inf
@@ -378,23 +378,27 @@ class Simulator:
     ) -> tuple[float, np.ndarray, tuple[Contact, ...]]:
         """The pose s along the step and its contacts, the step halved while that pose is under
         the floor or outside a capture (at most :data:`MAX_FLOOR_HALVINGS` times, then no step
-        at all).
+        at all: the last pose and contacts, unchanged).
 
         fcl's GJK can overestimate a distance to an edge by an order of magnitude at micrometre
         gaps, and answer right for the same pose rounded differently (docs/design.md), so the
         line search may accept a pose under the floor; the contacts of the chosen pose are a
         second query. (A capturable object within ε_c of a pose not taken is held all the same:
         the pose taken is nearer the last one, itself about as near.)"""
-        floor = self.params.min_separation_fraction * self.params.eps_barrier_m
+        floor = self.params.floor_m
         held = set(self.state.held)
         for _ in range(MAX_FLOOR_HALVINGS + 1):
+            if s == 0.0:
+                break
             X1 = self._pose_at(X0, v, w, s)
             X1[:3, :3] = orthonormalize(X1[:3, :3])
             contacts = self._contacts(X1, self._near(X1, 0.0))
             clear = min((c.distance_m for c in contacts), default=math.inf) > floor
-            if (clear and held <= {c.object for c in contacts}) or s == 0.0:
+            if clear and held <= {c.object for c in contacts}:
                 return s, X1, contacts
             s *= 0.5
+        # No step: the pose stays bit for bit. Rebuilt and queried again it would move by ulps,
+        # and fcl's distance near contact can jump under the floor for such a move.
         return 0.0, X0, self.state.contacts
 
     def _line_search(
