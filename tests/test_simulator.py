@@ -247,6 +247,31 @@ def test_captured_block_stays_near_the_capture_object_and_leaves_when_released(s
     assert sim.X_WO[2, 3] == pytest.approx(0.1, abs=1e-4)
 
 
+@pytest.mark.parametrize("points_per_pair", [3, 4])
+def test_dropped_contact_corners_never_block_a_slide_for_good(scene, points_per_pair) -> None:
+    """Slid along the frame's outside and round its corner, frame and table captured, with the
+    contact polygons reduced below their corners: the LCP does not see the dropped corners and
+    can drive one into its face, which blocked every later step. Such a blocked step is planned
+    again with the whole polygons, and the cube goes round."""
+    params = SimParams(max_points_per_pair=points_per_pair)
+    cx, cy = 0.57, 0.12  # the frame's outside corner at its largest x and y
+    start = at(cx - 0.08, cy + CUBE_HALF + 2e-4, CUBE_HALF + 2e-4)
+    sim = Simulator(scene, "cube", params, X_WO={"cube": start})
+    sim.capture("frame")
+    sim.capture("table")
+    legs = [(cx - 0.08, cy + 0.015), (cx + 0.035, cy + 0.015), (cx + 0.015, cy - 0.08)]
+    for k in range(240):
+        leg = min(k // 100, 1)
+        f = min(1.0, (k - leg * 100) / 80)
+        (x0, y0), (x1, y1) = legs[leg], legs[leg + 1]
+        sim.set_target(at(x0 + f * (x1 - x0), y0 + f * (y1 - y0), CUBE_HALF - 0.003))
+        r = sim.step()
+        assert r.queries <= sim.max_queries_per_step
+        assert r.min_distance_m > params.floor_m
+    assert sim.X_WO[0, 3] > cx and sim.X_WO[1, 3] < cy - 0.03  # round the corner
+    assert {c.object for c in sim.state.contacts} == {"frame", "table"}
+
+
 # ------------------------------------------------------------------- properties at the extremes
 
 

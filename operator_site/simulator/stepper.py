@@ -23,7 +23,7 @@ from models.transforms import orthonormalize, so3_exp, so3_log
 from operator_site.simulator.barrier import barrier, capture_barrier
 from operator_site.simulator.contacts import contact_manifold
 from operator_site.simulator.lcp import solve_lcp
-from operator_site.simulator.params import SimParams
+from operator_site.simulator.params import POINTS_PER_PAIR_RANGE, SimParams
 from operator_site.simulator.world import PairDistance, SimWorld
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
@@ -35,6 +35,9 @@ contacts stay as they are and no query is made (a settled block costs next to no
 MAX_FLOOR_HALVINGS = 20
 """A step whose chosen pose turns out under the floor is halved at most this many times (then
 not taken): see :meth:`Simulator._verified_move`."""
+FULL_MANIFOLD_POINTS = POINTS_PER_PAIR_RANGE[1]
+"""Contact points per pair when a step blocked at once is planned again with the whole contact
+polygons (:meth:`Simulator.step`)."""
 MAX_COLLISION_SAMPLES = 10_000
 """Collision samples along one step at most: parameters that would need more (a tiny tunnelling
 fraction against a fast, long step) are refused when the simulator is made."""
@@ -78,6 +81,9 @@ class Contact:
     gaps_m: np.ndarray
     distance_m: float
     captured: bool = False
+    reduced: bool = False
+    """Some pair's contact polygon may have had more corners than ``max_points_per_pair``
+    (it had at least that many points), so that some were dropped."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,6 +118,20 @@ class SimState:
     """The last step did not move and no input has changed since: the next will not either."""
 
 
+@dataclass(frozen=True, eq=False)
+class _Plan:
+    """A step's velocity and what the line search needs of it."""
+
+    v: np.ndarray
+    w: np.ndarray
+    lcp_ok: bool
+    limited: bool
+    work_rate: float
+    """−dU_v/ds (J/s)."""
+    sweep_m: float
+    """How far the fastest point of the workpiece would move over the whole step."""
+
+
 class Simulator:
     """First-order contact simulation of one workpiece among fixed obstacles."""
 
@@ -143,10 +163,13 @@ class Simulator:
         self._spring_factor = spring_step_factor(p)
         cuts = math.ceil(math.log(_golden_fraction(p, sweep_m)) / math.log(GOLDEN)) + 1
         pairs = len(self.world.wp_parts) * len(self.world.obstacle_object)
-        self.max_queries_per_step = (samples + cuts + 4 + MAX_FLOOR_HALVINGS) * pairs
+        search = samples + cuts + 3
+        self.max_queries_per_step = (2 * search + 2 + MAX_FLOOR_HALVINGS) * pairs
         """A bound on :attr:`StepResult.queries`: the collision samples, the golden-section
-        cuts, its two first points, s = 0 and the contacts at the new pose (and at each halving
-        of a step found under the floor), each at most one query per pair of parts."""
+        cuts, its two first points and s = 0 (twice when the step is planned again with the
+        whole contact polygons, after the contacts at the start again), and the contacts at
+        the new pose (and at each halving of a step found under the floor), each at most one
+        query per pair of parts."""
         model = scene.object(workpiece).model
         self.c_O = model.com_O.copy()
         self.r_max_m = float(np.max(np.linalg.norm(self.world.wp_vertices_O - self.c_O, axis=1)))
@@ -221,20 +244,22 @@ class Simulator:
         c_D = R_D @ self.c_O + self.state.X_WD[:3, 3]
         return phi * p.k_t * (c_D - c), phi * p.k_r * so3_log(R_D @ R.T)
 
-    def _velocity(self, X_WO: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    def _velocity(
+        self, X_WO: np.ndarray, contacts: tuple[Contact, ...]
+    ) -> tuple[np.ndarray, np.ndarray, bool]:
         """v, ω (W, about the centre of mass) after contact forces; False if the LCP failed."""
         p = self.params
         f_a, m_a = self._spring(X_WO)
         ok = True
-        if self.state.contacts:
+        if contacts:
             c = X_WO[:3, :3] @ self.c_O + X_WO[:3, 3]
-            P = np.vstack([k.points_W for k in self.state.contacts]) - c
-            N = np.vstack([k.normals_W for k in self.state.contacts])
+            P = np.vstack([k.points_W for k in contacts]) - c
+            N = np.vstack([k.normals_W for k in contacts])
             T = np.cross(P, N)  # moment arm of a unit force along each normal
             A = p.d_t * N @ N.T + p.d_r * T @ T.T
             # A point with room to spare may approach by that room within the step (less ε_b),
             # so that a face within ε_c but not quite flush can still turn flush.
-            room = np.concatenate([k.gaps_m for k in self.state.contacts]) - p.eps_barrier_m
+            room = np.concatenate([k.gaps_m for k in contacts]) - p.eps_barrier_m
             b = p.d_t * N @ f_a + p.d_r * T @ m_a + np.maximum(room, 0.0) / p.dt_s
             result = solve_lcp(A, b)
             ok = result.ok
@@ -278,8 +303,13 @@ class Simulator:
                 return total
         return total
 
-    def _contacts(self, X_WO: np.ndarray, near: np.ndarray) -> tuple[Contact, ...]:
+    def _contacts(
+        self, X_WO: np.ndarray, near: np.ndarray, max_points: int | None = None
+    ) -> tuple[Contact, ...]:
+        """The contacts at ``X_WO`` with the obstacles' parts ``near``, at most ``max_points``
+        points per pair of parts (default ``max_points_per_pair``)."""
         p = self.params
+        max_points = max_points or p.max_points_per_pair
         pairs = self.world.distances(X_WO, near) if len(near) else []
         R, t = X_WO[:3, :3], X_WO[:3, 3]
         V_wp = [part.vertices_O @ R.T + t for part in self.world.wp_parts]
@@ -303,7 +333,7 @@ class Simulator:
                 pair.p_wp,
                 pair.p_obstacle,
                 p.eps_contact_m,
-                p.max_points_per_pair,
+                max_points,
                 N_wp[pair.wp_part],
                 self.world.obstacle_normals_W[pair.obstacle],
             )
@@ -316,6 +346,7 @@ class Simulator:
                 np.concatenate([x[2] for x in items]),
                 min(x[3] for x in items),
                 name in self.state.held,
+                any(len(x[0]) >= max_points for x in items),
             )
             for name, items in by_object.items()
         )
@@ -330,33 +361,22 @@ class Simulator:
             return result
         X0 = st.X_WO
         queries0 = self.world.queries
-        v, w, lcp_ok = self._velocity(X0)
-        speed = float(np.linalg.norm(v) + np.linalg.norm(w) * self.r_max_m)
-        limited = speed > p.max_speed_mps
-        if limited:
-            v, w = v * (p.max_speed_mps / speed), w * (p.max_speed_mps / speed)
-            speed = p.max_speed_mps
-        # Repel from anything closer than ε_b (§V-B) along the barrier's gradient, fast enough
-        # to restore ε_b in one step. (The paper scales the gradient by K; K is tied to how hard
-        # the workpiece is pushed, which is zero exactly when it is blocked and most needs it.)
-        for contact in st.contacts:
-            if contact.distance_m < p.eps_barrier_m:
-                n = contact.normals_W.mean(axis=0)
-                v = v + (p.eps_barrier_m - contact.distance_m) / p.dt_s * n / np.linalg.norm(n)
-        speed = float(np.linalg.norm(v) + np.linalg.norm(w) * self.r_max_m)
-        work_rate = v @ v / p.d_t + w @ w / p.d_r  # −dU_v/ds (J/s)
-        gain = p.barrier_gain * work_rate * p.dt_s
-        sweep = speed * p.dt_s
+        plan = self._plan(X0, st.contacts)
         st.time_s += p.dt_s
-        if sweep < REST_DISPLACEMENT_M:
+        if plan.sweep_m < REST_DISPLACEMENT_M:
             s_best, X1 = 0.0, X0
             st.resting = True
         else:
-            near = self._near(X0, sweep)
-            s_best = (
-                self._line_search(X0, v, w, near, sweep, work_rate, gain) if len(near) else p.dt_s
-            )
-            s_best, X1, contacts = self._verified_move(X0, v, w, s_best)
+            s_best = self._search(X0, plan)
+            if s_best == 0.0 and any(c.reduced for c in st.contacts):
+                # Dropped corners of a contact polygon are not in the LCP, which may then drive
+                # one into its obstacle: blocked at once, the step would block again for ever.
+                # Planned with the whole polygons, the LCP sees every corner.
+                full = self._contacts(X0, self._near(X0, 0.0), FULL_MANIFOLD_POINTS)
+                plan = self._plan(X0, full)
+                if plan.sweep_m >= REST_DISPLACEMENT_M:
+                    s_best = self._search(X0, plan)
+            s_best, X1, contacts = self._verified_move(X0, plan.v, plan.w, s_best)
             st.X_WO = X1
             st.contacts = contacts
         d_min = min((c.distance_m for c in st.contacts), default=math.inf)
@@ -367,11 +387,40 @@ class Simulator:
             s_fraction=s_best / p.dt_s,
             queries=self.world.queries - queries0,
             min_distance_m=d_min,
-            speed_limited=limited,
-            lcp_ok=lcp_ok,
+            speed_limited=plan.limited,
+            lcp_ok=plan.lcp_ok,
         )
         st.history.append(result)
         return result
+
+    def _plan(self, X0: np.ndarray, contacts: tuple[Contact, ...]) -> _Plan:
+        """The step's velocity from ``X0`` with ``contacts``: spring, LCP, speed limit, and the
+        barrier's push out of ε_b."""
+        p = self.params
+        v, w, lcp_ok = self._velocity(X0, contacts)
+        speed = float(np.linalg.norm(v) + np.linalg.norm(w) * self.r_max_m)
+        limited = speed > p.max_speed_mps
+        if limited:
+            v, w = v * (p.max_speed_mps / speed), w * (p.max_speed_mps / speed)
+        # Repel from anything closer than ε_b (§V-B) along the barrier's gradient, fast enough
+        # to restore ε_b in one step. (The paper scales the gradient by K; K is tied to how hard
+        # the workpiece is pushed, which is zero exactly when it is blocked and most needs it.)
+        for contact in contacts:
+            if contact.distance_m < p.eps_barrier_m:
+                n = contact.normals_W.mean(axis=0)
+                v = v + (p.eps_barrier_m - contact.distance_m) / p.dt_s * n / np.linalg.norm(n)
+        speed = float(np.linalg.norm(v) + np.linalg.norm(w) * self.r_max_m)
+        work_rate = v @ v / p.d_t + w @ w / p.d_r  # −dU_v/ds (J/s)
+        return _Plan(v, w, lcp_ok, limited, work_rate, speed * p.dt_s)
+
+    def _search(self, X0: np.ndarray, plan: _Plan) -> float:
+        """The line search's s along ``plan`` (Δt where nothing is near)."""
+        p = self.params
+        near = self._near(X0, plan.sweep_m)
+        if not len(near):
+            return p.dt_s
+        gain = p.barrier_gain * plan.work_rate * p.dt_s
+        return self._line_search(X0, plan.v, plan.w, near, plan.sweep_m, plan.work_rate, gain)
 
     def _verified_move(
         self, X0: np.ndarray, v: np.ndarray, w: np.ndarray, s: float
