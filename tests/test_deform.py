@@ -82,6 +82,31 @@ def test_fig12_path_is_shortened_by_at_least_40_percent(fig12: Case) -> None:
     assert fig12.result.settled
 
 
+def _centres_apart_m(a: WorkpiecePath, b: WorkpiecePath) -> float:
+    assert len(a) == len(b)
+    return float(np.abs(a.centres_W - b.centres_W).max())
+
+
+def test_only_the_ratios_of_the_forces_shape_the_path_not_the_simulator_s_step(
+    fig12: Case,
+) -> None:
+    """Forces become displacements scaled to the tension: every force ten times as strong, or
+    the simulator's Δt or d_t changed, gives the same path up to rounding (amplified over the
+    sweeps, well under a tenth of the spacing); the tension alone ten times as strong does not."""
+    tolerance_m = 0.1 * DeformParams().spacing_m
+
+    def deform(dp: DeformParams | None = None, sp: SimParams | None = None) -> WorkpiecePath:
+        return Deformer(fig12.scene, "cube", dp, sp).deform(fig12.raw).path
+
+    path = fig12.result.path
+    stronger = DeformParams(tension_n=10.0, repulsion_n=30.0, hold_n=5.0)
+    assert _centres_apart_m(deform(stronger), path) < tolerance_m
+    assert _centres_apart_m(deform(sp=SimParams(dt_s=0.025)), path) < tolerance_m
+    assert _centres_apart_m(deform(sp=SimParams(d_t=0.5, k_t=10.0)), path) < tolerance_m
+    taut = deform(DeformParams(tension_n=10.0))
+    assert abs(taut.length_m() - path.length_m()) > tolerance_m
+
+
 def test_fig12_keeps_only_the_final_corner_contact(fig12: Case) -> None:
     assert len(unwanted_contact_nodes(fig12.raw)) > 50  # the operator slid and aligned
     path = fig12.result.path

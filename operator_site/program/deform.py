@@ -101,8 +101,10 @@ INT_RANGES: dict[str, tuple[int, int]] = {
 @dataclass(frozen=True)
 class DeformParams:
     """Knobs of the deformation (SI). Forces are in N and become displacements through the
-    simulator's damping d_t (equation 1) over one step Δt, scaled by ``step_fraction``: at the
-    finest level with the defaults, one newton of tension moves a node 2.5 mm per sweep."""
+    simulator's damping d_t (equation 1) over one step Δt, scaled so that a node pulled by
+    ``tension_n`` moves ``step_fraction`` of the spacing per sweep: at the finest level with the
+    defaults one newton moves a node 2.5 mm, whatever the simulator's d_t and Δt. Only the
+    ratios of tension, repulsion and holding shape the path."""
 
     spacing_m: float = 0.01
     """Target node spacing (centre travel plus turn × characteristic length). A node is removed
@@ -145,9 +147,9 @@ class DeformParams:
     """The path has settled when no point of any node moved further than this in a sweep (m)."""
     patience_sweeps: int = 10
     """… or, at the finest level, stop when the path has not become ``progress_m`` shorter in
-    this many sweeps (nodes jostling round a corner in contact never settle; §VII-B notes the
-    same sticking for captures going round corners). The result then says it stopped on
-    ``no progress``."""
+    this many sweeps since it last had more nodes than ever before (nodes jostling round a
+    corner in contact never settle; §VII-B notes the same sticking for captures going round
+    corners). The result then says it stopped on ``no progress``."""
     progress_m: float = 5e-4
     coarse_spacing_m: float = 0.04
     """Coarse to fine: the path is first deformed with about this spacing, then with half of
@@ -266,7 +268,7 @@ class Deformer:
             for node in nodes:
                 node.gain, node.last = 1.0, None
             stopped = "sweep cap"
-            first_fine = len(lengths)
+            first_fine, most_nodes = len(lengths), len(nodes)
             finest = level == levels[-1]
             cap = p.max_sweeps if finest else sweeps + p.max_sweeps_coarse
             before_m = self._length(nodes)
@@ -275,6 +277,11 @@ class Deformer:
                 moved = self._sweep(nodes)
                 nodes = self._insert(self._remove_close(nodes))
                 lengths.append(self._length(nodes))
+                if len(nodes) > most_nodes:
+                    # Nodes inserted add detail and lengthen the path: progress is measured from
+                    # the most nodes the level has had (not from each insertion of nodes
+                    # jostling round a corner, which would never let the patience run out).
+                    most_nodes, first_fine = len(nodes), len(lengths) - 1
                 if len(nodes) > MAX_NODES:
                     stopped = "node cap"
                     break
@@ -351,8 +358,12 @@ class Deformer:
         """Move every free node once; the largest displacement of any point (m)."""
         p, sp = self.params, self.sim_params
         s_m = p.spacing_m * self._level
-        mobility = sp.d_t * sp.dt_s * p.tension_n  # m a node moves per sweep for unit gain
-        L = p.step_fraction * s_m / mobility
+        # Forces become displacements through the simulator's d_t·Δt (equation 1), scaled so
+        # that one neighbour's tension moves a node step_fraction of the spacing per sweep.
+        # Repulsion and holding get the finest level's scale: they balance the tension as
+        # forces, whatever the simulator's d_t and Δt.
+        L_fine = p.step_fraction * p.spacing_m / (sp.d_t * sp.dt_s * p.tension_n)
+        L = L_fine * self._level
         n = len(nodes)
         if n < 3:
             return 0.0
@@ -386,7 +397,7 @@ class Deformer:
             tangent /= max(float(np.linalg.norm(tangent)), 1e-300)
             # Only the tension scales with the level: repulsion and holding act over millimetres
             # whatever the spacing, and a coarse mobility would make them overshoot.
-            f = F[i] + node.gain * self._repulsion(probe, node.required, tangent)
+            f = F[i] + node.gain * L_fine * self._repulsion(probe, node.required, tangent)
             # A node whose push (holding force aside) would move it less than a tenth of the
             # settling distance stays: it would only press on its contacts, at the price of a
             # contact LCP.
@@ -397,7 +408,7 @@ class Deformer:
             if push_m < REST_FRACTION * p.settle_m and probe.nearest:
                 node.probe = probe
                 continue
-            f = held_towards(f, probe, node.required, node.gain * p.hold_n)
+            f = held_towards(f, probe, node.required, node.gain * L_fine * p.hold_n)
             node.X, node.probe, _ = self.stepper.displace(
                 node.X, probe, f, M[i], node.required, max_step
             )
@@ -509,7 +520,7 @@ class Deformer:
         p = self.params
         X = np.array([node.X for node in nodes])
         gaps = np.linalg.norm(_metric_vectors(X, self.c_O, self.char_m), axis=1)
-        wide = np.flatnonzero(gaps > p.insert_factor * p.spacing_m)
+        wide = np.flatnonzero(gaps > p.insert_factor * p.spacing_m * self._level)
         if len(wide) == 0:
             return nodes
         mids = interpolate(X[wide], X[wide + 1], np.full(len(wide), 0.5), self.c_O)
