@@ -5,6 +5,7 @@ making the same program."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import subprocess
 import sys
@@ -14,7 +15,8 @@ import numpy as np
 import pytest
 
 from models.scene import load_scene
-from models.transforms import so3_log
+from models.transforms import so3_exp, so3_log
+from operator_site.program.commands import CommandParams
 from operator_site.session import OperatorSession, load_program, save_program
 from operator_site.taskfile import load_task, save_task
 from tests.conftest import REPO
@@ -164,9 +166,47 @@ def test_programs_are_saved_loaded_and_sent_again_under_new_ids(tmp_path: Path) 
 
 
 @pytest.mark.integration
+def _merged(program) -> list[tuple[str, list[str]]]:
+    """The program's kinds and contacts in order, a run of equal ones counted once."""
+    steps = [(c.kind, [k.object for k in c.contacts]) for c in program.commands]
+    return [step for i, step in enumerate(steps) if i == 0 or step != steps[i - 1]]
+
+
+def _along(X: np.ndarray, path: list[np.ndarray]) -> tuple[float, float]:
+    """How far (m) and how much turned (rad) the pose X is from the nearest point of the
+    piecewise-linear pose path (positions linear, rotations geodesic between its poses)."""
+    best = (np.inf, np.inf)
+    for A, B in itertools.pairwise(path):
+        ab = B[:3, 3] - A[:3, 3]
+        t = float(np.clip((X[:3, 3] - A[:3, 3]) @ ab / max(ab @ ab, 1e-300), 0.0, 1.0))
+        R = A[:3, :3] @ so3_exp(t * so3_log(A[:3, :3].T @ B[:3, :3]))
+        d = float(np.linalg.norm(X[:3, 3] - A[:3, 3] - t * ab))
+        best = min(best, (d, float(np.linalg.norm(so3_log(R.T @ X[:3, :3])))))
+    return best
+
+
+def assert_same_motion(a, b) -> None:
+    """``a`` and ``b`` move the block alike, to the fit's tolerances: the same kinds and contacts
+    in order (a run of one kind may have a target more or fewer), every target within the
+    fit's tolerances of the other's targets' path, and the same first and last targets. The
+    fit places a target where the path strays further than its tolerance from a chord, so a
+    path micrometres different may cross that line and gain or lose a target."""
+    params = CommandParams()
+    assert _merged(a) == _merged(b)
+    for one, other in ((a, b), (b, a)):
+        path = [c.X_WP for c in other.commands]
+        for c in one.commands:
+            d, turn = _along(c.X_WP, path)
+            assert d <= params.position_tol_m and turn <= params.angle_tol_rad, (d, turn)
+    for i in (0, -1):
+        apart_m = np.linalg.norm(a.commands[i].X_WP[:3, 3] - b.commands[i].X_WP[:3, 3])
+        assert apart_m <= SAME_PROGRAM_M
+
+
 def test_a_task_saved_from_the_session_runs_with_the_same_program(tmp_path: Path) -> None:
     """``operator-site run`` on the scene file's layout (its vision the work site's ground
-    truth, so both sides see one layout) makes the program the session made."""
+    truth, so both sides see one layout, to the micrometres the physics settles the blocks by)
+    makes the program the session made, to the fit's tolerances."""
     op = _corner_session()
     mine = op.make_program("mine").program
     task_path = tmp_path / "corner.json"
@@ -181,5 +221,5 @@ def test_a_task_saved_from_the_session_runs_with_the_same_program(tmp_path: Path
     )  # fmt: skip
     result = json.loads(out.stdout.strip().splitlines()[-1])
     assert program_path.exists(), (result, out.stderr[-3000:])
-    assert_same_program(mine, load_program(program_path))
+    assert_same_motion(mine, load_program(program_path))
     assert result["success"], result
