@@ -25,7 +25,13 @@ from models.robot import load_robot
 from models.scene import Scene, load_scene
 from models.transforms import invert_pose, make_pose, rpy_to_R, so3_log
 from protocol import ContactState, MotionCommand, MotionProgram
-from work_site.control.controller import TCP_ACCEL_MPS2, Guard, Impedance, TaskController
+from work_site.control.controller import (
+    DEFAULT_SURFACE_STIFFNESS_N_PER_M,
+    TCP_ACCEL_MPS2,
+    Guard,
+    Impedance,
+    TaskController,
+)
 from work_site.control.executor import (
     CONTACT_VERIFY_N,
     Execution,
@@ -371,10 +377,96 @@ def slide_sweep() -> list[dict]:
     return rows
 
 
-def run(out_dir: Path) -> dict:
+GRID_STIFFNESSES_N_PER_M = (100.0, 1000.0, 5000.0, 20000.0, 100000.0)
+"""The grid's surface stiffnesses: the accepted range's ends, the default and between."""
+GRID_RATES_HZ = (500.0, 1000.0, 2000.0)
+"""The grid's physics rates: the work site's accepted range's ends and its default."""
+
+
+def impedance_grid() -> list[dict]:
+    """The slide at each surface stiffness × physics rate of the grid: where K·Δt/B > 1 the
+    move is refused before it starts (``refused``); elsewhere how far short along the wall it
+    ends and the normal force's range against the verification band."""
+    rows = []
+    for rate_hz in GRID_RATES_HZ:
+        for k in GRID_STIFFNESSES_N_PER_M:
+            impedance = Impedance(tangential_stiffness_n_per_m=k)
+            gain = impedance.step_gain(1.0 / rate_hz)
+            r = slide(impedance, 1.0 / rate_hz)
+            lo, hi = r["slide_band_n"]
+            f_min, f_max = r["slide_normal_n_min"], r["slide_normal_n_max"]
+            rows.append(
+                {
+                    "physics_rate_hz": rate_hz,
+                    "tangential_stiffness_n_per_m": k,
+                    "step_gain": gain,
+                    "status": r["slide_status"],
+                    "refused": "would overshoot" in r["slide_message"],
+                    "end_along_wall_mm": r["slide_end_along_wall_mm"],
+                    "normal_n_min": f_min,
+                    "normal_n_max": f_max,
+                    "in_band": bool(lo <= f_min and f_max <= hi),
+                }
+            )
+    return rows
+
+
+def _plot_grid(out_dir: Path, rows: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    for rate in GRID_RATES_HZ:
+        sub = [r for r in rows if r["physics_rate_hz"] == rate and not r["refused"]]
+        k = [r["tangential_stiffness_n_per_m"] for r in sub]
+        a.loglog(k, [abs(r["end_along_wall_mm"]) for r in sub], "o-", label=f"{rate:g} Hz")
+        b.fill_between(
+            k,
+            [r["normal_n_min"] for r in sub],
+            [r["normal_n_max"] for r in sub],
+            alpha=0.25,
+            label=f"{rate:g} Hz",
+        )
+        refused = [
+            r["tangential_stiffness_n_per_m"]
+            for r in rows
+            if r["physics_rate_hz"] == rate and r["refused"]
+        ]
+        for x in refused:
+            a.annotate(f"refused at {rate:g} Hz", (x, 0.0), fontsize=7, rotation=90)
+    b.set_xscale("log")
+    b.axhline(CONTACT_VERIFY_N, color="grey", ls="--", label="verification band")
+    b.axhline(CONTACT_FORCE_LIMIT_N, color="grey", ls="--")
+    a.set(
+        xlabel="surface stiffness (N/m)",
+        ylabel="|end along the wall − goal| (mm)",
+        title="Slide: accuracy along the wall",
+    )
+    b.set(
+        xlabel="surface stiffness (N/m)",
+        ylabel="force along the wall's normal (N)",
+        title="Slide: normal force, min to max",
+    )
+    a.axvline(DEFAULT_SURFACE_STIFFNESS_N_PER_M, color="grey", ls=":")
+    b.axvline(DEFAULT_SURFACE_STIFFNESS_N_PER_M, color="grey", ls=":")
+    a.legend(fontsize=8)
+    b.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out_dir / "control_grid.png", dpi=100)
+    plt.close(fig)
+
+
+def run(out_dir: Path, grid_only: bool = False) -> dict:
     """Run every case; write control.json, the CSVs and the plot under ``out_dir``; return the
-    JSON summary."""
+    JSON summary (with ``grid_only``, only the impedance grid's rows and files)."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    grid = impedance_grid()
+    _write_csv(out_dir / "control_grid.csv", grid)
+    _plot_grid(out_dir, grid)
+    if grid_only:
+        return {"impedance_grid": grid}
     rows = [tracking(v) for v in SPEEDS_MPS]
     _write_csv(out_dir / "control.csv", rows)
     guarded = [guarded_touch(v) for v in GUARD_SPEEDS_MPS]
@@ -390,6 +482,7 @@ def run(out_dir: Path) -> dict:
         **corner(),
         **slide(),
         "slide_by_tangential_stiffness": sweep,
+        "impedance_grid": grid,
         "tracking_by_speed": rows,
         "guarded_by_speed": guarded,
     }
@@ -406,9 +499,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="directory for control.json, control.csv, control_guarded.csv, control_slide.csv "
         "and control.png (default: %(default)s)",
     )
+    parser.add_argument(
+        "--grid-only",
+        action="store_true",
+        help="only the slide over surface stiffness × physics rate (control_grid.csv, .png)",
+    )
 
 
 def main(args: argparse.Namespace) -> int:
     """Run the benchmark; print its JSON (one line) last."""
-    print(json.dumps(run(args.out)))
+    print(json.dumps(run(args.out, grid_only=args.grid_only)))
     return 0

@@ -42,6 +42,18 @@ SCALING_NODES = (100, 300, 1000, 3000)
 SWEEP_CAPS = (5, 10, 20, 40, 80, 160)
 SPACINGS_M = (0.0025, 0.005, 0.01, 0.02, 0.04)
 COMMAND_TOLS_M = (0.0005, 0.001, 0.002, 0.004, 0.008, 0.016)
+FORCE_SWEEPS: dict[str, tuple[float, ...]] = {
+    "tension_n": (0.1, 0.3, 1.0, 3.0, 10.0),
+    "repulsion_n": (0.3, 1.0, 3.0, 10.0, 30.0),
+    "hold_n": (0.05, 0.15, 0.5, 1.5, 5.0),
+    "step_fraction": (0.05, 0.1, 0.25, 0.4, 0.5),
+}
+"""The deformation's forces and its step, each over two decades (one for the step, whose range
+ends at a half) around its default, the rest at theirs. Only the forces' ratios shape a path:
+tension and repulsion mirror each other."""
+FORCE_SWEEP_CASE = {"hold_n": "fig13_bottom"}
+"""The case each force is swept on where not Fig. 12: the holding force acts only on nodes that
+must keep a contact, and Fig. 12's one such node is its fixed end."""
 REPEATS = 3
 """Timed runs per case; the median is reported (this VM's timings wander between runs)."""
 
@@ -108,6 +120,7 @@ def run_case(
         "cpu_ms": float(np.median(cpu)) * 1e3,
         "sweeps": result.sweeps,
         "settled": result.settled,
+        "stopped": result.stopped,
         "probes": result.probes,
         "length_raw_m": raw.length_m(),
         "length_m": path.length_m(),
@@ -144,8 +157,9 @@ def scaling(repeats: int) -> list[dict]:
 
 
 def trade() -> list[dict]:
-    """Fig. 12: sweep cap, node spacing and command tolerance against path length, clearance,
-    commands and time."""
+    """Fig. 12 (Fig. 13's bottom path for the holding force): sweep cap, node spacing, the
+    forces and the step, and command tolerance against path length, clearance, commands and
+    time."""
     sim, raw = _raw("fig12")
     rows = []
     for cap in SWEEP_CAPS:
@@ -154,6 +168,12 @@ def trade() -> list[dict]:
     for spacing in SPACINGS_M:
         row = run_case("fig12", raw, sim, DeformParams(spacing_m=spacing))
         rows.append({"knob": "spacing_m", "value": spacing, **row})
+    for knob, values in FORCE_SWEEPS.items():
+        case = FORCE_SWEEP_CASE.get(knob, "fig12")
+        case_sim, case_raw = (sim, raw) if case == "fig12" else _raw(case)
+        for value in values:
+            row = run_case(case, case_raw, case_sim, DeformParams(**{knob: value}))
+            rows.append({"knob": knob, "value": value, **row})
     for tol in COMMAND_TOLS_M:
         params = CommandParams(position_tol_m=tol, angle_tol_rad=10 * tol)
         row = run_case("fig12", raw, sim, command_params=params)
@@ -208,20 +228,23 @@ def _plot(
         "max_sweeps": default_sweeps,
         "position_tol_m": CommandParams().position_tol_m,
         "spacing_m": DeformParams().spacing_m,
-    }
-    fig, axes = plt.subplots(len(metrics), len(defaults), figsize=(12, 10))
-    for col, (knob, default) in enumerate(defaults.items()):
+    } | {knob: getattr(DeformParams(), knob) for knob in FORCE_SWEEPS}
+    # One row per knob, one column per figure of merit.
+    fig, axes = plt.subplots(
+        len(defaults), len(metrics), figsize=(3.6 * len(metrics), 2.6 * len(defaults))
+    )
+    for row, (knob, default) in enumerate(defaults.items()):
         sub = [r for r in trade_rows if r["knob"] == knob]
-        for row, (key, label) in enumerate(metrics):
+        for col, (key, label) in enumerate(metrics):
             ax = axes[row, col]
             ax.semilogx([r["value"] for r in sub], [r[key] for r in sub], "o-")
             ax.axvline(default, color="grey", lw=0.8, ls=":")
-            ax.set_xlabel(knob + " (dotted: the default run)")
+            ax.set_xlabel(f"{knob} ({sub[0]['case']}; dotted: the default)")
             ax.set_ylabel(label)
             ax.grid(True, which="both", alpha=0.3)
-    fig.suptitle("Fig. 12 task: sweeps, command tolerance and node spacing")
-    fig.tight_layout()
-    fig.savefig(out_dir / "deform_trade.png", dpi=110)
+    fig.suptitle("Each knob varied alone, on the case its x label names (dotted: its default)")
+    fig.tight_layout(rect=(0, 0, 1, 0.98))
+    fig.savefig(out_dir / "deform_trade.png", dpi=80)
     plt.close(fig)
 
 
