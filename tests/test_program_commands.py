@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
 
@@ -12,7 +13,7 @@ import pytest
 from bench import deform as benchmark
 from bench import scenarios
 from models.robot import load_robot
-from models.transforms import make_pose
+from models.transforms import make_pose, rpy_to_R
 from operator_site.grasp import top_grasp
 from operator_site.program import (
     CommandParams,
@@ -31,6 +32,7 @@ from operator_site.program.contact_step import away_normal
 from operator_site.program.poses import interpolate
 from protocol import ContactState, MotionCommand, MotionProgram, decode, encode
 from protocol.execution import SAFE_TCP_HEIGHT_M
+from protocol.messages import SAME_CONTACT_DIRECTION_RAD, contact_directions
 from work_site.control.controller import HARD_FORCE_LIMIT_N
 
 
@@ -392,6 +394,63 @@ def test_around_corner_demonstrations_become_programs_that_pass_the_check(seed: 
         assert pair.distance_m >= need_m, (k, pair.distance_m)
     # … and it is a turn: the frame's normal at the rejoin is not one it had before leaving.
     assert float((normals[0] @ normals[1].T).max()) < np.cos(np.radians(20.0))
+
+
+# A deformed path (centre x, y in m, yaw in degrees) that pivots the cube on the frame's outer
+# corner (at x = 0.33, y = −0.12) and then lands on the −x bar's face with its corner and its
+# face both on the corner for one node: the path leaves the corner's contact at the next.
+PIVOT_ROUND_CORNER = (
+    (0.33366, -0.14558, 174.394),
+    (0.32343, -0.14423, 163.291),
+    (0.31769, -0.14200, 156.150),
+    (0.31379, -0.13977, 151.587),
+    (0.30992, -0.13714, 148.563),
+    (0.30344, -0.13308, 148.259),
+    (0.30073, -0.13226, 150.576),
+    (0.30174, -0.12207, 172.214),
+    (0.30308, -0.11792, 175.679),
+    (0.30490, -0.10829, 180.0),
+    (0.30490, -0.10193, 180.0),
+    (0.30490, -0.09451, 180.0),
+    (0.30490, -0.08634, 180.0),
+    (0.30490, -0.07817, 180.0),
+    (0.30490, -0.07000, 180.0),
+)
+
+
+def test_the_move_back_onto_a_face_after_a_corner_keeps_no_contact_it_then_leaves() -> None:
+    """The target that brings the block back onto the new face after an outside corner asks
+    the robot to verify its contacts; one the path leaves at once (the corner's edge on the
+    block's face, while its corner already rests on the new face) holds a real block, a
+    millimetre off the model, with a fraction of a newton: the rejoin waits for a steady
+    contact state."""
+    from operator_site.program.commands import _node_at
+
+    scene = scenarios.figure_scene()
+    sweeper = Sweeper(scene, "cube")
+    both = frozenset({"frame", "table"})
+    nodes = [
+        _node_at(
+            sweeper,
+            make_pose(rpy_to_R(np.radians([0.0, 0.0, yaw])), np.array([x, y, 0.0251])),
+            both,
+        )
+        for x, y, yaw in PIVOT_ROUND_CORNER
+    ]
+    nodes[0] = dataclasses.replace(nodes[0], fixed=True)
+    nodes[-1] = dataclasses.replace(nodes[-1], fixed=True)
+    path = WorkpiecePath("cube", tuple(nodes), scene.object("cube").model.com_O)
+    program = build_program("pivot", path, np.eye(4), sweeper=sweeper)
+    assert check_program(scene, "cube", program).ok
+    moves = [c for c in program.commands if c.kind == "contact_move"]
+    frame = [[n for o, n in contact_directions(c.contacts) if o == "frame"] for c in moves]
+    rejoin = next(k for k in range(1, len(moves)) if frame[k] and not frame[k - 1])
+    assert rejoin < len(moves) - 1
+    cos_same = np.cos(SAME_CONTACT_DIRECTION_RAD)
+    for n in frame[rejoin]:
+        assert max(float(n @ m) for m in frame[rejoin + 1]) >= cos_same, n
+    # Two frame directions at once (face and corner) would be such a contact.
+    assert len(frame[rejoin]) == 1
 
 
 def test_a_move_with_many_contacts_asks_no_more_than_the_work_site_allows() -> None:

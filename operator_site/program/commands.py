@@ -292,21 +292,25 @@ def plan_targets(
     return out
 
 
+def _left_directions(a: PathNode, b: PathNode) -> list[tuple[str, np.ndarray]]:
+    """The contact directions of ``a`` that ``b`` has nothing of the same object near: the
+    contacts the move from ``a`` to ``b`` leaves."""
+    cos_same = float(np.cos(SAME_CONTACT_DIRECTION_RAD))
+    at_b = contact_directions(contact_states(b))
+    return [
+        (name, n)
+        for name, n in contact_directions(contact_states(a))
+        if all(o != name or float(n @ m) < cos_same for o, m in at_b)
+    ]
+
+
 def _turned_directions(a: PathNode, b: PathNode) -> np.ndarray:
     """The contact directions (k, 3) at ``b`` that ``a`` does not have while ``a`` has one of the
     same object that ``b`` lost: the workpiece went round an outside corner of that object
     between them (a face sliding over an edge became a vertex on the next face). Empty if
     none."""
-    cos_same = float(np.cos(SAME_CONTACT_DIRECTION_RAD))
-    at_a, at_b = contact_directions(contact_states(a)), contact_directions(contact_states(b))
-    turned = []
-    for name in sorted({o for o, _ in at_a} & {o for o, _ in at_b}):  # reproducible order
-        ns_a = [n for o, n in at_a if o == name]
-        ns_b = [n for o, n in at_b if o == name]
-        new = [n for n in ns_b if all(float(n @ m) < cos_same for m in ns_a)]
-        lost = [m for m in ns_a if all(float(n @ m) < cos_same for n in ns_b)]
-        if new and lost:
-            turned += new
+    lost = {name for name, _ in _left_directions(a, b)}
+    turned = [n for name, n in _left_directions(b, a) if name in lost]
     return np.array(turned).reshape(-1, 3)
 
 
@@ -316,14 +320,18 @@ def clear_outside_corners(
     """``targets`` with each turn round an outside corner made as leave, turn, come back: the
     workpiece first backs straight off the corner by :data:`CORNER_CLEARANCE_M` along the new
     face's normals, the targets from the turn until the centre has gone
-    :data:`CORNER_REJOIN_M` further are moved as far off the new face, and the next target
+    :data:`CORNER_REJOIN_M` further and its contact state is steady (the next target keeps
+    every contact direction it has) are moved as far off the new face, and the next target
     comes back onto it with its contact. Kept as they are where a moved move fails the sweep.
 
     Why: the simulated workpiece passes the corner by a fraction of a millimetre before the
     new face's contact begins, and the robot biases its target into that face from then on
     (§VI-B). The real block in the grip is a millimetre or two off the simulated one, so its
     edge is often still on the corner: the new bias then pushes it back round the corner and
-    it jams there. Off the face, the block passes the corner clear of both faces."""
+    it jams there. Off the face, the block passes the corner clear of both faces. A path
+    that pivots the block on the corner can reach the new face while the corner's edge still
+    lies on the block's face: a target there asks the robot to press and verify a contact the
+    path leaves at once, which a block a millimetre off finds with a fraction of a newton."""
     chain = [start, *targets]
     out: list[PathNode] = []
     i = 1
@@ -339,7 +347,8 @@ def clear_outside_corners(
         j = i
         while j < len(chain) - 1:
             X = chain[j].X_WO
-            if np.linalg.norm(X[:3, :3] @ sweeper.c_O + X[:3, 3] - c_turn) >= CORNER_REJOIN_M:
+            past_m = float(np.linalg.norm(X[:3, :3] @ sweeper.c_O + X[:3, 3] - c_turn))
+            if past_m >= CORNER_REJOIN_M and not _left_directions(chain[j], chain[j + 1]):
                 break
             j += 1
         moved = []
