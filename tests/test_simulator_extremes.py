@@ -7,6 +7,7 @@ drawn log-uniformly over the range :class:`SimParams` accepts (``params.RANGES``
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
@@ -32,6 +33,9 @@ ROUNDING_M = 1e-15
 """Coordinates within a metre of the origin round to about a tenth of this."""
 STILL_FLOOR_M = 1e-12
 """A pose that changes by less than this (ten thousand times coordinates' rounding) is still."""
+TIPPING_STEPS = 20
+"""A block tipping over a bar must, over its last this many steps, tip one way only."""
+TILT_ROUNDING_RAD = 1e-12
 CONTACT_CHAR_LENGTH_M = (0.01, 1.0)
 """The contact cases' characteristic lengths: within a decade of the blocks' sizes. Shorter,
 turning is over a hundred times as mobile as moving, and a tall block pushed at its centre
@@ -282,6 +286,32 @@ def _push_into_corner(scene, block, params, gaps, yaw, beyond, press, steps):
     return results
 
 
+def _tilt_rad(results: list[StepResult], X_rest: np.ndarray) -> np.ndarray:
+    """How far each result's pose has tipped (rad): the angle between the world's vertical and
+    the block's axis that is vertical when it rests as in ``X_rest``."""
+    up_O = X_rest[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    return np.array([math.acos(min(1.0, float((r.X_WO[:3, :3] @ up_O)[2]))) for r in results])
+
+
+def _assert_rests_against_both_walls(
+    scene: Scene, block: str, results: list[StepResult], params: SimParams
+) -> None:
+    """The last steps still (no point of the block moved further than the line search's
+    resolution), touching frame and table, at least ε_b/2 and less than ε_c from each."""
+    model = scene.object(block).model
+    corners_O = np.array(list(itertools.product(*model.bbox_O.T)))
+    reach_m = float(np.max(np.linalg.norm(corners_O - model.com_O, axis=1)))
+    still_m = max(params.golden_rel_tol * params.eps_barrier_m, STILL_FLOOR_M)
+    X_end = results[-1].X_WO
+    for r in results[-5:-1]:
+        turned_rad = float(np.linalg.norm(so3_log(r.X_WO[:3, :3] @ X_end[:3, :3].T)))
+        moved_m = float(np.linalg.norm(r.X_WO[:3, 3] - X_end[:3, 3])) + reach_m * turned_rad
+        assert moved_m < still_m, (moved_m, still_m)
+    gaps_m = {c.object: c.distance_m for c in results[-1].contacts}
+    assert gaps_m.keys() == {"table", "frame"}
+    assert all(params.eps_barrier_m / 2 <= d < params.eps_contact_m for d in gaps_m.values())
+
+
 @PROPERTY
 @given(
     block=st.sampled_from(BLOCKS),
@@ -295,11 +325,38 @@ def test_a_block_pushed_into_the_inside_corner_never_breaks_the_invariants(
     scenes, block, params, gaps, yaw, beyond, press
 ) -> None:
     """Pushed past the inside corner with any knobs: a finite pose, a rotation, nowhere under
-    the floor, each step within its cost bound. (That it also comes to rest against both walls
-    is checked below at fixed knobs: drawn over every range, fcl's GJK sometimes overestimates a
-    distance to a bar's edge by tenfold at micrometre gaps, and a tall block can then stop short
-    of a wall, or rock by about ε_b.)"""
+    the floor, each step within its cost bound. That it comes to rest against both walls is
+    asserted below at fixed knobs, not here: drawn over every range, a tall block may tip over
+    the bar (right for equation 1, which has no inertia), and at the far corner of four ranges
+    it rocks (:func:`test_a_tall_block_leaning_on_the_bar_rocks_at_the_extremes`)."""
     _push_into_corner(scenes[block], block, params, gaps, yaw, beyond, press, 120)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="open; suspected: the barrier and contact forces are explicit, and a 1 s step at a 1 cm "
+    "characteristic length turns the leaning block past its equilibrium and back",
+)
+def test_a_tall_block_leaning_on_the_bar_rocks_at_the_extremes(scenes) -> None:
+    """Δt = 1 s, ε_b = 1 mm, golden tolerance 0.1, characteristic length 1 cm (each at the end
+    of its range): the tall block pushed past the corner tips onto the bar and then rocks by
+    several degrees every step instead of coming to rest leaning on it."""
+    params = SimParams(
+        dt_s=1.0,
+        d_t=1.0,
+        k_t=1.0,
+        max_speed_mps=1.0,
+        char_length_m=0.01,
+        eps_barrier_m=1e-3,
+        eps_contact_m=1e-2,
+        eps_capture_m=0.0316,
+        golden_rel_tol=0.1,
+        tunnel_fraction=1.0,
+    )
+    block = "tall_block"
+    results = _push_into_corner(scenes[block], block, params, (0.0, 0.0), 0.0, 0.0195, 0.0039, 200)
+    tilt = _tilt_rad(results, _resting(scenes[block], block, 0.0, np.zeros(2), 0.0)[0])
+    assert np.all(np.diff(tilt[-TIPPING_STEPS:]) >= -TILT_ROUNDING_RAD), "rocks as it leans"
 
 
 @pytest.mark.parametrize("block", BLOCKS)
@@ -313,12 +370,7 @@ def test_a_block_pushed_into_the_inside_corner_comes_to_rest_against_both_walls(
     base = SimParams()
     params = dataclasses.replace(base, d_t=x / (base.dt_s * base.k_t))
     results = _push_into_corner(scenes[block], block, params, (2e-3, 1e-3), 0.05, 0.01, 3e-3, 200)
-    last = np.array([r.X_WO for r in results[-5:]])
-    still_m = max(params.golden_rel_tol * params.eps_barrier_m, STILL_FLOOR_M)
-    assert np.max(np.abs(last - last[-1])) < still_m
-    gaps_m = {c.object: c.distance_m for c in results[-1].contacts}
-    assert gaps_m.keys() == {"table", "frame"}
-    assert all(params.eps_barrier_m / 2 <= d < params.eps_contact_m for d in gaps_m.values())
+    _assert_rests_against_both_walls(scenes[block], block, results, params)
 
 
 @PROPERTY

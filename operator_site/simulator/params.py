@@ -20,15 +20,19 @@ the dragger; above, a step lands on the target whatever x is, so larger values b
 
 RANGES: dict[str, tuple[float, float, str]] = {
     "dt_s": (1e-4, 1.0, "from a 10 kHz step to one a second"),
-    "eps_contact_m": (1e-8, 1e-2, "contact within 10 nm to 1 cm"),
+    "eps_contact_m": (1e-6, 1e-2, "contact within a micrometre (above ε_b) to 1 cm"),
     "eps_barrier_m": (
-        1e-9,
+        1e-6,
         1e-3,
-        "at 1e-10 m a rotated L-block ended under the floor (half of ε_b), fcl's distance "
-        "near contact not repeating that finely; a barrier wider than a millimetre keeps "
-        "blocks visibly apart",
+        "below a micrometre fcl's distance between nearly parallel faces can be wrong by as "
+        "much as the gap itself, and a block pushed into a corner then stops short of a wall "
+        "or rocks; a barrier wider than a millimetre keeps blocks visibly apart",
     ),
-    "eps_capture_m": (1e-7, 5e-2, "a capture looser than 5 cm no longer holds a contact"),
+    "eps_capture_m": (
+        1e-6,
+        5e-2,
+        "above ε_c; a capture looser than 5 cm no longer holds a contact",
+    ),
     "golden_rel_tol": (
         MIN_GOLDEN_REL_TOL,
         0.5,
