@@ -164,8 +164,10 @@ def test_link_cut_is_detected_within_the_lease_and_heals(emulated) -> None:
             except queue.Empty:
                 raise AssertionError(f"no liveliness event within {timeout_s} s") from None
 
-        assert next_event(10.0)["alive"] is False  # the initial state
-        assert next_event(60.0)["alive"] is True  # the work site came up
+        # The first event is the state the watcher found on joining: on a loaded machine the
+        # work site may already be up by then.
+        if next_event(10.0)["alive"] is False:
+            assert next_event(60.0)["alive"] is True  # the work site came up
         time.sleep(1.0)
         t_cut = time.time()
         link.cut()  # packets vanish: no FIN, no RST
