@@ -34,7 +34,7 @@ ROUNDING_M = 1e-15
 STILL_FLOOR_M = 1e-12
 """A pose that changes by less than this (ten thousand times coordinates' rounding) is still."""
 TIPPING_STEPS = 20
-"""A block tipping over a bar must, over its last this many steps, tip one way only."""
+"""A block leaning on a bar that turns back within its last this many steps rocks."""
 TILT_ROUNDING_RAD = 1e-12
 CONTACT_CHAR_LENGTH_M = (0.01, 1.0)
 """The contact cases' characteristic lengths: within a decade of the blocks' sizes. Shorter,
@@ -327,7 +327,7 @@ def test_a_block_pushed_into_the_inside_corner_never_breaks_the_invariants(
     """Pushed past the inside corner with any knobs: a finite pose, a rotation, nowhere under
     the floor, each step within its cost bound. That it comes to rest against both walls is
     asserted below at fixed knobs, not here: drawn over every range, a tall block may tip over
-    the bar (right for equation 1, which has no inertia), and at the far corner of four ranges
+    the bar (right for equation 1, which has no inertia), and at the far corner of four knobs
     it rocks (:func:`test_a_tall_block_leaning_on_the_bar_rocks_at_the_extremes`)."""
     _push_into_corner(scenes[block], block, params, gaps, yaw, beyond, press, 120)
 
@@ -338,9 +338,10 @@ def test_a_block_pushed_into_the_inside_corner_never_breaks_the_invariants(
     "characteristic length turns the leaning block past its equilibrium and back",
 )
 def test_a_tall_block_leaning_on_the_bar_rocks_at_the_extremes(scenes) -> None:
-    """Δt = 1 s, ε_b = 1 mm, golden tolerance 0.1, characteristic length 1 cm (each at the end
-    of its range): the tall block pushed past the corner tips onto the bar and then rocks by
-    several degrees every step instead of coming to rest leaning on it."""
+    """Δt = 1 s and ε_b = 1 mm (the tops of their ranges), a coarse golden tolerance (0.1) and
+    a 1 cm characteristic length (the contact cases' shortest): the tall block pushed past the
+    corner tips onto the bar and then rocks by several degrees every step instead of coming to
+    rest leaning on it."""
     params = SimParams(
         dt_s=1.0,
         d_t=1.0,
