@@ -145,7 +145,8 @@ def run(
     chosen = {name: seeds_with_room(task, scene, first_seed, seeds) for name, task in tasks.items()}
     passed_path = out_dir / PASSED_OVER_FILE
     passed = json.loads(passed_path.read_text()) if keep and passed_path.exists() else {}
-    passed |= {name: passed_over for name, (_, passed_over) in chosen.items()}
+    for name, (_, passed_over) in chosen.items():  # JSON's keys are strings
+        passed[name] = passed.get(name, {}) | {str(seed): why for seed, why in passed_over.items()}
     passed_path.write_text(json.dumps(passed, indent=1))
     rows_path = out_dir / "tasks.jsonl"
     todo = {(name, seed) for name, (task_seeds, _) in chosen.items() for seed in task_seeds}

@@ -100,6 +100,12 @@ def test_a_task_runs_on_the_first_layouts_that_leave_it_room(tmp_path: Path, mon
     assert ran == [0, 2, 4]
     assert summary["runs"] == 3
     assert summary["passed_over_seeds"] == {"1": "in the way", "3": "in the way"}
+    # Extended with --keep, the layouts passed over before are still listed.
+    blocked.add(6)
+    (summary,) = tasks.run(tmp_path, 2, [tasks.TASKS_DIR / "cube-corner.json"], 5, keep=True)
+    assert ran[3:] == [5, 7]
+    assert summary["runs"] == 5
+    assert summary["passed_over_seeds"] == {"1": "in the way", "3": "in the way", "6": "in the way"}
 
 
 def test_too_few_layouts_with_room_is_a_clear_error(monkeypatch) -> None:
