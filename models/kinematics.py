@@ -34,8 +34,9 @@ SINGULAR_ELBOW = 1e-9
 JOINT_LIMIT_TOL_RAD = 1e-9
 """A solution this close outside a joint limit is put on the limit (rounding), not refused."""
 ELBOW_LIMIT_TOL_RAD = 3e-7
-"""The same for q2 and q3 at the elbow singularity: there q3 = acos(cos q3) with cos q3 ≈ ±1,
-where a rounding error δ of the cosine (~1e-15) becomes √(2δ) ≈ 5e-8 rad of q3, and q2 follows."""
+"""The same for q2 to q6 at the elbow singularity: there q3 = acos(cos q3) with cos q3 ≈ ±1,
+where a rounding error δ of the cosine (~1e-15) becomes √(2δ) ≈ 5e-8 rad of q3, q2 follows,
+and the wrist, solved from the rotation the arm leaves it, takes up the error of q2 + q3."""
 REACH_TOL_M = 1e-9
 """A wrist centre this much beyond reach is still taken as reachable (rounding)."""
 PATH_SAMPLE_M = 0.005
@@ -213,7 +214,7 @@ def ik_nearest(
         )
     limit_tol = np.full(6, JOINT_LIMIT_TOL_RAD)
     if "elbow" in singular.split("+"):
-        limit_tol[1:3] = ELBOW_LIMIT_TOL_RAD
+        limit_tol[1:] = ELBOW_LIMIT_TOL_RAD
     lo, hi = robot.q_lower - limit_tol, robot.q_upper + limit_tol
     w = np.ones(6) if weights is None else np.asarray(weights, dtype=np.float64)
     best, best_cost, violations = None, math.inf, []
