@@ -11,6 +11,7 @@ Render one to a directory: ``python -m bench.vision_dataset --n N --seed S --out
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from dataclasses import dataclass
@@ -18,11 +19,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pybullet as p
 
 from models.scene import CameraModel, Scene, load_scene
 from models.transforms import invert_pose, make_pose
-from work_site.camera import render_grey
-from work_site.vision.model import convex_overlap_depth, project, transform
+from work_site.camera import distort_px, render_grey
+from work_site.sensor import CameraConditions, Lighting
+from work_site.vision.model import convex_overlap_depth, transform
 from work_site.vision.table import rest_rotations
 
 WORK_AREA_XY_M = ((0.22, 0.68), (-0.25, 0.32))
@@ -33,13 +36,31 @@ CONTACT_GAP_M = 5e-4
 """Gap left between blocks placed 'touching' (the renderer cannot see the difference)."""
 
 
+SUPPORTS = ("table", "leaning", "stacked")
+"""How a block rests: flat on the table; an edge or corner on the table, leaning on something;
+or not touching the table at all (on other blocks or the frame)."""
+ON_TABLE_TOL_M = 2e-3
+"""A vertex this close to the table top touches it (the physics lets contacts sink a little)."""
+DROP_CLEARANCE_M = 0.01
+"""A dropped block starts this far above the top of the block it is dropped on."""
+DROP_SCATTER_M = 0.02
+"""Standard deviation of a dropped block's start across the block it is dropped on."""
+SETTLE_MAX_S = 4.0
+"""Simulated time a drop may take to come to rest, at most."""
+REST_SPEED_M_PER_S = 2e-3
+REST_TURN_RAD_PER_S = 0.02
+"""A block moving slower than these has come to rest."""
+
+
 @dataclass(frozen=True)
 class GroundTruth:
-    """One movable object in a rendered scene."""
+    """One movable object in a rendered scene: its model, pose, the fraction of its projected
+    area that is visible and how it rests (one of :data:`SUPPORTS`; "" if not known)."""
 
     model: str
     X_WO: np.ndarray
     visible_fraction: float
+    support: str = ""
 
 
 class SceneRenderer:
@@ -58,6 +79,10 @@ class SceneRenderer:
             )
             for o in self.movable
         }
+        table = self.scene.object("table")
+        corners = transform(table.X_WO, table.model.bbox_O)
+        self.table_z = float(corners[:, 2].max())
+        self._table_xy = tuple(zip(corners[:, :2].min(0), corners[:, :2].max(0), strict=True))
         self._fixed_parts_W = [
             transform(o.X_WO, pt.vertices_O)
             for o in self.scene.objects
@@ -134,13 +159,95 @@ class SceneRenderer:
                 placed[obj.name] = make_pose(None, [5.0 + len(placed), 5.0, -1.0])
         return placed
 
-    def render(self, poses: dict[str, np.ndarray]) -> tuple[np.ndarray, list[GroundTruth]]:
-        """Set the poses, render the grey image (h, w) uint8 and measure visibility."""
+    def dropped_layout(
+        self, rng: np.random.Generator, drop_probability: float
+    ) -> dict[str, np.ndarray]:
+        """:meth:`random_layout`, then each block with ``drop_probability`` lifted, turned at
+        random (any orientation) and dropped onto another block, the physics letting it come to
+        rest: on the block, leaning against it or the frame, or fallen to the table (the first,
+        with nothing standing, is dropped onto the table). A block that falls off the table is
+        parked out of view."""
+        from scipy.spatial.transform import Rotation
+
+        placed = self.random_layout(rng)
+        on_table = [n for n, X in placed.items() if X[2, 3] > -0.5]
+        dropped = [n for n in on_table if rng.random() < drop_probability]
+        for name in dropped:  # off the table until its turn
+            self.world.set_object_pose(name, make_pose(None, [5.0, 5.0 + len(name), -1.0]))
+        for name, X in placed.items():
+            if name not in dropped:
+                self.world.set_object_pose(name, X)
+        standing = [n for n in on_table if n not in dropped]
+        V_O = {o.name: np.vstack([pt.vertices_O for pt in o.model.parts]) for o in self.movable}
+        for name in dropped:
+            if standing:
+                target = standing[rng.integers(len(standing))]
+                X_t = self.world.object_pose(target)
+                top_z = float(transform(X_t, V_O[target])[:, 2].max())
+                centre_xy = X_t[:2, 3]
+            else:  # nothing to drop it on yet: onto the table where it was
+                top_z, centre_xy = self.table_z, placed[name][:2, 3]
+            R = Rotation.random(random_state=rng).as_matrix()
+            xy = centre_xy + rng.normal(0.0, DROP_SCATTER_M, 2)
+            lift = -float((V_O[name] @ R.T)[:, 2].min())
+            X = make_pose(R, [xy[0], xy[1], top_z + DROP_CLEARANCE_M + lift])
+            self.world.set_object_pose(name, X)
+            standing.append(name)
+            self._settle(standing)
+        out = {}
+        for name in placed:
+            X = self.world.object_pose(name)
+            low = float(transform(X, V_O[name])[:, 2].min())
+            (x0, x1), (y0, y1) = self._table_xy
+            inside = x0 <= X[0, 3] <= x1 and y0 <= X[1, 3] <= y1
+            out[name] = (
+                X
+                if name not in standing or (low > self.table_z - ON_TABLE_TOL_M and inside)
+                else make_pose(None, [5.0 + len(out), 5.0, -1.0])
+            )
+        return out
+
+    def _settle(self, names: list[str]) -> None:
+        """Step the physics until the blocks ``names`` have come to rest (bounded time)."""
+        chunk = 50
+        for _ in range(int(SETTLE_MAX_S / (chunk * self.world.time_step_s))):
+            self.world.step(chunk)
+            moving = False
+            for name in names:
+                v, w = p.getBaseVelocity(self.world.bodies[name], physicsClientId=self.world.cid)
+                if np.linalg.norm(v) > REST_SPEED_M_PER_S or np.linalg.norm(w) > (
+                    REST_TURN_RAD_PER_S
+                ):
+                    moving = True
+                    break
+            if not moving:
+                return
+
+    def support(self, name: str, X_WO: np.ndarray) -> str:
+        """How block ``name`` at ``X_WO`` rests (one of :data:`SUPPORTS`)."""
+        model = self.scene.object(name).model
+        z = transform(X_WO, np.vstack([pt.vertices_O for pt in model.parts]))[:, 2]
+        low = np.abs(z - self.table_z) < ON_TABLE_TOL_M
+        if not low.any():
+            return "stacked"
+        V = transform(X_WO, np.vstack([pt.vertices_O for pt in model.parts]))[low]
+        # Flat on the table: the touching vertices span an area, not a line or a point.
+        spread = np.linalg.svd(V[:, :2] - V[:, :2].mean(0), compute_uv=False) if len(V) > 2 else 0
+        return "table" if len(V) > 2 and spread[1] > 1e-3 else "leaning"
+
+    def render(
+        self,
+        poses: dict[str, np.ndarray],
+        camera: CameraModel | None = None,
+        lighting: Lighting | None = None,
+    ) -> tuple[np.ndarray, list[GroundTruth]]:
+        """Set the poses, render the ideal grey image (h, w) uint8 through ``camera`` (default:
+        the scene's) and measure visibility and support."""
         for name, X_WO in poses.items():
             self.world.set_object_pose(name, X_WO)
-        cam = self.scene.camera
+        cam = camera or self.scene.camera
         s = self.supersample
-        grey, seg = render_grey(self.world.cid, cam, s, segmentation=True)
+        grey, seg = render_grey(self.world.cid, cam, s, segmentation=True, lighting=lighting)
         truth = []
         for obj in self.movable:
             X_WO = poses[obj.name]
@@ -148,7 +255,8 @@ class SceneRenderer:
             visible = int(np.count_nonzero(seg == body))
             full = _projected_area_px(cam, X_WO, obj.model.parts, s)
             frac = float(min(1.0, visible / full)) if full > 0 else 0.0
-            truth.append(GroundTruth(obj.name, X_WO, frac))
+            support = self.support(obj.name, X_WO) if X_WO[2, 3] > -0.5 else ""
+            truth.append(GroundTruth(obj.name, X_WO, frac, support))
         return grey, truth
 
 
@@ -156,17 +264,17 @@ def _projected_area_px(camera: CameraModel, X_WO: np.ndarray, parts, supersample
     """Area (in supersampled pixels) of the object's silhouette, inside or outside the image."""
     X_CO = invert_pose(camera.X_WC) @ X_WO
     s = supersample
-    K = camera.K.copy()
-    K[:2] *= s
-    K[:2, 2] += (s - 1) / 2  # pixel centres of the supersampled grid
-    w, h = camera.width * s, camera.height * s
+    big = camera.scaled(s)
+    K = big.K
+    dist = np.asarray(camera.dist, dtype=np.float64)
+    w, h = big.width, big.height
     pad_x, pad_y = w, h
     canvas = np.zeros((3 * h, 3 * w), dtype=np.uint8)
     for part in parts:
         p_C = transform(X_CO, part.vertices_O)
         if np.any(p_C[:, 2] <= 1e-3):
             return 0.0
-        uv = project(p_C, K) + np.array([pad_x, pad_y])
+        uv = distort_px(p_C[:, :2] / p_C[:, 2:], K, dist) + np.array([pad_x, pad_y])
         if np.any(np.abs(uv) > 1e6):
             return 0.0
         hull = cv2.convexHull(np.round(uv * 16).astype(np.int32))
@@ -193,36 +301,70 @@ def degrade(
 
 
 def write_dataset(
-    out: Path, n: int, seed: int, supersample: int = 2, noise_sigma: float = 1.0
+    out: Path,
+    n: int,
+    seed: int,
+    supersample: int = 2,
+    noise_sigma: float = 1.0,
+    conditions: CameraConditions | None = None,
+    drop_probability: float = 0.0,
 ) -> list[Path]:
     """Render ``n`` scenes into ``out``: ``scene_NNNN.png`` + ``scene_NNNN.json`` (ground truth)
-    and one ``camera.json``. Returns the scene JSON paths."""
+    and the camera JSON. Returns the scene JSON paths.
+
+    Without ``conditions`` every scene is seen by the scene's camera with Gaussian noise
+    ``noise_sigma``; with them, each scene draws its own sensor, light, camera place and lens
+    (``camera_NNNN.json``, the camera as calibrated: where it really is). With
+    ``drop_probability`` > 0 blocks are also dropped onto others (:meth:`dropped_layout`)."""
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     renderer = SceneRenderer(supersample=supersample)
+    nominal = renderer.scene.camera
     try:
-        (out / "camera.json").write_text(json.dumps(renderer.scene.camera.to_json(), indent=1))
+        if conditions is None:
+            (out / "camera.json").write_text(json.dumps(nominal.to_json(), indent=1))
         paths = []
         for i in range(n):
-            poses = renderer.random_layout(rng)
-            grey, truth = renderer.render(poses)
-            grey = degrade(grey, rng, noise_sigma=noise_sigma)
+            if n >= 20 and i % (n // 10) == 0:
+                print(f"rendering scene {i + 1} of {n}", file=sys.stderr, flush=True)
             stem = f"scene_{i:04d}"
+            poses = (
+                renderer.dropped_layout(rng, drop_probability)
+                if drop_probability > 0
+                else renderer.random_layout(rng)
+            )
+            doc: dict = {"image": f"{stem}.png", "camera": "camera.json", "seed": seed, "index": i}
+            if conditions is None:
+                grey, truth = renderer.render(poses)
+                grey = degrade(grey, rng, noise_sigma=noise_sigma)
+            else:
+                c = conditions.draw(rng)
+                camera = dataclasses.replace(nominal, X_WC=nominal.X_WC @ c.X_offset, dist=c.dist)
+                grey, truth = renderer.render(poses, camera, c.lighting)
+                grey = c.sensor.apply(grey, rng)
+                doc["camera"] = f"camera_{i:04d}.json"
+                (out / doc["camera"]).write_text(json.dumps(camera.to_json(), indent=1))
+                doc["conditions"] = {
+                    "sensor": dataclasses.asdict(c.sensor),
+                    "lighting": dataclasses.asdict(c.lighting),
+                    "camera_offset_m": float(np.linalg.norm(c.X_offset[:3, 3])),
+                    "camera_turn_deg": float(
+                        np.rad2deg(
+                            np.arccos(np.clip((np.trace(c.X_offset[:3, :3]) - 1) / 2, -1, 1))
+                        )
+                    ),
+                    "dist": c.dist.tolist(),
+                }
             cv2.imwrite(str(out / f"{stem}.png"), grey)
-            doc = {
-                "image": f"{stem}.png",
-                "camera": "camera.json",
-                "seed": seed,
-                "index": i,
-                "objects": [
-                    {
-                        "model": t.model,
-                        "X_WO": t.X_WO.tolist(),
-                        "visible_fraction": round(t.visible_fraction, 4),
-                    }
-                    for t in truth
-                ],
-            }
+            doc["objects"] = [
+                {
+                    "model": t.model,
+                    "X_WO": t.X_WO.tolist(),
+                    "visible_fraction": round(t.visible_fraction, 4),
+                    "support": t.support,
+                }
+                for t in truth
+            ]
             path = out / f"{stem}.json"
             path.write_text(json.dumps(doc, indent=1))
             paths.append(path)
@@ -235,7 +377,12 @@ def read_truth(path: Path) -> list[GroundTruth]:
     """The ground truth of one scene JSON written by :func:`write_dataset`."""
     doc = json.loads(Path(path).read_text())
     return [
-        GroundTruth(o["model"], np.array(o["X_WO"], dtype=np.float64), o["visible_fraction"])
+        GroundTruth(
+            o["model"],
+            np.array(o["X_WO"], dtype=np.float64),
+            o["visible_fraction"],
+            o.get("support", ""),
+        )
         for o in doc["objects"]
     ]
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -23,16 +25,21 @@ def renderer():
 
 
 @pytest.mark.parametrize(
-    ("name", "rpy", "xy"),
+    ("name", "rpy", "xy", "dist"),
     [
-        ("cube", (0.0, 0.0, 0.5), (0.45, -0.2)),
-        ("l_block", (np.pi / 2, 0.0, -0.4), (0.55, 0.05)),
-        ("hex_prism", (0.0, 0.0, 0.2), (0.63, 0.18)),
+        ("cube", (0.0, 0.0, 0.5), (0.45, -0.2), None),
+        ("l_block", (np.pi / 2, 0.0, -0.4), (0.55, 0.05), None),
+        ("hex_prism", (0.0, 0.0, 0.2), (0.63, 0.18), None),
+        # A lens: its corners land where OpenCV's distortion model puts them.
+        ("cube", (0.0, 0.0, 0.5), (0.45, -0.2), (-0.12, 0.05, 0.0, 0.0, 0.0)),
+        ("hex_prism", (0.0, 0.0, 0.2), (0.63, 0.18), (0.04, -0.02, 1e-3, -1e-3, 0.0)),
     ],
 )
-def test_projected_silhouette_corners_match_the_rendering(renderer, name, rpy, xy) -> None:
+def test_projected_silhouette_corners_match_the_rendering(renderer, name, rpy, xy, dist) -> None:
     scene = renderer.scene
     camera = scene.camera
+    if dist is not None:
+        camera = dataclasses.replace(camera, dist=np.array(dist))
     obj = scene.object(name)
     R = rpy_to_R(np.array(rpy))
     V_O = np.vstack([p.vertices_O for p in obj.model.parts])
@@ -49,7 +56,10 @@ def test_projected_silhouette_corners_match_the_rendering(renderer, name, rpy, x
     poly = cv2.approxPolyDP(contour, 1.5, True).reshape(-1, 2).astype(np.float64)
     poly_px = (poly + 0.5) / SUPERSAMPLE - 0.5  # supersampled pixel centres → image pixels
     model = vision_model(obj.model)
-    uv = project(transform(invert_pose(camera.X_WC) @ X_WO, model.vertices_O), camera.K)
+    p_C = transform(invert_pose(camera.X_WC) @ X_WO, model.vertices_O)
+    uv = cv2.projectPoints(p_C, np.zeros(3), np.zeros(3), camera.K, camera.dist)[0].reshape(-1, 2)
+    if dist is None:
+        assert np.allclose(uv, project(p_C, camera.K))
     hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2).astype(np.float64)
     # Keep real corners of the silhouette (drop hull points on a straight stretch).
     corners = []

@@ -25,10 +25,10 @@ from models.transforms import invert_pose
 from protocol import CameraFrame, encode
 from protocol.images import DEFAULT_JPEG_QUALITY
 from work_site.child import stop_child
+from work_site.sensor import Lighting, Sensor
 
 CAMERA_NEAR_M = 0.05
 CAMERA_FAR_M = 5.0
-LIGHT_DIRECTION_W = (0.4, -0.6, 1.0)
 # OpenCV camera (x right, y down, z forward) to OpenGL camera (x right, y up, z backward).
 _X_CV_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -39,7 +39,8 @@ def opengl_matrices(
     """pybullet view and projection matrices (column-major lists) for a pinhole camera.
 
     The projection reproduces OpenCV's ``u = fx x/z + cx`` with pixel centres at integer
-    coordinates, including an off-centre principal point (lens distortion is not rendered).
+    coordinates, including an off-centre principal point (no lens distortion: see
+    :func:`render_grey`).
     """
     w, h = camera.width, camera.height
     fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
@@ -62,49 +63,158 @@ def opengl_matrices(
 
 @overload
 def render_grey(
-    cid: int, camera: CameraModel, supersample: int = 1, *, segmentation: Literal[False] = False
+    cid: int,
+    camera: CameraModel,
+    supersample: int = 1,
+    *,
+    segmentation: Literal[False] = False,
+    lighting: Lighting | None = None,
 ) -> np.ndarray: ...
 
 
 @overload
 def render_grey(
-    cid: int, camera: CameraModel, supersample: int = 1, *, segmentation: Literal[True]
+    cid: int,
+    camera: CameraModel,
+    supersample: int = 1,
+    *,
+    segmentation: Literal[True],
+    lighting: Lighting | None = None,
 ) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 def render_grey(
-    cid: int, camera: CameraModel, supersample: int = 1, *, segmentation: bool = False
+    cid: int,
+    camera: CameraModel,
+    supersample: int = 1,
+    *,
+    segmentation: bool = False,
+    lighting: Lighting | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Render physics client ``cid`` through ``camera`` as an 8-bit grey image (h, w).
 
     ``supersample`` > 1 renders that many times larger and averages down (``INTER_AREA``), for
-    sub-pixel edges closer to a real camera's, at about ``supersample²`` times the cost. With
-    ``segmentation``, also the segmentation buffer (h·k, w·k) int64 of body ids (−1 for none)
-    at the supersampled size k: the ground truth of what each pixel sees.
+    sub-pixel edges closer to a real camera's, at about ``supersample²`` times the cost. The
+    camera's lens distortion (``dist``) is rendered: straight edges come out curved as a real
+    lens shows them. ``lighting``: the light (default: :class:`~work_site.sensor.Lighting`'s).
+    With ``segmentation``, also the segmentation buffer (h·k, w·k) int64 of body ids (−1 for
+    none) at the supersampled size k: the ground truth of what each pixel sees.
     """
     if supersample < 1:
         raise ValueError(f"supersample must be ≥ 1, got {supersample}")
-    view, proj = opengl_matrices(camera)
-    w, h = camera.width * supersample, camera.height * supersample
+    light = lighting or Lighting()
+    k = supersample
+    w, h = camera.width * k, camera.height * k
+    lens = _lens_map(camera, k) if np.any(np.asarray(camera.dist) != 0) else None
+    canvas = camera.scaled(k) if lens is None else lens.canvas
+    view, proj = opengl_matrices(canvas)
     _, _, rgba, _, seg = p.getCameraImage(
-        w,
-        h,
+        canvas.width,
+        canvas.height,
         view,
         proj,
-        lightDirection=LIGHT_DIRECTION_W,
+        lightDirection=list(light.direction_W),
+        lightAmbientCoeff=light.ambient,
+        lightDiffuseCoeff=light.diffuse,
+        lightSpecularCoeff=light.specular,
         shadow=0,
         renderer=p.ER_TINY_RENDERER,
         physicsClientId=cid,
     )
-    rgba = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)
+    rgba = np.asarray(rgba, dtype=np.uint8).reshape(canvas.height, canvas.width, 4)
     grey = cv2.cvtColor(rgba, cv2.COLOR_RGBA2GRAY)
-    if supersample > 1:
+    seg = np.asarray(seg, dtype=np.int64).reshape(canvas.height, canvas.width)
+    if lens is not None:
+        grey = cv2.remap(grey, lens.map_x, lens.map_y, cv2.INTER_LINEAR, borderValue=0)
+        if segmentation:
+            seg = cv2.remap(
+                seg.astype(np.float32), lens.map_x, lens.map_y, cv2.INTER_NEAREST, borderValue=-1
+            ).astype(np.int64)
+    if k > 1:
         grey = cv2.resize(grey, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
     if not segmentation:
         return grey
-    seg = np.asarray(seg, dtype=np.int64).reshape(h, w)
+    assert seg.shape == (h, w)
     # Body ids sit in the low 24 bits (pybullet puts link indices above them when asked to).
     return grey, np.where(seg < 0, -1, seg & ((1 << 24) - 1))
+
+
+@dataclass(frozen=True, eq=False)
+class _LensMap:
+    """Where each pixel of a distorted image (supersampled) looks in an undistorted render."""
+
+    canvas: CameraModel  # the undistorted render: same focal lengths, wide enough to cover
+    map_x: np.ndarray  # (h, w) float32: the canvas's column of each distorted pixel
+    map_y: np.ndarray
+
+
+LENS_MAP_TOL_PX = 1e-3
+"""The inverted distortion must land within this of the distorted pixel it was drawn from."""
+
+
+def _lens_map(camera: CameraModel, supersample: int) -> _LensMap:
+    key = (
+        camera.width, camera.height, supersample,
+        tuple(np.asarray(camera.K, dtype=np.float64).ravel()),
+        tuple(np.asarray(camera.dist, dtype=np.float64).ravel()),
+    )  # fmt: skip
+    if key not in _LENS_MAPS:
+        if len(_LENS_MAPS) >= 8:  # a few cameras per process; keep the memory bounded
+            _LENS_MAPS.pop(next(iter(_LENS_MAPS)))
+        _LENS_MAPS[key] = _build_lens_map(camera, supersample)
+    return _LENS_MAPS[key]
+
+
+_LENS_MAPS: dict[tuple, _LensMap] = {}
+
+
+def distort_px(rays: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Pixels (n, 2) of normalised rays (n, 2) through OpenCV's 5-coefficient lens model
+    ``(k1, k2, p1, p2, k3)``: what ``cv2.projectPoints`` computes, vectorised for whole images."""
+    if dist.shape != (5,):
+        raise ValueError(f"camera dist must be the 5 coefficients (k1, k2, p1, p2, k3), got {dist}")
+    k1, k2, p1, p2, k3 = dist
+    x, y = rays[:, 0], rays[:, 1]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.column_stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]])
+
+
+def _build_lens_map(camera: CameraModel, supersample: int) -> _LensMap:
+    """The undistorted canvas and the remap tables of ``camera``'s distortion at ``supersample``:
+    each distorted pixel's normalised ray by OpenCV's iterative inversion, checked by
+    distorting it again."""
+    big = camera.scaled(supersample)
+    K = np.asarray(big.K, dtype=np.float64)
+    dist = np.asarray(camera.dist, dtype=np.float64)
+    u, v = np.meshgrid(np.arange(big.width, dtype=np.float64), np.arange(big.height))
+    pts = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+    rays = cv2.undistortPoints(pts, K, dist, None, None, None, criteria).reshape(-1, 2)
+    miss_px = float(np.max(np.abs(distort_px(rays, K, dist) - pts.reshape(-1, 2))))
+    if not miss_px <= LENS_MAP_TOL_PX:
+        raise ValueError(
+            f"camera distortion {dist.tolist()} cannot be inverted over the image "
+            f"(off by {miss_px:.3g} px): too strong for the lens model"
+        )
+    uu = K[0, 0] * rays[:, 0] + K[0, 1] * rays[:, 1] + K[0, 2]
+    vv = K[1, 1] * rays[:, 1] + K[1, 2]
+    margin = 2.0  # pixels of canvas beyond the farthest sample, for the interpolation
+    u0, v0 = np.floor(uu.min()) - margin, np.floor(vv.min()) - margin
+    width = int(np.ceil(uu.max() - u0 + margin)) + 1
+    height = int(np.ceil(vv.max() - v0 + margin)) + 1
+    Kc = K.copy()
+    Kc[0, 2] -= u0
+    Kc[1, 2] -= v0
+    canvas = dataclasses.replace(big, width=width, height=height, K=Kc, dist=np.zeros(5))
+    shape = (big.height, big.width)
+    return _LensMap(
+        canvas,
+        (uu - u0).reshape(shape).astype(np.float32),
+        (vv - v0).reshape(shape).astype(np.float32),
+    )
 
 
 @dataclass(frozen=True)
@@ -142,7 +252,7 @@ def _render_worker(
     scene_path: str,
     supersample: int,
     X_WC: np.ndarray | None,
-    noise_grey: float,
+    sensor: Sensor,
     wire: FrameEncoding,
     conn: Connection,
 ) -> None:
@@ -164,10 +274,8 @@ def _render_worker(
                 world.set_object_pose(name, X_WO)
             world.set_robot_joint_positions(request.q, request.fingers_m)
             image = render_grey(world.cid, world.scene.camera, supersample)
-            if noise_grey > 0:  # a real sensor's noise, seeded by the frame
-                rng = np.random.default_rng(request.seq)
-                noisy = image + rng.normal(0.0, noise_grey, image.shape)
-                image = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+            # The sensor's noise, seeded by the frame: a frame renders the same every time.
+            image = sensor.apply(image, np.random.default_rng(request.seq))
             payload = encode(
                 CameraFrame(
                     seq=request.seq,
@@ -195,17 +303,17 @@ class CameraProcess:
         scene_path: Path,
         supersample: int = 1,
         X_WC: np.ndarray | None = None,
-        noise_grey: float = 0.0,
+        sensor: Sensor | None = None,
         wire: FrameEncoding = FrameEncoding(),
     ) -> None:
         """``X_WC``: where the camera really is, if not where the scene file says (frames carry
-        the scene file's, the calibration); ``noise_grey``: standard deviation of the sensor
-        noise added to each pixel (grey levels); ``wire``: how frames are encoded."""
+        the scene file's, the calibration); ``sensor``: the camera's blur, exposure and noise
+        (default: ideal); ``wire``: how frames are encoded."""
         ctx = mp.get_context("spawn")  # never fork a process that runs zenoh threads
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
             target=_render_worker,
-            args=(str(scene_path), supersample, X_WC, noise_grey, wire, child),
+            args=(str(scene_path), supersample, X_WC, sensor or Sensor(), wire, child),
             name="camera-renderer",
             daemon=True,
         )

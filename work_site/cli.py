@@ -31,6 +31,7 @@ from protocol.session import (
     operator_only_access_control,
 )
 from work_site.control.controller import DEFAULT_SURFACE_STIFFNESS_N_PER_M
+from work_site.sensor import Sensor
 from work_site.vision import cli as vision_cli
 
 
@@ -291,6 +292,8 @@ def serve(args: argparse.Namespace) -> int:
             X_WC = perturbed_camera_pose(scene.camera.X_WC, camera_seed)
             camera_X_WC = tuple(map(tuple, X_WC))
         camera_encoding, camera_quality = parse_image_encoding(args.camera_encoding)
+        if not 0.0 <= args.camera_noise <= 64.0:
+            raise ValueError(f"--camera-noise must be in [0, 64] grey levels: {args.camera_noise}")
         options = ServerOptions(
             camera_encoding=camera_encoding,
             camera_quality=camera_quality,
@@ -305,7 +308,7 @@ def serve(args: argparse.Namespace) -> int:
             publish_truth=args.publish_truth,
             camera=not args.no_camera,
             camera_supersample=args.camera_supersample,
-            camera_noise_grey=args.camera_noise,
+            camera_sensor=Sensor(read_noise_grey=args.camera_noise),
             vision_scale=args.vision_scale,
             vision_index_views=args.vision_index_views,
             vision_rate_hz=(

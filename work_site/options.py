@@ -8,6 +8,7 @@ from pathlib import Path
 from protocol import DEFAULT_SITE_ID, IMAGE_ENCODINGS
 from protocol.images import DEFAULT_JPEG_QUALITY
 from work_site.control.controller import CONTROL_PERIOD_S, DEFAULT_SURFACE_STIFFNESS_N_PER_M
+from work_site.sensor import Sensor
 
 PHYSICS_RATE_RANGE_HZ = (500.0, 2000.0)
 """Physics rates a work site accepts (Hz): within the range where grasping and placing were
@@ -18,6 +19,10 @@ MAX_CAMERA_SUPERSAMPLE = 4
 DEADMAN_RANGE_S = (0.2, 5.0)
 """Accepted dead-man timeouts (s): above two heartbeat periods of the operator's link (0.1 s),
 so that one late beat stops nothing; at most a few seconds of motion nobody watches."""
+
+
+DEFAULT_CAMERA_SENSOR = Sensor(read_noise_grey=1.0)
+"""The work site's camera: the renderer's image with 1 grey level of read noise."""
 
 
 @dataclass(frozen=True)
@@ -32,8 +37,8 @@ class ServerOptions:
     camera_supersample: int = 2
     """Render this many times larger and average down: a real camera's anti-aliased edges
     (vision finds nothing in aliased 1× renders; see docs/benchmarks.md)."""
-    camera_noise_grey: float = 1.0
-    """Sensor noise added to each pixel (standard deviation, grey levels)."""
+    camera_sensor: Sensor = DEFAULT_CAMERA_SENSOR
+    """The camera's blur, exposure, gain and noise on the rendered image."""
     camera_encoding: str = "jpeg"
     """How camera frames travel to operators: ``raw``, ``png`` or ``jpeg`` (protocol/images.py).
     Vision always works on the uncompressed frame, here. JPEG by default: far smaller than raw
@@ -105,8 +110,6 @@ class ServerOptions:
             )
         if not 1 <= self.camera_quality <= 100:
             raise ValueError(f"camera_quality must be in 1..100, got {self.camera_quality}")
-        if not 0.0 <= self.camera_noise_grey <= 64.0:
-            raise ValueError(f"camera_noise_grey must be in [0, 64], got {self.camera_noise_grey}")
         k = self.surface_stiffness_n_per_m
         if not 100.0 <= k <= 1e5:
             raise ValueError(f"surface_stiffness_n_per_m must be in [100, 1e5] N/m, got {k}")

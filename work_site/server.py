@@ -150,7 +150,7 @@ class WorkSiteServer(ProgramIntake):
                 self.scene.path,
                 opts.camera_supersample,
                 opts.camera_X_WC,
-                opts.camera_noise_grey,
+                opts.camera_sensor,
                 FrameEncoding(opts.camera_encoding, opts.camera_quality, self.scene.camera),
             )
             if opts.camera
