@@ -231,3 +231,25 @@ def test_turned_poses_keep_the_centre_and_differ_up_to_symmetry() -> None:
         c = 0.5 * (m.vertices_O.min(0) + m.vertices_O.max(0))
         for X in T:
             np.testing.assert_allclose(X[:3, :3] @ c + X[:3, 3], c, atol=1e-12)
+
+
+def test_support_is_what_lies_under_a_block_not_beside_it() -> None:
+    """A block is held up by the table or by what is under it; beside another, or in the air,
+    it is not."""
+    from work_site.vision.params import RecognizerParams
+    from work_site.vision.verification import Surroundings
+
+    def box(centre, half=0.025):
+        c = np.array(centre, dtype=np.float64)
+        V = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * half + c
+        return [(V, np.vstack([np.eye(3), -np.eye(3)]))]
+
+    p = RecognizerParams()
+    s = Surroundings(0.0, (np.array([-1.0, -1.0]), np.array([1.0, 1.0])), [])
+    lower = box((0.0, 0.0, 0.025))
+    assert s.supported_by(lower, [], p)  # on the table
+    assert s.supported_by(box((0.01, 0.0, 0.0751)), [lower], p)  # on the lower block
+    assert s.supported_by(box((0.045, 0.0, 0.0752)), [lower], p)  # overhanging its edge
+    assert not s.supported_by(box((0.0, 0.0, 0.10)), [lower], p)  # 2.5 cm above it
+    assert not s.supported_by(box((0.0501, 0.0, 0.04)), [lower], p)  # beside it, in the air
+    assert not s.supported_by(box((0.0, 0.0, 0.0752)), [], p)  # nothing under it

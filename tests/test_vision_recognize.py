@@ -94,3 +94,39 @@ def test_bad_inputs_raise_clear_errors(recognizer, scenes) -> None:
         recognizer.recognize(np.zeros((480, 640), np.uint8), singular)
     with pytest.raises(ValueError, match="8-bit"):
         recognizer.recognize(np.zeros((480, 640), np.float64), camera)
+
+
+def test_blocks_stacked_on_blocks_are_found_where_they_are(recognizer) -> None:
+    """No block of the stack rests on the table but the lowest: each is found, held up by the
+    one under it."""
+    renderer = SceneRenderer(load_scene(), supersample=3)
+    try:
+        V = {o.name: np.vstack([pt.vertices_O for pt in o.model.parts]) for o in renderer.movable}
+        poses = {
+            o.name: make_pose(None, [5.0 + k, 5.0, -1.0]) for k, o in enumerate(renderer.movable)
+        }
+
+        def on(name: str, yaw: float, xy, base_z: float) -> float:
+            c, s = np.cos(yaw), np.sin(yaw)
+            R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            z = base_z - np.min(V[name] @ R[2])
+            poses[name] = make_pose(R, [xy[0], xy[1], z])
+            return base_z + np.ptp(V[name] @ R[2])  # its top
+
+        top = on("plank", 0.3, (0.62, -0.18), renderer.table_z)
+        on("cube", 0.7, (0.62, -0.18), top)
+        top = on("tall_block", -0.2, (0.27, 0.17), renderer.table_z)
+        on("hex_prism", 0.4, (0.27, 0.17), top)
+        image, truth = renderer.render(poses)
+        image = np.clip(image + np.random.default_rng(7).normal(0, 1.0, image.shape), 0, 255)
+        camera = renderer.scene.camera
+    finally:
+        renderer.close()
+    assert {t.model: t.support for t in truth if t.support} == {
+        "plank": "table", "cube": "stacked", "tall_block": "table", "hex_prism": "stacked",
+    }  # fmt: skip
+    found = {r.model: r for r in recognizer.recognize(image.astype(np.uint8), camera)}
+    for name in ("cube", "hex_prism"):
+        assert name in found, f"{name} on its stack not found: {sorted(found)}"
+        off = np.linalg.norm(found[name].X_WO[:3, 3] - poses[name][:3, 3])
+        assert off < 0.003, f"{name} found {1000 * off:.1f} mm off"

@@ -142,13 +142,16 @@ def index_stream(
     K: np.ndarray,
     X_WC: np.ndarray,
     params: RecognizerParams,
-) -> list[tuple]:
+    max_height_m: float = 0.0,
+) -> tuple[list[tuple], list[tuple]]:
     """Indexed hypotheses ``(model, group's segments, (index entry, initial X_CO))`` in
-    their order, all initial poses computed at once, without those that cannot be right:
-    the view must show the object standing on one of its faces, roughly at table height
-    (most accidental matches fail this at no cost)."""
+    their order, all initial poses computed at once, in two lists: those that show the object
+    standing on one of its faces roughly at table height (with the table prior), and the
+    others whose lowest point lies between the table and ``max_height_m`` above it, in any
+    orientation (blocks on blocks, leaning). Those below the table or above that height are
+    dropped (most accidental matches fail this at no cost)."""
     if not hyps:
-        return []
+        return [], []
     p = params
     idx = index
     entries = np.array([e for _, _, e in hyps])
@@ -156,7 +159,8 @@ def index_stream(
         idx.R_CO[idx.view[entries]], idx.junctions[entries],
         np.array([g_junc for _, g_junc, _ in hyps]), K, idx.params,
     )  # fmt: skip
-    ok = np.ones(len(hyps), dtype=bool)
+    resting = np.ones(len(hyps), dtype=bool)
+    free = np.zeros(len(hyps), dtype=bool)
     if p.table_prior:
         X_WO = X_WC @ X
         mods = idx.model[entries]
@@ -166,13 +170,22 @@ def index_stream(
                 continue
             up = X_WO[sel, 2, :3]  # world z of O's axes: n_W[:, 2] = N_O · up
             tilt_ok = -(facets[m.name][0] @ up.T).min(axis=0) >= np.cos(p.prefilter_tilt_rad)
-            z_min = (m.vertices_O @ up.T).min(axis=0) + X_WO[sel, 2, 3]
-            ok[sel] = tilt_ok & (np.abs(z_min - table_z) <= p.prefilter_height_m)
-    return [
-        (models[int(idx.model[e])], g_segs, (e, X[k]))
-        for k, (g_segs, _, e) in enumerate(hyps)
-        if ok[k]
-    ]
+            height = (m.vertices_O @ up.T).min(axis=0) + X_WO[sel, 2, 3] - table_z
+            resting[sel] = tilt_ok & (np.abs(height) <= p.prefilter_height_m)
+            free[sel] = (
+                ~resting[sel]
+                & (height >= -p.prefilter_height_m)
+                & (height <= max_height_m + p.prefilter_height_m)
+            )
+
+    def items(ok: np.ndarray) -> list[tuple]:
+        return [
+            (models[int(idx.model[e])], g_segs, (e, X[k]))
+            for k, (g_segs, _, e) in enumerate(hyps)
+            if ok[k]
+        ]
+
+    return items(resting), items(free)
 
 
 def table_stream(
@@ -225,11 +238,12 @@ def initial_fit(
     table_z: float,
     params: RecognizerParams,
     prior=None,
+    max_height_m: float = 0.0,
 ) -> np.ndarray | None:
     """``X_CO`` fitted to the hypothesis' four correspondences (index ``entry``'s model edges,
     image lines ``segs[g_segs]``) from the initial ``X``, or None if it cannot be right: the
-    lines do not fit, or the object would be far from resting on the table. ``prior``: see
-    :func:`resting_prior`."""
+    lines do not fit, or the object's lowest point would be far below the table or more than
+    ``max_height_m`` above it (0: resting on it). ``prior``: see :func:`resting_prior`."""
     p = params
     edges = model.edges_O[index.edges[entry]]
     fit = fit_pose(
@@ -237,8 +251,8 @@ def initial_fit(
     )
     if fit.rms_px > p.init_rms_max_px or fit.X_CO[2, 3] <= 0.05:
         return None
-    V_W = transform(X_WC @ fit.X_CO, model.vertices_O)
-    if abs(V_W[:, 2].min() - table_z) > p.early_table_tol_m:
+    height = transform(X_WC @ fit.X_CO, model.vertices_O)[:, 2].min() - table_z
+    if not -p.early_table_tol_m <= height <= max_height_m + p.early_table_tol_m:
         return None
     return fit.X_CO
 
@@ -324,15 +338,20 @@ def grown_poses(
     table_z: float,
     tested: PoseSet,
     params: RecognizerParams,
+    max_height_m: float = 0.0,
 ) -> np.ndarray:
     """Poses ``X_CB`` (k, 4, 4) of the bigger model ``whole`` around a part found in the image,
     to test in full, best supported first: of the candidate poses ``X_CB_all`` (n, 4, 4), those
-    near the table top, not tested before (all are recorded in ``tested``) and with enough
-    cheap support, at most ``params.grown_max_tests``."""
+    whose lowest point is near the table top (or up to ``max_height_m`` above it), not tested
+    before (all are recorded in ``tested``) and with enough cheap support, at most
+    ``params.grown_max_tests``."""
     p = params
     X_WB = X_WC @ X_CB_all
     z_W = X_WB[:, 2, :3] @ whole.vertices_O.T + X_WB[:, 2, 3:]  # (k, v)
-    X_CB_all = X_CB_all[np.abs(z_W.min(1) - table_z) <= p.early_table_tol_m]
+    height = z_W.min(1) - table_z
+    X_CB_all = X_CB_all[
+        (height >= -p.early_table_tol_m) & (height <= max_height_m + p.early_table_tol_m)
+    ]
     # Cheap support of all of them at once (no occlusion): most poses of a bigger model
     # around a found part hang over empty table and fail here.
     support = batch_support(

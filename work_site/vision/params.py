@@ -83,3 +83,5 @@ class RecognizerParams:
     table_coarse_min: float = 0.4  # table hypotheses are scored in full only if their support
     # at 2 of 6 points per edge reaches this
     table_angle_tol_rad: float = np.deg2rad(8.0)
+    free_search: bool = True  # after the table search, look for objects anywhere above the
+    # table (on others, leaning), without the table prior

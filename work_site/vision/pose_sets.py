@@ -43,6 +43,8 @@ class Candidate:
     parts_W: list[tuple[np.ndarray, np.ndarray]]
     part_px: np.ndarray | None = None  # grown around a smaller object found in the image:
     # that object's outline (k, 2) px, a convex polygon
+    resting: bool = True  # found resting on the table; if not, it must be held up by what
+    # else is found (see select)
 
     @property
     def grown(self) -> bool:
@@ -148,14 +150,65 @@ def select(
     occluders_C,
     params: RecognizerParams,
     surroundings: Surroundings,
+    max_height_m: float = 0.0,
 ) -> list[Detection]:
     """Candidates that explain the most image edge length first; a candidate sharing many
     image lines with, or interpenetrating, one already accepted is dropped. Each is
-    verified again with the other candidates as occluders, and its outline must show."""
+    verified again with the other candidates as occluders, and its outline must show. A
+    candidate not found resting on the table must be held up by the table, the fixed
+    environment or another accepted object; one that is not is dropped and the selection made
+    again without it (an object floating in the air is not there), unless it is verified
+    with a confident score: then what holds it up is hidden (a block under a block)."""
+    banned: set[int] = set()
+    for _ in range(len(candidates) + 1):
+        kept = [c for k, c in enumerate(candidates) if k not in banned]
+        accepted = _select_once(
+            kept, segs, K, gx, gy, occluders_C, params, surroundings, max_height_m
+        )
+        parts = [c.parts_W for c, _ in accepted]
+        held = [c.resting for c, _ in accepted]
+        for _ in range(len(accepted)):  # held up by what is held up, level by level
+            more = [
+                k
+                for k, (c, _) in enumerate(accepted)
+                if not held[k]
+                and surroundings.supported_by(
+                    c.parts_W, [parts[j] for j in range(len(accepted)) if held[j]], params
+                )
+            ]
+            if not more:
+                break
+            for k in more:
+                held[k] = True
+        floating = [
+            c
+            for (c, d), h in zip(accepted, held, strict=True)
+            if not h and d.score < params.confident_score
+        ]
+        if not floating:
+            return sorted((d for _, d in accepted), key=lambda r: -r.score)
+        banned.update(k for k, c in enumerate(candidates) if any(c is f for f in floating))
+    raise AssertionError("unreachable: every round bans a candidate")
+
+
+def _select_once(
+    candidates: list[Candidate],
+    segs: np.ndarray,
+    K: np.ndarray,
+    gx: np.ndarray,
+    gy: np.ndarray,
+    occluders_C,
+    params: RecognizerParams,
+    surroundings: Surroundings,
+    max_height_m: float,
+) -> list[tuple[Candidate, Detection]]:
+    """One round of :func:`select`, without the support test: the accepted candidates and
+    their detections."""
     p = params
-    accepted: list[Detection] = []
+    accepted: list[tuple[Candidate, Detection]] = []
     accepted_parts: list[list[np.ndarray]] = []
     used: set[int] = set()
+    taken: set[int] = set()  # indices in order of the accepted
     per_model: dict[str, int] = {}
     order = sorted(candidates, key=lambda c: -c.verification.covered_px)
     # Each candidate's parts as occluders and its matched lines, once for all the others
@@ -169,8 +222,13 @@ def select(
         if shared > p.max_shared_fraction * max(len(rec.matched), 1):
             continue
         mine = lines[i]
+        # Objects accepted already hide what is behind them; another candidate does so only
+        # if it explains other lines (one that shares mine may be another guess at my object).
         others = [
-            P for j in range(len(order)) if j != i and mine.isdisjoint(lines[j]) for P in planes[j]
+            P
+            for j in range(len(order))
+            if j != i and (j in taken or mine.isdisjoint(lines[j]))
+            for P in planes[j]
         ]
         v = verify(c.model, c.X_CO, K, segs, gx, gy, occluders_C + others, p, part_px=c.part_px)
         # A bigger model grown around a smaller object found in the image must show its
@@ -183,20 +241,25 @@ def select(
             or v.extra_fraction < p.grown_min_extra_fraction
         ):
             continue
-        if not surroundings.plausible(c.parts_W, accepted_parts, p, environment=False):
+        height = 0.0 if c.resting else max_height_m
+        if not surroundings.plausible(c.parts_W, accepted_parts, p, False, height):
             continue
         accepted.append(
-            Detection(
-                model=c.model.name,
-                X_WO=c.X_WO,
-                score=v.score,
-                rms_px=c.rms_px,
-                length_fraction=v.length_fraction,
-                gradient_fraction=v.gradient_fraction,
-                matched_segments=tuple(rec.matched),
+            (
+                c,
+                Detection(
+                    model=c.model.name,
+                    X_WO=c.X_WO,
+                    score=v.score,
+                    rms_px=c.rms_px,
+                    length_fraction=v.length_fraction,
+                    gradient_fraction=v.gradient_fraction,
+                    matched_segments=tuple(rec.matched),
+                ),
             )
         )
         accepted_parts.append(c.parts_W)
+        taken.add(i)
         used.update(rec.matched)
         per_model[c.model.name] = per_model.get(c.model.name, 0) + 1
-    return sorted(accepted, key=lambda r: -r.score)
+    return accepted

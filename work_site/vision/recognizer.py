@@ -159,6 +159,10 @@ class Recognizer:
             for m in self.models
         }
         self._corners = rest_corners(self.models, [m.com_O for m in self.object_models])
+        self._max_height_m = float(
+            sum(np.max(np.linalg.norm(m.vertices_O - m.vertices_O.mean(0), axis=1)) * 2
+                for m in self.models)
+        )  # fmt: skip
         self._env_models = [(vision_model(o.model), o.X_WO) for o in scene.objects if o.fixed]
         table = [o for o in scene.objects if o.fixed and o.name == "table"]
         if table:
@@ -175,6 +179,12 @@ class Recognizer:
             work_area_xy,
             [q for name, _, parts, _ in self.environment if name != "table" for q in parts],
         )
+
+    @property
+    def max_height_m(self) -> float:
+        """How high above the table an object's lowest point may be: on all the others piled
+        up (the sum of their sizes), the most a stack of them can lift it."""
+        return self._max_height_m
 
     @property
     def table_z(self) -> float:
@@ -208,10 +218,11 @@ class Recognizer:
             self._corners, self.models, self.group_params, self.table_z,
             f.segs, f.K, f.X_WC, f.gx, f.gy, p, junctions,
         )  # fmt: skip
-        stream += index_stream(
-            hyps, self.index, self.models, self._facets, self.table_z, f.K, f.X_WC, p
-        )
-        passed = self._search(stream, f, s)
+        resting, free = index_stream(
+            hyps, self.index, self.models, self._facets, self.table_z, f.K, f.X_WC, p,
+            self.max_height_m,
+        )  # fmt: skip
+        passed = self._search(stream + resting, f, s)
         accepted = self._select(s, f)
         # A confident candidate that the selection drops (a phantom, such as a wedge fitted
         # into a neighbour's corner) has kept its model's and its lines' other hypotheses from
@@ -229,9 +240,22 @@ class Recognizer:
             f,
             s,
         )
-        if len(s.candidates) == n_before:
+        if len(s.candidates) > n_before:
+            accepted = self._select(s, f)
+        if not p.free_search or not free:
             return accepted
-        return self._select(s, f)
+        # What is left may not rest on the table: on other blocks, leaning, any way up. Fit
+        # those hypotheses without the table prior; the selection then keeps only objects
+        # held up by what else is found.
+        s.claimed[:] = False
+        for r in accepted:
+            s.claimed[list(r.matched_segments)] = True
+        s.confident.clear()
+        if p.max_per_model == 1:
+            s.confident.update(r.model for r in accepted)
+        n_before = len(s.candidates)
+        self._search(free, f, s, resting=False)
+        return self._select(s, f) if len(s.candidates) > n_before else accepted
 
     # -- steps --------------------------------------------------------------------------------
     def _frame(self, image: np.ndarray, camera: CameraModel) -> _Frame:
@@ -261,11 +285,15 @@ class Recognizer:
         segs = self._drop_environment(segs, X_CW, K, env_C)
         return _Frame(segs, K, camera.X_WC, gx, gy, env_C, t0)
 
-    def _search(self, items: list[tuple], f: _Frame, s: _Search) -> list[tuple]:
+    def _search(
+        self, items: list[tuple], f: _Frame, s: _Search, resting: bool = True
+    ) -> list[tuple]:
         """Test the hypotheses ``items`` ``(model, group's segments, how)`` in turn, adding to
         ``s.candidates``; returns those passed over because a confident candidate had claimed
-        their model or lines."""
+        their model or lines. ``resting``: objects resting on the table, fitted with the
+        table prior; otherwise anywhere up to :attr:`max_height_m` above it, without."""
         p = self.params
+        height = 0.0 if resting else self.max_height_m
         passed: list[tuple] = []
         for k, (model, g_segs, how) in enumerate(items):
             if p.time_budget_s is not None and time.perf_counter() - f.t0 > p.time_budget_s:
@@ -281,7 +309,7 @@ class Recognizer:
                 entry, X = how
                 X0 = initial_fit(
                     model, self.index, entry, X, g_segs, f.segs, f.K, f.X_WC, self.table_z, p,
-                    self._prior(model, f.X_WC),
+                    self._prior(model, f.X_WC, resting), height,
                 )  # fmt: skip
             if X0 is None:
                 continue
@@ -290,20 +318,23 @@ class Recognizer:
                 continue
             s.tested.add(model, X0)
             result = fit_and_verify(
-                model, X0, f.segs, f.K, f.gx, f.gy, f.occluders_C, p, self._prior(model, f.X_WC)
-            )
+                model, X0, f.segs, f.K, f.gx, f.gy, f.occluders_C, p,
+                self._prior(model, f.X_WC, resting),
+            )  # fmt: skip
             if result is None:
                 continue
-            found = [(model, result[:3], None), *self._grown(model, result, f, s.tested)]
+            found = [(model, result[:3], None), *self._grown(model, result, f, s.tested, resting)]
             for m, (X_CO, rms, v), part_px in found:
-                self._add_candidate(m, X_CO, rms, v, part_px, f, s)
+                self._add_candidate(m, X_CO, rms, v, part_px, f, s, resting)
             if len(s.confident) == len(self.models):
                 # every model found once, and once is all there can be
                 passed.extend(items[k + 1 :])
                 break
         return passed
 
-    def _grown(self, model: VisionModel, result: tuple, f: _Frame, tested: PoseSet) -> list:
+    def _grown(
+        self, model: VisionModel, result: tuple, f: _Frame, tested: PoseSet, resting: bool = True
+    ) -> list:
         """Bigger models around the object ``model`` just fitted (``result`` of
         :func:`fit_and_verify`) that pass their test: ``(model, (X_CO, rms_px, Verification),
         the part's outline (k, 2) px)`` each.
@@ -325,11 +356,12 @@ class Recognizer:
         for whole, X_AB_all in others:
             X_CB_all = X_CO @ X_AB_all  # (k, 4, 4)
             for X_CB in grown_poses(
-                whole, X_CB_all, f.X_WC, f.K, f.gx, f.gy, self.table_z, tested, p
-            ):
+                whole, X_CB_all, f.X_WC, f.K, f.gx, f.gy, self.table_z, tested, p,
+                0.0 if resting else self.max_height_m,
+            ):  # fmt: skip
                 r2 = fit_and_verify(
                     whole, X_CB, f.segs, f.K, f.gx, f.gy, f.occluders_C, p,
-                    self._prior(whole, f.X_WC), grown=True,
+                    self._prior(whole, f.X_WC, resting), grown=True,
                 )  # fmt: skip
                 if r2 is not None:
                     found.append((whole, r2[:3], part_px))
@@ -344,18 +376,21 @@ class Recognizer:
         part_px: np.ndarray | None,
         f: _Frame,
         s: _Search,
+        resting: bool = True,
     ) -> None:
-        """Keep a tested pose as a candidate if it rests plausibly; a confident one claims its
-        image lines (and its model, when each model is there once)."""
+        """Keep a tested pose as a candidate if it rests plausibly (on the table if
+        ``resting``); a confident one claims its image lines (and its model, when each model
+        is there once)."""
         p = self.params
         X_WO = f.X_WC @ X_CO
         parts_W = [
             (transform(X_WO, q), P[:, :3] @ X_WO[:3, :3].T)
             for q, P in zip(model.parts_vertices_O, model.planes_O, strict=True)
         ]
-        if not self.surroundings.plausible(parts_W, [], p):
+        height = 0.0 if resting else self.max_height_m
+        if not self.surroundings.plausible(parts_W, [], p, max_height_m=height):
             return
-        s.candidates.append(Candidate(model, X_CO, X_WO, rms_px, v, parts_W, part_px))
+        s.candidates.append(Candidate(model, X_CO, X_WO, rms_px, v, parts_W, part_px, resting))
         if v.silhouette_fraction >= p.min_silhouette_fraction:
             s.claimed[v.matched] = True  # only confident candidates block others
             if p.max_per_model == 1 and v.score >= p.confident_score:
@@ -364,8 +399,9 @@ class Recognizer:
     def _select(self, s: _Search, f: _Frame) -> list[Detection]:
         """The candidates found so far, conflicts resolved (see :func:`.pose_sets.select`)."""
         return select(
-            s.candidates, f.segs, f.K, f.gx, f.gy, f.occluders_C, self.params, self.surroundings
-        )
+            s.candidates, f.segs, f.K, f.gx, f.gy, f.occluders_C, self.params, self.surroundings,
+            self.max_height_m,
+        )  # fmt: skip
 
     def _drop_environment(self, segs, X_CW, K, env_C) -> np.ndarray:
         """Image segments not explained by the fixed environment's projected edges: the frame's
@@ -380,6 +416,9 @@ class Recognizer:
             explained[mj] = True
         return segs[~explained]
 
-    def _prior(self, model: VisionModel, X_WC: np.ndarray):
-        """The fits' soft prior that ``model`` rests on a face on the table (None if off)."""
+    def _prior(self, model: VisionModel, X_WC: np.ndarray, resting: bool = True):
+        """The fits' soft prior that ``model`` rests on a face on the table (None if off, or
+        not ``resting``)."""
+        if not resting:
+            return None
         return resting_prior(model, self._facets[model.name][0], X_WC, self.table_z, self.params)

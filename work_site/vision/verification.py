@@ -11,7 +11,14 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from work_site.vision.model import VisionModel, overlap_exceeds, project, transform, visible_edges
+from work_site.vision.model import (
+    VisionModel,
+    convex_overlap_depth,
+    overlap_exceeds,
+    project,
+    transform,
+    visible_edges,
+)
 from work_site.vision.params import PART_MARGIN_PX, RecognizerParams
 from work_site.vision.pose import fit_pose
 from work_site.vision.table import SUPPORT_OFFSETS_PX, sample_gradient, sample_gradient_xy
@@ -291,13 +298,16 @@ class Surroundings:
         accepted: list[list[tuple]],
         params: RecognizerParams,
         environment: bool = True,
+        max_height_m: float = 0.0,
     ) -> bool:
-        """Rests on the table inside the work area; interpenetrates nothing accepted (nor the
-        fixed environment, if ``environment``). Parts are (vertices (n, 3), face normals (k, 3))
-        in W."""
+        """Rests on the table (its lowest point within ``table_tol_m`` of the top, or up to
+        ``max_height_m`` above it: on something else) inside the work area; interpenetrates
+        nothing accepted (nor the fixed environment, if ``environment``). Parts are (vertices
+        (n, 3), face normals (k, 3)) in W."""
         p = params
         V = np.vstack([v for v, _ in parts_W])
-        if abs(V[:, 2].min() - self.table_z) > p.table_tol_m:
+        height = V[:, 2].min() - self.table_z
+        if not -p.table_tol_m <= height <= max_height_m + p.table_tol_m:
             return False
         c = V[:, :2].mean(0)
         lo, hi = self.work_area_xy
@@ -322,6 +332,27 @@ class Surroundings:
                 if overlap_exceeds(a, b, na, nb, p.max_penetration_m):
                     return False
         return True
+
+    def supported_by(
+        self, parts_W: list[tuple], others: list[list[tuple]], params: RecognizerParams
+    ) -> bool:
+        """Held up: its lowest point within ``table_tol_m`` of the table top, or something of
+        ``others`` (objects) or of the fixed parts under it: moved down by ``table_tol_m`` it
+        would dig into that by at least half the move (a block on a block, across an edge of
+        one, on the frame; a block only beside another digs in no deeper)."""
+        tol = params.table_tol_m
+        V = np.vstack([v for v, _ in parts_W])
+        if V[:, 2].min() - self.table_z <= tol:
+            return True
+        down = np.array([0.0, 0.0, tol])
+        for b, nb in [q for parts in others for q in parts] + self.fixed_parts_W:
+            for a, na in parts_W:
+                if np.linalg.norm(a.mean(0) - b.mean(0)) > _radius(a) + _radius(b) + tol:
+                    continue
+                before = convex_overlap_depth(a, b, na, nb)
+                if convex_overlap_depth(a - down, b, na, nb) >= before + tol / 2:
+                    return True
+        return False
 
 
 def _radius(V: np.ndarray) -> float:
