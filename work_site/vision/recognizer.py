@@ -128,6 +128,7 @@ class Recognizer:
         self.group_params = group_params or GroupParams()
         self.object_models = list(models)
         self.models = [vision_model(m) for m in models]
+        self._by_name = {m.name: m for m in self.models}
         files = []
         for m in models:
             files.append(m.urdf_path)
@@ -254,8 +255,28 @@ class Recognizer:
         if p.max_per_model == 1:
             s.confident.update(r.model for r in accepted)
         n_before = len(s.candidates)
+        self._unpriored(accepted, f, s)
         self._search(free, f, s, resting=False)
         return self._select(s, f) if len(s.candidates) > n_before else accepted
+
+    def _unpriored(self, accepted: list[Detection], f: _Frame, s: _Search) -> None:
+        """Each accepted object fitted again without the table prior: one view hardly tells
+        depth, and the prior may have put a block that sits on a block onto the table further
+        along its ray. Where the image alone holds it above the table, that pose becomes a
+        candidate too, for the selection to weigh."""
+        p = self.params
+        X_CW = invert_pose(f.X_WC)
+        for r in accepted:
+            model = self._by_name[r.model]
+            result = fit_and_verify(
+                model, X_CW @ r.X_WO, f.segs, f.K, f.gx, f.gy, f.occluders_C, p, None
+            )
+            if result is None:
+                continue
+            X_WO = f.X_WC @ result[0]
+            if transform(X_WO, model.vertices_O)[:, 2].min() - self.table_z <= p.table_tol_m:
+                continue  # on the table after all: the prior's pose stands
+            self._add_candidate(model, *result[:3], None, f, s, resting=False)
 
     # -- steps --------------------------------------------------------------------------------
     def _frame(self, image: np.ndarray, camera: CameraModel) -> _Frame:
