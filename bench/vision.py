@@ -26,7 +26,7 @@ import numpy as np
 
 from bench.vision_dataset import SUPPORTS, SceneRenderer, degrade, read_truth, write_dataset
 from bench.vision_evaluate import score_scene
-from models.scene import CameraModel, load_camera, load_scene
+from models.scene import load_camera, load_scene
 from work_site.sensor import CameraConditions
 from work_site.vision.index import IndexParams, default_cache_dir
 from work_site.vision.recognizer import Recognizer, RecognizerParams
@@ -83,7 +83,7 @@ def _ensure_dataset(spec: DatasetSpec, path: Path) -> list[Path]:
 
 def score(
     recognizer: Recognizer,
-    scenes: list[tuple[np.ndarray, CameraModel, list]],
+    scenes: list[tuple],
     rows: list[dict] | None = None,
     conditions: list[dict] | None = None,
 ) -> dict:
@@ -92,9 +92,9 @@ def score(
     models = {m.name: m for m in recognizer.models}
     n_vis = n_vis_hit = tp = fp = 0
     errs, times, cpu = [], [], []
-    for k, (image, camera, truth) in enumerate(scenes):
+    for k, (image, camera, truth, robot) in enumerate(scenes):
         t0, c0 = time.perf_counter(), time.process_time()
-        found = recognizer.recognize(image, camera)
+        found = recognizer.recognize(image, camera, *robot)
         times.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
         sc = score_scene([(r.model, r.X_WO) for r in found], truth, models, camera)
@@ -147,12 +147,17 @@ def score(
     }
 
 
-def _load(paths: list[Path]) -> list[tuple[np.ndarray, CameraModel, list]]:
+def _load(paths: list[Path]) -> list[tuple]:
+    """Each scene as (image, camera, ground truth, the robot's (joint angles, finger opening)
+    or () where the scene does not say)."""
     out = []
     for path in paths:
         doc = json.loads(path.read_text())
         image = cv2.imread(str(path.parent / doc["image"]), cv2.IMREAD_GRAYSCALE)
-        out.append((image, load_camera(path.parent / doc["camera"]), read_truth(path)))
+        robot = (
+            (np.array(doc["robot_q_rad"]), doc["finger_opening_m"]) if "robot_q_rad" in doc else ()
+        )
+        out.append((image, load_camera(path.parent / doc["camera"]), read_truth(path), robot))
     return out
 
 
@@ -345,13 +350,13 @@ def _sweeps(out: Path, scenes: list, seed: int, cache_dir: Path | None) -> list[
     # Image degradations of the same scenes.
     rng = np.random.default_rng(seed)
     for sigma in (0.0, 2.0, 4.0, 8.0, 16.0):
-        data = [(degrade(im, rng, noise_sigma=sigma), c, t) for im, c, t in scenes]
+        data = [(degrade(im, rng, noise_sigma=sigma), c, t, r) for im, c, t, r in scenes]
         point("noise_sigma", sigma, base, data)
     for blur in (0.5, 1.0, 1.5, 2.5):
-        data = [(degrade(im, rng, blur_sigma_px=blur), c, t) for im, c, t in scenes]
+        data = [(degrade(im, rng, blur_sigma_px=blur), c, t, r) for im, c, t, r in scenes]
         point("blur_sigma_px", blur, base, data)
     for gain in (0.25, 0.5, 1.5):
-        data = [(degrade(im, rng, gain=gain), c, t) for im, c, t in scenes]
+        data = [(degrade(im, rng, gain=gain), c, t, r) for im, c, t, r in scenes]
         point("lighting_gain", gain, base, data)
     # Resolution: render the sweep's layouts again at 1280×960 and average down.
     for w, data in _resolution_sets(len(scenes), seed, out).items():
@@ -383,11 +388,13 @@ def _resolution_sets(n: int, seed: int, out: Path) -> dict[int, list]:
             poses = renderer.random_layout(rng)
             grey, truth = renderer.render(poses)
             grey = degrade(grey, rng, noise_sigma=1.0)
-            sets[1280].append((grey, big, truth))
+            robot = renderer.world.robot_joint_positions()
+            robot = (robot[0], float(np.sum(robot[1])))
+            sets[1280].append((grey, big, truth, robot))
             for w, f in ((640, 0.5), (320, 0.25)):
                 cam = big.scaled(f)
                 small = cv2.resize(grey, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
-                sets[w].append((small, cam, truth))
+                sets[w].append((small, cam, truth, robot))
     finally:
         renderer.close()
     return sets

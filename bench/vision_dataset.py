@@ -356,6 +356,9 @@ def write_dataset(
                     "dist": c.dist.tolist(),
                 }
             cv2.imwrite(str(out / f"{stem}.png"), grey)
+            q, fingers = renderer.world.robot_joint_positions()
+            doc["robot_q_rad"] = q.tolist()  # the arm in view hides blocks; vision knows it
+            doc["finger_opening_m"] = float(np.sum(fingers))
             doc["objects"] = [
                 {
                     "model": t.model,

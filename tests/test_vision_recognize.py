@@ -130,3 +130,37 @@ def test_blocks_stacked_on_blocks_are_found_where_they_are(recognizer) -> None:
         assert name in found, f"{name} on its stack not found: {sorted(found)}"
         off = np.linalg.norm(found[name].X_WO[:3, 3] - poses[name][:3, 3])
         assert off < 0.003, f"{name} found {1000 * off:.1f} mm off"
+
+
+def test_the_arm_in_view_is_set_aside_when_vision_knows_its_joints(recognizer) -> None:
+    """The gripper lowered into the frame: told the joint angles, vision explains the arm's
+    lines by the arm and finds only the cube beside it."""
+    from models.kinematics import ik_tcp
+    from models.robot import load_robot
+
+    renderer = SceneRenderer(load_scene(), supersample=3)
+    try:
+        placement = renderer.scene.robot
+        robot = load_robot(placement.urdf_path)
+        X_WG = make_pose(np.diag([1.0, -1.0, -1.0]), [0.45, -0.05, 0.08])  # pointing down
+        ik = ik_tcp(X_WG, placement.q_home_rad, robot, placement.X_WB)
+        assert ik.ok, ik.reason
+        poses = {
+            o.name: make_pose(None, [5.0 + k, 5.0, -1.0]) for k, o in enumerate(renderer.movable)
+        }
+        V = np.vstack([pt.vertices_O for pt in renderer.scene.object("cube").model.parts])
+        poses["cube"] = make_pose(None, [0.62, -0.2, -V[:, 2].min()])
+        renderer.world.set_robot_joint_positions(ik.q, np.array([0.02, 0.02]))
+        image, _ = renderer.render(poses)
+        camera = renderer.scene.camera
+    finally:
+        renderer.close()
+    image = np.clip(image + np.random.default_rng(1).normal(0, 1.0, image.shape), 0, 255)
+    image = image.astype(np.uint8)
+    lines_all = recognizer._frame(image, camera).segs
+    lines_left = recognizer._frame(image, camera, recognizer._robot.at(ik.q, 0.04)).segs
+    assert len(lines_left) < 0.7 * len(lines_all), "the arm's lines should be set aside"
+    found = recognizer.recognize(image, camera, ik.q, 0.04)
+    assert [r.model for r in found] == ["cube"], [(r.model, r.score) for r in found]
+    with pytest.raises(ValueError, match="6 finite angles"):
+        recognizer.recognize(image, camera, np.zeros(5))

@@ -235,6 +235,8 @@ class RenderedFrame:
     stamp_s: float
     image: np.ndarray
     payload: bytes
+    q: np.ndarray  # the arm's joint angles (6,) and the finger opening (m) in the image:
+    finger_opening_m: float  # vision sets the arm's lines aside
 
 
 @dataclass(frozen=True)
@@ -288,7 +290,10 @@ def _render_worker(
                     quality=wire.quality,
                 )
             )
-            conn.send(RenderedFrame(request.seq, request.stamp_s, image, payload))
+            opening = float(np.sum(request.fingers_m))
+            conn.send(
+                RenderedFrame(request.seq, request.stamp_s, image, payload, request.q, opening)
+            )
     except (EOFError, KeyboardInterrupt):
         return
     finally:

@@ -9,10 +9,14 @@ import multiprocessing as mp
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from work_site.child import stop_child
+
+if TYPE_CHECKING:
+    from work_site.camera import RenderedFrame
 
 log = logging.getLogger("work-site")
 
@@ -83,7 +87,7 @@ def _vision_worker(scene_path: str, scale: float, index_views: int | None, conn)
             request = conn.recv()
             if request is None:
                 return
-            seq, stamp_s, image = request
+            seq, stamp_s, image, robot = request
             if note is None:  # §IV-B: the camera's pose from the frame, on the first image
                 t0 = time.perf_counter()
                 camera, note = _calibrated(image, scene)
@@ -94,10 +98,10 @@ def _vision_worker(scene_path: str, scale: float, index_views: int | None, conn)
                     seen = camera.scaled(scale)
                     size = (seen.width, seen.height)
                     found = recognizer.recognize(
-                        cv2.resize(image, size, interpolation=cv2.INTER_AREA), seen
+                        cv2.resize(image, size, interpolation=cv2.INTER_AREA), seen, *robot
                     )
                 else:
-                    found = recognizer.recognize(image, camera)
+                    found = recognizer.recognize(image, camera, *robot)
                 objects = tuple((r.model, r.X_WO, float(r.score)) for r in found)
                 error = ""
             except Exception as e:  # one bad frame must not end vision
@@ -130,11 +134,13 @@ class VisionProcess:
         self.busy = True  # until the worker says it is ready
         self.failed = ""
 
-    def request(self, seq: int, stamp_s: float, image: np.ndarray) -> bool:
-        """Start recognising a frame unless busy (or not ready); True if started."""
+    def request(self, frame: RenderedFrame) -> bool:
+        """Start recognising a frame (the arm's joints in it known) unless busy (or not
+        ready); True if started."""
         if self.busy or not self.ready:
             return False
-        self._conn.send((seq, stamp_s, image))
+        robot = (frame.q, frame.finger_opening_m)
+        self._conn.send((frame.seq, frame.stamp_s, frame.image, robot))
         self.busy = True
         return True
 

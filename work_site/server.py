@@ -39,7 +39,7 @@ from protocol import (
     encode,
     key,
 )
-from work_site.camera import CameraProcess, FrameEncoding, RenderRequest
+from work_site.camera import CameraProcess, FrameEncoding, RenderedFrame, RenderRequest
 from work_site.control.controller import (
     Impedance,
     TaskController,
@@ -329,7 +329,7 @@ class WorkSiteServer(ProgramIntake):
         self._pub_camera.put(done.payload)
         self.stats["frames"] += 1
         # Vision gets the renderer's pixels, never the wire's (possibly JPEG).
-        self._recognize(done.seq, done.stamp_s, done.image, elapsed_s)
+        self._recognize(done, elapsed_s)
 
     def _request_frame(self, camera: CameraProcess, world: World, elapsed_s: float) -> None:
         """Ask the camera for the next frame when one is due and it is idle, and publish the
@@ -385,12 +385,12 @@ class WorkSiteServer(ProgramIntake):
         )
         return now, ticks
 
-    def _recognize(self, seq: int, stamp_s: float, image, elapsed_s: float) -> None:
+    def _recognize(self, frame: RenderedFrame, elapsed_s: float) -> None:
         """Hand a new frame to vision if it is idle and its rate allows."""
         vision = self._vision
         if vision is None or elapsed_s < self._next_vision_s:
             return
-        if vision.request(seq, stamp_s, image):
+        if vision.request(frame):
             self._next_vision_s = elapsed_s + 1.0 / self.options.vision_rate_hz
 
     def _publish_recognitions(self) -> None:

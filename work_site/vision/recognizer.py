@@ -21,6 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from models.robot import load_robot
 from models.scene import CameraModel, ObjectModel, Scene, load_scene
 from models.transforms import invert_pose
 from work_site.vision.hypotheses import (
@@ -53,6 +54,7 @@ from work_site.vision.model import (
 )
 from work_site.vision.params import ENV_MATCH_TOL_PX, RecognizerParams
 from work_site.vision.pose_sets import Candidate, Detection, PoseSet, select
+from work_site.vision.robot_parts import RobotParts
 from work_site.vision.table import rest_corners
 from work_site.vision.verification import (
     Surroundings,
@@ -164,6 +166,7 @@ class Recognizer:
             sum(np.max(np.linalg.norm(m.vertices_O - m.vertices_O.mean(0), axis=1)) * 2
                 for m in self.models)
         )  # fmt: skip
+        self._robot = RobotParts(load_robot(scene.robot.urdf_path), scene.robot.X_WB)
         self._env_models = [(vision_model(o.model), o.X_WO) for o in scene.objects if o.fixed]
         table = [o for o in scene.objects if o.fixed and o.name == "table"]
         if table:
@@ -198,13 +201,27 @@ class Recognizer:
         return self.surroundings.work_area_xy
 
     # -- the public entry point ------------------------------------------------------------
-    def recognize(self, image: np.ndarray, camera: CameraModel) -> list[Detection]:
+    def recognize(
+        self,
+        image: np.ndarray,
+        camera: CameraModel,
+        robot_q_rad: np.ndarray | None = None,
+        finger_opening_m: float = 0.0,
+    ) -> list[Detection]:
         """Objects found in ``image`` (grey uint8, camera's size), best score first.
 
-        Raises ValueError for an unusable image or camera; an image with nothing recognisable
-        gives an empty list.
+        ``robot_q_rad`` (6,): the arm's joint angles when the image was taken (and the
+        gripper's opening, m): the robot's lines are then set aside and it hides what is behind
+        it. Raises ValueError for an unusable image, camera or joint state; an image with
+        nothing recognisable gives an empty list.
         """
-        f = self._frame(image, camera)
+        robot = []
+        if robot_q_rad is not None:
+            q = np.asarray(robot_q_rad, dtype=np.float64)
+            if q.shape != (6,) or not np.all(np.isfinite(q)) or not np.isfinite(finger_opening_m):
+                raise ValueError(f"robot joint state must be 6 finite angles, got {q.tolist()}")
+            robot = self._robot.at(q, float(finger_opening_m))
+        f = self._frame(image, camera, robot)
         if len(f.segs) < 4:
             return []
         p = self.params
@@ -279,9 +296,9 @@ class Recognizer:
             self._add_candidate(model, *result[:3], None, f, s, resting=False)
 
     # -- steps --------------------------------------------------------------------------------
-    def _frame(self, image: np.ndarray, camera: CameraModel) -> _Frame:
+    def _frame(self, image: np.ndarray, camera: CameraModel, robot: list | None = None) -> _Frame:
         """The image checked, undistorted, its gradients and its lines not explained by the
-        fixed environment."""
+        fixed environment or the robot (its links' models and poses ``X_WL``)."""
         img = check_grey_image(image)
         check_camera(camera)
         if img.shape != (camera.height, camera.width):
@@ -298,12 +315,15 @@ class Recognizer:
         gx, gy = image_gradients(img)  # for the lines' refinement and every verification
         segs = detect_lines(img, self.line_params, (gx, gy))
         X_CW = invert_pose(camera.X_WC)
+        robot = robot or []
         env_C = Occluders.of_parts(
-            [transform(X_CW, V) for _, _, parts, _ in self.environment for V, _ in parts],
-            [planes_in(X_CW @ X_WO, P) for _, X_WO, _, planes in self.environment for P in planes],
+            [transform(X_CW, V) for _, _, parts, _ in self.environment for V, _ in parts]
+            + [transform(X_CW @ X, V) for m, X in robot for V in m.parts_vertices_O],
+            [planes_in(X_CW @ X_WO, P) for _, X_WO, _, planes in self.environment for P in planes]
+            + [planes_in(X_CW @ X, P) for m, X in robot for P in m.planes_O],
             K,
         )
-        segs = self._drop_environment(segs, X_CW, K, env_C)
+        segs = self._drop_environment(segs, X_CW, K, env_C, [*self._env_models, *robot])
         return _Frame(segs, K, camera.X_WC, gx, gy, env_C, t0)
 
     def _search(
@@ -424,13 +444,14 @@ class Recognizer:
             self.max_height_m,
         )  # fmt: skip
 
-    def _drop_environment(self, segs, X_CW, K, env_C) -> np.ndarray:
-        """Image segments not explained by the fixed environment's projected edges: the frame's
-        many corners would otherwise flood the hypotheses."""
+    def _drop_environment(self, segs, X_CW, K, env_C, env_models) -> np.ndarray:
+        """Image segments not explained by the projected edges of ``env_models`` (model,
+        ``X_WO``): the frame's many corners would otherwise flood the hypotheses, and the
+        robot's fingers look like a plank."""
         if len(segs) == 0:
             return segs
         explained = np.zeros(len(segs), dtype=bool)
-        for env in self._env_models:
+        for env in env_models:
             X_CO = X_CW @ env[1]
             _, proj, _ = visible_edges(env[0], X_CO, K, env_C)
             _, mj = match_segments(proj, segs, ENV_MATCH_TOL_PX, np.deg2rad(3.0))
