@@ -141,9 +141,11 @@ def score(
         ),
         "ms_per_frame_median": 1000 * float(np.median(times)) if times else None,
         "ms_per_frame_p90": 1000 * float(np.percentile(times, 90)) if times else None,
+        "ms_per_frame_p99": 1000 * float(np.percentile(times, 99)) if times else None,
         # CPU time of this process: what the frame costs when other work shares the cores
         "cpu_ms_per_frame_median": 1000 * float(np.median(cpu)) if cpu else None,
         "cpu_ms_per_frame_p90": 1000 * float(np.percentile(cpu, 90)) if cpu else None,
+        "cpu_ms_per_frame_p99": 1000 * float(np.percentile(cpu, 99)) if cpu else None,
     }
 
 
