@@ -31,7 +31,7 @@ from protocol.session import (
     operator_only_access_control,
 )
 from work_site.control.controller import DEFAULT_SURFACE_STIFFNESS_N_PER_M
-from work_site.sensor import Sensor
+from work_site.options import DEFAULT_CAMERA_SENSOR
 from work_site.vision import cli as vision_cli
 
 
@@ -164,9 +164,10 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--camera-noise",
         type=float,
-        default=1.0,
+        default=DEFAULT_CAMERA_SENSOR.read_noise_grey,
         metavar="GREY",
-        help="sensor noise added to each pixel, standard deviation in grey levels "
+        help="the sensor's read noise, standard deviation in grey levels, on top of its shot "
+        "noise, blur and gain (docs/design.md, 'The camera as a real one sees') "
         "(default: %(default)s)",
     )
     parser.add_argument(
@@ -308,7 +309,9 @@ def serve(args: argparse.Namespace) -> int:
             publish_truth=args.publish_truth,
             camera=not args.no_camera,
             camera_supersample=args.camera_supersample,
-            camera_sensor=Sensor(read_noise_grey=args.camera_noise),
+            camera_sensor=dataclasses.replace(
+                DEFAULT_CAMERA_SENSOR, read_noise_grey=args.camera_noise
+            ),
             vision_scale=args.vision_scale,
             vision_index_views=args.vision_index_views,
             vision_rate_hz=(

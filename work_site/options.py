@@ -21,8 +21,15 @@ DEADMAN_RANGE_S = (0.2, 5.0)
 so that one late beat stops nothing; at most a few seconds of motion nobody watches."""
 
 
-DEFAULT_CAMERA_SENSOR = Sensor(read_noise_grey=1.0)
-"""The work site's camera: the renderer's image with 1 grey level of read noise."""
+DEFAULT_CAMERA_SENSOR = Sensor(
+    blur_sigma_px=0.65,
+    gain=1.3,
+    black_level_grey=6.0,
+    full_well_e=12000.0,
+    read_noise_grey=1.5,
+)
+"""The work site's camera: a real one's blur, shot and read noise, gain and black level, each
+in the middle of the vision benchmark's realistic ranges (``CameraConditions``)."""
 
 
 @dataclass(frozen=True)
