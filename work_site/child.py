@@ -1,4 +1,4 @@
-"""Stopping the work site's child processes (the camera renderer, vision)."""
+"""The work site's child processes (the camera renderer, vision): their threads, their stop."""
 
 from __future__ import annotations
 
@@ -7,6 +7,10 @@ from multiprocessing.connection import Connection
 
 TERMINATE_WAIT_S = 5.0
 """How long a terminated child is waited for before the parent goes on."""
+
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+"""The environment variables that set numpy's BLAS threads, read when numpy is imported: a
+child doing one core's work is started with them at 1."""
 
 
 def stop_child(proc: mp.process.BaseProcess, conn: Connection, ask: bool, grace_s: float) -> None:
