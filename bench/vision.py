@@ -24,11 +24,21 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from bench.vision_dataset import SUPPORTS, SceneRenderer, degrade, read_truth, write_dataset
+from bench.vision_crb import scene_bound, sensor_noise_grey
+from bench.vision_dataset import (
+    DATASET_VERSION,
+    SUPPORTS,
+    SceneRenderer,
+    degrade,
+    read_truth,
+    write_dataset,
+)
 from bench.vision_evaluate import score_scene
-from models.scene import load_camera, load_scene
+from models.scene import CameraModel, load_camera, load_scene
+from models.transforms import invert_pose
 from work_site.sensor import CameraConditions
 from work_site.vision.index import IndexParams, default_cache_dir
+from work_site.vision.model import planes_in
 from work_site.vision.recognizer import Recognizer, RecognizerParams
 
 VISIBLE_MIN = 0.7
@@ -68,7 +78,11 @@ def _ensure_dataset(spec: DatasetSpec, path: Path) -> list[Path]:
     existing = sorted(path.glob("scene_*.json"))
     if len(existing) >= spec.scenes:
         doc = json.loads(existing[0].read_text())
-        if doc.get("seed") == spec.seed and ("conditions" in doc) == spec.realistic:
+        if (
+            doc.get("seed") == spec.seed
+            and ("conditions" in doc) == spec.realistic
+            and doc.get("version") == DATASET_VERSION
+        ):
             return existing[: spec.scenes]
     print(f"rendering the {spec.name} set ({spec.scenes} scenes) into {path}", file=sys.stderr)
     return write_dataset(
@@ -86,12 +100,15 @@ def score(
     scenes: list[tuple],
     rows: list[dict] | None = None,
     conditions: list[dict] | None = None,
+    sensors: list[dict | None] | None = None,
 ) -> dict:
     """Recognise every scene and score it; summary metrics (and per-object rows if asked, with
-    each scene's ``conditions`` row merged in)."""
+    each scene's ``conditions`` row merged in). With each scene's ``sensors`` (its camera's
+    conditions), also the Cramér–Rao bound of each block's pose (:mod:`bench.vision_crb`)."""
     models = {m.name: m for m in recognizer.models}
     n_vis = n_vis_hit = tp = fp = 0
-    errs, times, cpu = [], [], []
+    errs, times, cpu, limits = [], [], [], []
+    rng = np.random.default_rng(0)
     for k, (image, camera, truth, robot) in enumerate(scenes):
         t0, c0 = time.perf_counter(), time.process_time()
         found = recognizer.recognize(image, camera, *robot)
@@ -101,17 +118,24 @@ def score(
         tp += len(sc.matches)
         fp += len(sc.false_positives)
         hit = {id(t): e for t, e in sc.matches}
+        sensor = sensors[k] if sensors else None
+        bounds = _bounds(recognizer, image, camera, truth, robot, sensor, rng) if sensor else {}
+        limits.extend(bounds[id(t)] for t, _ in sc.matches if id(t) in bounds)
         for t in truth:
             if t.visible_fraction >= VISIBLE_MIN:
                 n_vis += 1
                 n_vis_hit += id(t) in hit
             if rows is not None:
                 e = hit.get(id(t))
+                b = bounds.get(id(t))
                 rows.append(
                     {
                         "scene": k,
                         "model": t.model,
                         "support": t.support,
+                        "bound_lateral_mm": 1000 * b[0] if b else "",
+                        "bound_depth_mm": 1000 * b[1] if b else "",
+                        "bound_rotation_deg": float(np.rad2deg(b[2])) if b else "",
                         **(conditions[k] if conditions else {}),
                         "visible_fraction": t.visible_fraction,
                         "found": e is not None,
@@ -139,6 +163,10 @@ def score(
         "rotation_deg_p99": (
             float(np.percentile([np.rad2deg(e.rotation_rad) for e in errs], 99)) if errs else None
         ),
+        # The physical limit of one view for the same blocks: the Cramér–Rao bound's medians
+        "bound_lateral_mm_median": med([1000 * b[0] for b in limits]),
+        "bound_depth_mm_median": med([1000 * b[1] for b in limits]),
+        "bound_rotation_deg_median": med([float(np.rad2deg(b[2])) for b in limits]),
         "ms_per_frame_median": 1000 * float(np.median(times)) if times else None,
         "ms_per_frame_p90": 1000 * float(np.percentile(times, 90)) if times else None,
         "ms_per_frame_p99": 1000 * float(np.percentile(times, 99)) if times else None,
@@ -161,6 +189,54 @@ def _load(paths: list[Path]) -> list[tuple]:
         )
         out.append((image, load_camera(path.parent / doc["camera"]), read_truth(path), robot))
     return out
+
+
+def _bounds(
+    recognizer: Recognizer,
+    image: np.ndarray,
+    camera: CameraModel,
+    truth: list,
+    robot: tuple,
+    sensor: dict,
+    rng: np.random.Generator,
+) -> dict[int, tuple[float, float, float]]:
+    """The Cramér–Rao bound's median errors (across the ray, along it, m; rotation, rad) of
+    each block at least ``VISIBLE_MIN`` visible, keyed by ``id`` of its ground truth; the
+    others at their true poses, the fixed environment and the arm hide its edges."""
+    K = np.asarray(camera.K, dtype=np.float64)
+    dist = np.asarray(camera.dist, dtype=np.float64)
+    img = cv2.undistort(image, K, dist) if np.any(dist != 0) else image
+    X_CW = invert_pose(camera.X_WC)
+    models = {m.name: m for m in recognizer.models}
+    fixed = [
+        planes_in(X_CW @ X_WO, P) for _, X_WO, _, planes in recognizer.environment for P in planes
+    ]
+    arm = [
+        planes_in(X_CW @ X, P) for m, X in (recognizer.robot.at(*robot) if robot else [])
+        for P in m.planes_O
+    ]  # fmt: skip
+    placed = [t for t in truth if t.X_WO[2, 3] > -0.5]  # not parked out of view
+    out = {}
+    for t in placed:
+        if t.visible_fraction < VISIBLE_MIN:
+            continue
+        others = [
+            planes_in(X_CW @ o.X_WO, P) for o in placed if o is not t
+            for P in models[o.model].planes_O
+        ]  # fmt: skip
+        X_CO = X_CW @ t.X_WO
+        b = scene_bound(
+            models[t.model], X_CO, K, fixed + arm + others, img,
+            lambda grey: sensor_noise_grey(sensor, grey), sensor["blur_sigma_px"],
+        )  # fmt: skip
+        if b is not None:
+            out[id(t)] = b.median_errors(X_CO, rng)
+    return out
+
+
+def _sensors(paths: list[Path]) -> list[dict | None]:
+    """Each scene's camera sensor (``conditions["sensor"]``), None where the scene has none."""
+    return [json.loads(p.read_text()).get("conditions", {}).get("sensor") for p in paths]
 
 
 def _conditions(paths: list[Path]) -> list[dict]:
@@ -224,7 +300,7 @@ def run(
     summary = {
         "set": f"{test.name}: seed {test.seed}, {test.scenes} scenes"
         + (", realistic camera, blocks dropped" if test.realistic else ""),
-        **score(recognizer, _load(test_paths), rows, _conditions(test_paths)),
+        **score(recognizer, _load(test_paths), rows, _conditions(test_paths), _sensors(test_paths)),
     }
     # Others' work on the same cores slows the wall clock: keep the load next to the times.
     summary["load_average_1min"] = [round(load_before[0], 2), round(os.getloadavg()[0], 2)]

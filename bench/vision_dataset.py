@@ -28,6 +28,10 @@ from work_site.sensor import CameraConditions, Lighting
 from work_site.vision.model import convex_overlap_depth, transform
 from work_site.vision.table import rest_rotations
 
+DATASET_VERSION = 2
+"""Written into every scene; a cached set of another version is rendered again. Raise it when
+the rendering or the ground truth changes (2: the renderer's half-pixel offset made up for,
+the arm's joints recorded)."""
 WORK_AREA_XY_M = ((0.22, 0.68), (-0.25, 0.32))
 """Where blocks are dropped: around the frame, inside and outside it (x range, y range)."""
 TOUCH_PROBABILITY = 0.35
@@ -333,7 +337,13 @@ def write_dataset(
                 if drop_probability > 0
                 else renderer.random_layout(rng)
             )
-            doc: dict = {"image": f"{stem}.png", "camera": "camera.json", "seed": seed, "index": i}
+            doc: dict = {
+                "version": DATASET_VERSION,
+                "image": f"{stem}.png",
+                "camera": "camera.json",
+                "seed": seed,
+                "index": i,
+            }
             if conditions is None:
                 grey, truth = renderer.render(poses)
                 grey = degrade(grey, rng, noise_sigma=noise_sigma)

@@ -128,8 +128,16 @@ def test_blocks_stacked_on_blocks_are_found_where_they_are(recognizer) -> None:
     found = {r.model: r for r in recognizer.recognize(image.astype(np.uint8), camera)}
     for name in ("cube", "hex_prism"):
         assert name in found, f"{name} on its stack not found: {sorted(found)}"
-        off = np.linalg.norm(found[name].X_WO[:3, 3] - poses[name][:3, 3])
-        assert off < 0.003, f"{name} found {1000 * off:.1f} mm off"
+        off = found[name].X_WO[:3, 3] - poses[name][:3, 3]
+        ray = poses[name][:3, 3] - camera.X_WC[:3, 3]
+        ray /= np.linalg.norm(ray)
+        along = abs(off @ ray)
+        across = np.linalg.norm(off - (off @ ray) * ray)
+        # Across the ray one view is sharp. Along it, without the table to rest on, a tenth
+        # of a pixel of edge position is millimetres: within the tolerance by which a block
+        # is taken to rest on its support (the model editor then settles it there).
+        assert across < 0.0005, f"{name} found {1000 * across:.2f} mm off across the ray"
+        assert along < recognizer.params.table_tol_m, f"{name}: {1000 * along:.1f} mm along it"
 
 
 def test_the_arm_in_view_is_set_aside_when_vision_knows_its_joints(recognizer) -> None:
@@ -158,7 +166,7 @@ def test_the_arm_in_view_is_set_aside_when_vision_knows_its_joints(recognizer) -
     image = np.clip(image + np.random.default_rng(1).normal(0, 1.0, image.shape), 0, 255)
     image = image.astype(np.uint8)
     lines_all = recognizer._frame(image, camera).segs
-    lines_left = recognizer._frame(image, camera, recognizer._robot.at(ik.q, 0.04)).segs
+    lines_left = recognizer._frame(image, camera, recognizer.robot.at(ik.q, 0.04)).segs
     assert len(lines_left) < 0.7 * len(lines_all), "the arm's lines should be set aside"
     found = recognizer.recognize(image, camera, ik.q, 0.04)
     assert [r.model for r in found] == ["cube"], [(r.model, r.score) for r in found]

@@ -29,6 +29,10 @@ from work_site.sensor import Lighting, Sensor
 
 CAMERA_NEAR_M = 0.05
 CAMERA_FAR_M = 5.0
+TINY_RENDERER_SAMPLE_PX = (0.5, -0.5)
+"""Where pybullet's TinyRenderer puts a scene point, in pixels, relative to OpenCV's pinhole
+with pixel centres at integer coordinates: it samples pixels at a corner (measured on a
+block's silhouette: +0.50, −0.48 px at 1×, half that at 2×; the test holds it)."""
 # OpenCV camera (x right, y down, z forward) to OpenGL camera (x right, y up, z backward).
 _X_CV_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -38,12 +42,15 @@ def opengl_matrices(
 ) -> tuple[list[float], list[float]]:
     """pybullet view and projection matrices (column-major lists) for a pinhole camera.
 
-    The projection reproduces OpenCV's ``u = fx x/z + cx`` with pixel centres at integer
+    The rendering reproduces OpenCV's ``u = fx x/z + cx`` with pixel centres at integer
     coordinates, including an off-centre principal point (no lens distortion: see
-    :func:`render_grey`).
+    :func:`render_grey`). TinyRenderer samples each pixel at a corner, not at its centre:
+    the principal point is moved by :data:`TINY_RENDERER_SAMPLE_PX` to make up for it.
     """
     w, h = camera.width, camera.height
-    fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
+    fx, fy = camera.K[0, 0], camera.K[1, 1]
+    cx = camera.K[0, 2] - TINY_RENDERER_SAMPLE_PX[0]
+    cy = camera.K[1, 2] - TINY_RENDERER_SAMPLE_PX[1]
     view = invert_pose(camera.X_WC @ _X_CV_GL)
     proj = np.array(
         [

@@ -6,9 +6,12 @@ for each hypothesis in turn, an initial pose from the group's junctions and the 
 Lowe's least-squares fit, prediction of further edge correspondences and refitting; then
 verification (:mod:`.verification`): matched visible edge length, agreement of the image
 gradient's direction along every predicted edge, a final residual bound, no interpenetration
-with accepted objects or the fixed environment, and the object resting on the table inside the
-work area. The selection of the candidates that explain the image best is in
-:mod:`.pose_sets`, the tuning in :mod:`.params`.
+with accepted objects or the fixed environment, and the object inside the work area, resting
+on the table or held up by what else is found. The table's hypotheses and prior come first, as
+a fast first guess; then the hypotheses they set aside are fitted without the prior (blocks on
+blocks, leaning, any way up). The arm, at the joint angles given with the image, is part of
+the environment (:mod:`.robot_parts`). The selection of the candidates that explain the image
+best is in :mod:`.pose_sets`, the tuning in :mod:`.params`.
 """
 
 from __future__ import annotations
@@ -185,6 +188,11 @@ class Recognizer:
         )
 
     @property
+    def robot(self) -> RobotParts:
+        """The arm as vision sees it: its links' models, placed by joint angles."""
+        return self._robot
+
+    @property
     def max_height_m(self) -> float:
         """How high above the table an object's lowest point may be: on all the others piled
         up (the sum of their sizes), the most a stack of them can lift it."""
@@ -246,12 +254,7 @@ class Recognizer:
         # into a neighbour's corner) has kept its model's and its lines' other hypotheses from
         # being tested: test those now, with only the accepted objects claiming, for models
         # not accepted yet (retrying those too let phantoms displace true objects).
-        s.claimed[:] = False
-        for r in accepted:
-            s.claimed[list(r.matched_segments)] = True
-        s.confident.clear()
-        if p.max_per_model == 1:
-            s.confident.update(r.model for r in accepted)
+        self._claimed_by(accepted, s)
         n_before = len(s.candidates)
         self._search(
             [h for h in passed if not s.claimed[h[1]].all() and h[0].name not in s.confident],
@@ -265,12 +268,7 @@ class Recognizer:
         # What is left may not rest on the table: on other blocks, leaning, any way up. Fit
         # those hypotheses without the table prior; the selection then keeps only objects
         # held up by what else is found.
-        s.claimed[:] = False
-        for r in accepted:
-            s.claimed[list(r.matched_segments)] = True
-        s.confident.clear()
-        if p.max_per_model == 1:
-            s.confident.update(r.model for r in accepted)
+        self._claimed_by(accepted, s)
         n_before = len(s.candidates)
         self._unpriored(accepted, f, s)
         self._search(free, f, s, resting=False)
@@ -296,6 +294,15 @@ class Recognizer:
             self._add_candidate(model, *result[:3], None, f, s, resting=False)
 
     # -- steps --------------------------------------------------------------------------------
+    def _claimed_by(self, accepted: list[Detection], s: _Search) -> None:
+        """Only ``accepted``'s image lines claimed, and its models when each is there once."""
+        s.claimed[:] = False
+        for r in accepted:
+            s.claimed[list(r.matched_segments)] = True
+        s.confident.clear()
+        if self.params.max_per_model == 1:
+            s.confident.update(r.model for r in accepted)
+
     def _frame(self, image: np.ndarray, camera: CameraModel, robot: list | None = None) -> _Frame:
         """The image checked, undistorted, its gradients and its lines not explained by the
         fixed environment or the robot (its links' models and poses ``X_WL``)."""
