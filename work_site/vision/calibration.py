@@ -31,12 +31,15 @@ BOARD_SQUARE_M = 0.02
 
 @dataclass(frozen=True)
 class IntrinsicsResult:
-    """``K`` (3, 3), ``dist`` (5,), RMS reprojection error (px) and views used."""
+    """``K`` (3, 3), ``dist`` (5,), RMS reprojection error (px), views used, and the standard
+    deviations of ``fx, fy, cx, cy`` (px) OpenCV estimates from the residuals: how sure the
+    calibration is (a dozen views leave the principal point a pixel or two uncertain)."""
 
     K: np.ndarray
     dist: np.ndarray
     rms_px: float
     views: int
+    std_f_c_px: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -130,10 +133,16 @@ def calibrate_intrinsics(images: list[np.ndarray]) -> IntrinsicsResult:
     if len(obj) < 4:
         raise ValueError(f"the chessboard was found in only {len(obj)} images; need ≥ 4")
     # k3 is left out: with a few dozen views it mostly fits noise.
-    rms, K, dist, _, _ = cv2.calibrateCamera(
+    rms, K, dist, _, _, std_intrinsics, _, _ = cv2.calibrateCameraExtended(
         obj, img_pts, shape, None, None, flags=cv2.CALIB_FIX_K3
     )
-    return IntrinsicsResult(np.asarray(K, np.float64), np.ravel(dist)[:5], float(rms), len(obj))
+    return IntrinsicsResult(
+        np.asarray(K, np.float64),
+        np.ravel(dist)[:5],
+        float(rms),
+        len(obj),
+        np.ravel(std_intrinsics)[:4].astype(np.float64),
+    )
 
 
 def calibrate_extrinsics(

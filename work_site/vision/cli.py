@@ -205,7 +205,16 @@ def calibrate_main(args: argparse.Namespace) -> int:
     args.out.write_text(json.dumps(camera.to_json(), indent=1))
     print(
         f"intrinsics: {intr.views} chessboard views, RMS reprojection {intr.rms_px:.3f} px; "
-        f"fx {intr.K[0, 0]:.2f} fy {intr.K[1, 1]:.2f} cx {intr.K[0, 2]:.2f} cy {intr.K[1, 2]:.2f}"
+        + " ".join(
+            f"{name} {value:.2f} ± {sd:.2f}"
+            for name, value, sd in zip(
+                ("fx", "fy", "cx", "cy"),
+                (intr.K[0, 0], intr.K[1, 1], intr.K[0, 2], intr.K[1, 2]),
+                intr.std_f_c_px,
+                strict=True,
+            )
+        )
+        + " px (± one standard deviation)"
     )
     print(
         f"pose: {extr.edges} frame edges, line RMS {extr.rms_px:.3f} px, corner RMS "
