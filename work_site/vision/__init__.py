@@ -1,11 +1,12 @@
 """Model-based vision (§IV): recognise and locate the blocks in one grey camera image.
 
-``Recognizer(...).recognize(image, camera)`` → list of :class:`Detection` (model name, pose
-``X_WO``, score). Lines (:mod:`.lines`) → groups and the model index (:mod:`.index`) →
-hypotheses (:mod:`.hypotheses`) → Lowe's pose fit (:mod:`.pose`) → verification
-(:mod:`.verification`) → selection (:mod:`.pose_sets`), run by :mod:`.recognizer` and tuned by
-:mod:`.params`. Calibration: :mod:`.calibration`; rendered scenes with ground truth and their
-scoring are in ``bench/``.
+``Recognizer(...).recognize(image, camera[, robot_q_rad, finger_opening_m])`` → list of
+:class:`Detection` (model name, pose ``X_WO``, score); the arm's joints, when given, make the
+arm part of the environment (:mod:`.robot_parts`). Lines (:mod:`.lines`) → groups and the
+model index (:mod:`.index`) → hypotheses (:mod:`.hypotheses`) → Lowe's pose fit (:mod:`.pose`)
+→ verification (:mod:`.verification`) → selection (:mod:`.pose_sets`), run by
+:mod:`.recognizer` and tuned by :mod:`.params`. Calibration: :mod:`.calibration`; rendered
+scenes with ground truth and their scoring are in ``bench/``.
 """
 
 from work_site.vision.index import GroupParams, IndexParams
