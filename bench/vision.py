@@ -24,7 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from bench.vision_crb import scene_bound, sensor_noise_grey
+from bench.vision_crb import scene_bound
 from bench.vision_dataset import (
     DATASET_VERSION,
     SUPPORTS,
@@ -36,7 +36,7 @@ from bench.vision_dataset import (
 from bench.vision_evaluate import score_scene
 from models.scene import CameraModel, load_camera, load_scene
 from models.transforms import invert_pose
-from work_site.sensor import CameraConditions
+from work_site.sensor import CameraConditions, Sensor
 from work_site.vision.index import IndexParams, default_cache_dir
 from work_site.vision.model import planes_in
 from work_site.vision.recognizer import Recognizer, RecognizerParams
@@ -215,6 +215,7 @@ def _bounds(
         planes_in(X_CW @ X, P) for m, X in (recognizer.robot.at(*robot) if robot else [])
         for P in m.planes_O
     ]  # fmt: skip
+    camera_sensor = Sensor(**sensor)
     placed = [t for t in truth if t.X_WO[2, 3] > -0.5]  # not parked out of view
     out = {}
     for t in placed:
@@ -227,7 +228,7 @@ def _bounds(
         X_CO = X_CW @ t.X_WO
         b = scene_bound(
             models[t.model], X_CO, K, fixed + arm + others, img,
-            lambda grey: sensor_noise_grey(sensor, grey), sensor["blur_sigma_px"],
+            camera_sensor.noise_grey, camera_sensor.blur_sigma_px,
         )  # fmt: skip
         if b is not None:
             out[id(t)] = b.median_errors(X_CO, rng)

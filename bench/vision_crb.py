@@ -156,15 +156,3 @@ def scene_bound(
         sigma[on] = edge_sigma_px(np.array([h]), noise_grey(float(np.median(level[on]))),
                                   blur_sigma_px)[0]  # fmt: skip
     return pose_bound(model, X_CO, K, P_O, edge, sigma)
-
-
-def sensor_noise_grey(sensor: dict, grey: float) -> float:
-    """σ (grey levels) of the camera of a scene's ``conditions["sensor"]`` at output level
-    ``grey``: read noise, shot noise of the signal that gives that level, quantisation."""
-    gain, black = sensor["gain"], sensor["black_level_grey"]
-    var = sensor["read_noise_grey"] ** 2 + 1.0 / 12.0
-    full_well = sensor["full_well_e"]
-    if math.isfinite(full_well):
-        signal = max(grey - black, 0.0) / gain  # grey levels before the gain
-        var += gain**2 * signal * 255.0 / full_well
-    return math.sqrt(var)

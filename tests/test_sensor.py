@@ -96,3 +96,10 @@ def test_drawn_conditions_stay_inside_their_ranges() -> None:
 def test_a_range_upside_down_is_refused() -> None:
     with pytest.raises(ValueError, match="blur_sigma_px"):
         CameraConditions(blur_sigma_px=(1.0, 0.5))
+
+
+def test_the_stated_noise_is_the_noise_applied() -> None:
+    sensor = Sensor(gain=1.3, black_level_grey=6.0, full_well_e=8000.0, read_noise_grey=1.5)
+    out = sensor.apply(flat(100.0), np.random.default_rng(9)).astype(np.float64)
+    level = float(out.mean())
+    assert out.std() == pytest.approx(sensor.noise_grey(level), rel=0.05)

@@ -64,6 +64,15 @@ class Sensor:
         """True if :meth:`apply` returns the image unchanged."""
         return self == Sensor()
 
+    def noise_grey(self, grey: float) -> float:
+        """σ (grey levels) of :meth:`apply`'s output at level ``grey``: read noise, the shot
+        noise of the signal that gives that level, and rounding to 8 bits."""
+        var = self.read_noise_grey**2 + 1.0 / 12.0
+        if self.full_well_e != math.inf:
+            signal = max(grey - self.black_level_grey, 0.0) / self.gain
+            var += self.gain**2 * signal * GREY_WHITE / self.full_well_e
+        return math.sqrt(var)
+
     def apply(self, ideal_grey: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The camera's 8-bit image (h, w) of the renderer's ideal grey image (h, w)."""
         if self.ideal:
