@@ -40,6 +40,7 @@ from protocol import (
     encode,
     key,
 )
+from protocol.messages import MAX_CANCELS
 
 log = logging.getLogger("operator-site")
 
@@ -288,7 +289,7 @@ class WorkSiteLink:
                 if now - first_s > GIVE_UP_AFTER_S:
                     log.warning("program %s: no answer from the work site in %.0f s; given up",
                                 pid, GIVE_UP_AFTER_S)  # fmt: skip
-                    del self._unanswered[pid]
+                    self._unanswered.pop(pid, None)  # (a stop may have taken it meanwhile)
                 elif now - sent_s >= RESEND_AFTER_S:
                     self._pub_program.put(payload)
                     self._unanswered[pid] = (payload, first_s, now)
@@ -345,8 +346,14 @@ class WorkSiteLink:
         return sorted({*self._unanswered, *self._unfinished})
 
     def send_stop(self, reason: str) -> None:
-        """Publish a stop to the work site."""
-        self._pub_stop.put(encode(Stop(reason=reason, stamp_s=time.time())))
+        """Publish a stop to the work site. It cancels the programs sent and not yet answered
+        (a stop can reach the work site before them), which are not sent again."""
+        unanswered = list(self._unanswered)[-MAX_CANCELS:]
+        self._pub_stop.put(
+            encode(Stop(reason=reason, stamp_s=time.time(), cancels=tuple(unanswered)))
+        )
+        for pid in unanswered:
+            self._unanswered.pop(pid, None)
 
     def close(self) -> None:
         """Stop beating, undeclare everything and close the session (idempotent)."""

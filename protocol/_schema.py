@@ -266,8 +266,10 @@ def _field_info(name: str, hint: Any) -> FieldInfo:
                 return FieldInfo(name, hint, IMAGE if isinstance(extra, Image) else ARRAY, extra)
         if typing.get_origin(base) is tuple:
             item, ellipsis = typing.get_args(base)
-            assert ellipsis is Ellipsis, f"{name}: tuples of records are tuple[R, ...]"
-            return FieldInfo(name, hint, RECORDS, item=item)
+            assert ellipsis is Ellipsis, f"{name}: tuples are tuple[T, ...]"
+            if isinstance(item, type) and issubclass(item, Record):
+                return FieldInfo(name, hint, RECORDS, item=item)
+            # A tuple of scalars (names): msgspec checks it whole, items' constraints too.
     return FieldInfo(name, hint, SCALAR)
 
 

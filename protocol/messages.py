@@ -29,11 +29,12 @@ from ._schema import (
 )
 from .images import DEFAULT_JPEG_QUALITY, ImageEncoding
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 """Version of the wire schema; bump on any incompatible change to a message.
 2: ``CameraFrame`` carries its image's ``encoding`` and ``quality``.
 3: ``ExecutionReport`` carries its number within its program (``seq``).
-4: ``MotionProgram`` and ``Heartbeat`` carry an ``operator`` (the control lease)."""
+4: ``MotionProgram`` and ``Heartbeat`` carry an ``operator`` (the control lease).
+6: ``Stop`` carries the programs it ``cancels``."""
 
 MAX_NAME_LEN = 256
 """Longest name or id (characters)."""
@@ -48,6 +49,8 @@ MAX_RECOGNITIONS = 256
 MAX_CONTACT_NORMALS = 16
 MAX_CONTACTS = 16
 MAX_COMMANDS = 1000
+MAX_CANCELS = 64
+"""Program ids one stop may cancel (the sender's unanswered programs)."""
 
 NAME_PATTERN = r"[A-Za-z0-9_.-]+"
 """Names and ids (model, object, program ids)."""
@@ -276,11 +279,15 @@ class ExecutionReport(Message):
 
 @dataclass(frozen=True, eq=False)
 class Stop(Message):
-    """Stop the robot now, with a free-text ``reason``."""
+    """Stop the robot now, with a free-text ``reason``. ``cancels``: programs the sender sent
+    and has no answer for, which must never start: a stop travels ahead of programs (a higher
+    priority, a separate queue), so a program sent just before it, or sent again after a lost
+    sample, can reach the work site after it."""
 
     TYPE: ClassVar[str] = "stop"
     reason: Text
     stamp_s: NonNegative
+    cancels: Annotated[tuple[Name, ...], Meta(max_length=MAX_CANCELS)] = ()
 
 
 @dataclass(frozen=True, eq=False)

@@ -265,7 +265,8 @@ def random_message(cls: type, seed: int) -> Any:
             name, int(rng.integers(-1, 5)), status, rng.normal(size=6), "ok", stamp, seq
         )
     if cls is Stop:
-        return Stop("operator pressed stop", stamp)
+        cancels = tuple(f"{name}-{k}" for k in range(rng.integers(0, 3)))
+        return Stop("operator pressed stop", stamp, cancels)
     if cls is TruthPoses:
         objects = tuple(ObjectPose(name, random_pose(rng)) for _ in range(rng.integers(0, 4)))
         return TruthPoses(seq, stamp, objects)
@@ -312,7 +313,10 @@ def assert_same(a: Any, b: Any, where: str) -> None:
         elif isinstance(x, tuple):
             assert isinstance(y, tuple) and len(x) == len(y), w
             for i, (xi, yi) in enumerate(zip(x, y, strict=True)):
-                assert_same(xi, yi, f"{w}[{i}]")
+                if dataclasses.is_dataclass(xi):
+                    assert_same(xi, yi, f"{w}[{i}]")
+                else:  # a tuple of names
+                    assert type(yi) is type(xi) and xi == yi, f"{w}[{i}]"
         elif isinstance(x, float):
             assert type(y) is float and same_float(x, y), w
         else:

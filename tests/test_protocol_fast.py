@@ -102,7 +102,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, ...]]] = {
         "stamp_s": NON_NEGATIVE,
         "seq": SEQ,
     },
-    "Stop": {"reason": TEXT, "stamp_s": NON_NEGATIVE},
+    "Stop": {"reason": TEXT, "stamp_s": NON_NEGATIVE, "cancels": ("names", 0, 64)},
     "Heartbeat": {
         "site_id": ("str", 256, r"[A-Za-z0-9_-]+"),
         "role": ("choice", ("work_site", "operator_site")),
@@ -208,6 +208,9 @@ def ref_wire_value(kind: tuple[Any, ...], value: Any, body: dict[str, Any]) -> A
         _, item, lo, hi = kind
         need(type(value) is list and lo <= len(value) <= hi)
         return tuple(ref_wire_record(item, v) for v in value)
+    if kind[0] == "names":
+        need(type(value) is list and kind[1] <= len(value) <= kind[2])
+        return tuple(ref_str(NAME, v) for v in value)
     need(type(value) is list and len(value) == 2)
     shape, data = value
     need(type(shape) is list and all(type(n) is int for n in shape) and type(data) is bytes)
@@ -233,7 +236,7 @@ def ref_decode(payload: bytes) -> tuple[str, dict[str, Any]]:
     except Exception:
         raise RefusedError from None
     need(isinstance(env, dict) and sorted(env) == ["b", "t", "v"])
-    need(type(env["v"]) is int and env["v"] == 5)
+    need(type(env["v"]) is int and env["v"] == 6)
     need(isinstance(env["t"], str) and env["t"] in TAGS)
     name = TAGS[env["t"]]
     return name, ref_wire_record(name, env["b"])
@@ -251,6 +254,9 @@ def assert_matches(record: Any, values: dict[str, Any], where: str) -> None:
         elif isinstance(want, tuple):
             assert isinstance(got, tuple) and len(got) == len(want), w
             for i, (g, v) in enumerate(zip(got, want, strict=True)):
+                if isinstance(v, str):  # a tuple of names
+                    assert type(g) is str and g == v, f"{w}[{i}]"
+                    continue
                 assert_matches(g, v if isinstance(v, dict) else fields_of(v), f"{w}[{i}]")
         elif isinstance(want, float):
             assert type(got) is float and same_float(got, want), w
@@ -429,6 +435,9 @@ def ref_python_value(kind: tuple[Any, ...], value: Any) -> Any:
         need(isinstance(value, list | tuple) and lo <= len(value) <= hi)
         need(all(type(v).__name__ == item for v in value))
         return tuple(value)
+    if kind[0] == "names":
+        need(isinstance(value, list | tuple) and kind[1] <= len(value) <= kind[2])
+        return tuple(ref_str(NAME, v) for v in value)
     need(isinstance(value, np.ndarray | list | tuple))
     try:
         arr = np.asarray(value)

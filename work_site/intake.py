@@ -4,7 +4,7 @@ when they are no longer kept), refusals of undecodable ones rate-limited.
 
 :class:`ProgramIntake` is a part of :class:`~work_site.server.WorkSiteServer`, kept apart for
 size: it works on the server's state (``_lock``, ``_reports``, ``_ids``, ``_seen``, ``_busy``,
-``_ready``, ``_stops_seen``) and reports through its ``_report``.
+``_ready``, ``_stops_seen``, ``_cancelled``) and reports through its ``_report``.
 """
 
 from __future__ import annotations
@@ -40,6 +40,8 @@ garbage must not turn into a flood of reports; the rest are counted and summed u
 REMEMBERED_PROGRAMS = 100
 """Programs whose reports are kept to replay to a re-send; every id is remembered (and never
 run again), these with their reports."""
+REMEMBERED_CANCELS = 1000
+"""Program ids cancelled by stops before they arrived, kept so that they never start."""
 CHECK_IDLE_S = 0.002
 """The checking thread looks for new programs this often when there are none (s)."""
 CHECK_YIELD_S = 1e-4
@@ -134,6 +136,17 @@ class ProgramIntake:
             self._take_program(program)
         return INBOX_CAPACITY
 
+    def _cancel_ahead(self, program_ids, reason: str) -> None:
+        """A stop named these programs: any of them not yet received never starts (a stop
+        can overtake the program sent just before it)."""
+        with self._lock:
+            for pid in program_ids:
+                if pid not in self._seen:
+                    self._cancelled[pid] = reason
+                    self._cancelled.move_to_end(pid)
+            while len(self._cancelled) > REMEMBERED_CANCELS:
+                self._cancelled.popitem(last=False)
+
     def _take_program(self, program: MotionProgram) -> None:
         """Answer a re-send from the reports kept, refuse a program while another is checked
         or runs, else check it whole and hand it to the control loop."""
@@ -151,10 +164,18 @@ class ProgramIntake:
             replay = list(self._reports.get(pid, ())) if pid in self._reports else None
             forgotten = replay is None and pid in self._seen
             busy = self._busy
+            cancelled = self._cancelled.pop(pid, None)
             if replay is None and not forgotten:
                 self._remember(pid)
-                if busy is None:
+                if busy is None and cancelled is None:
                     self._busy, stops_seen = pid, self._stops_seen
+        if cancelled is not None and replay is None and not forgotten:
+            self._report(
+                pid, -1, "stopped", f"stop: {cancelled} (sent before it, arrived after it)",
+                fresh=False,
+            )  # fmt: skip
+            log.info("program %s arrived after a stop that cancelled it: not run", pid)
+            return
         if forgotten:
             # Received long ago: its reports are no longer kept, but it never runs again.
             self.stats["duplicates"] = self.stats.get("duplicates", 0) + 1

@@ -117,6 +117,9 @@ class WorkSiteServer(ProgramIntake):
         self._ready: collections.deque[tuple[MotionProgram, int, dict]] = collections.deque()
         """Programs that passed their check, with ``_stops_seen`` when their check began."""
         self._last_stop_reason = ""
+        self._cancelled: collections.OrderedDict[str, str] = collections.OrderedDict()
+        """Program ids a stop cancelled before they arrived, with its reason: they never start
+        (the last :data:`~work_site.intake.REMEMBERED_CANCELS`)."""
         self._execution_started_s = 0.0
         self._deadman_checked_s = 0.0
         self._stop_replied_s = -math.inf
@@ -479,6 +482,8 @@ class WorkSiteServer(ProgramIntake):
         for msg in stops:
             self._stops_seen += 1
             self._last_stop_reason = msg.reason
+            if msg.cancels:
+                self._cancel_ahead(msg.cancels, msg.reason)
             if self._execution is not None and not self._execution.finished:
                 self._execution.stop(f"stop: {msg.reason}")  # its report is the reply
             else:
