@@ -3,16 +3,18 @@ through the page's own callbacks (no browser)."""
 
 from __future__ import annotations
 
+import dataclasses
 from html import unescape as shown  # the page's markdown escapes outside text
 
 import numpy as np
 import pytest
 
 from models.scene import load_scene
-from models.transforms import invert_pose, make_pose
+from models.transforms import R_to_quat_wxyz, invert_pose, make_pose
 from operator_site.link import WorkSiteLink
 from operator_site.task import TaskSession
 from operator_site.ui import NO_WORKPIECE, OperatorPage
+from operator_site.ui.scene_view import GHOST_RGBS
 from protocol import make_config
 from tests.conftest import free_port, wait_until
 
@@ -143,7 +145,8 @@ def test_dragging_into_the_frame_corner_from_the_page(page: OperatorPage) -> Non
     page.on_select("cube")
     # Lift clear of the frame's 3 cm bars, carry it over, then press it into the corner.
     x0, y0 = page.session.X_WO["cube"][:2, 3]
-    page.dragger.wxyz = (1.0, 0.0, 0.0, 0.0)  # and turn the gizmo square with the frame
+    # And turn the gizmo (the table's axes) by the block's yaw back: square with the frame.
+    page.dragger.wxyz = tuple(R_to_quat_wxyz(page.session.X_WO["cube"][:3, :3].T))
     for target in ((x0, y0, 0.08), (0.45, 0.0, 0.08), (0.36, -0.09, CUBE_HALF - 0.005)):
         page.dragger.position = target
         page.on_drag()
@@ -182,8 +185,11 @@ def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) ->
         ),
     )
     page.update()
-    assert "cube: score 0.90 (not accepted)" in page.recognitions_md.content
+    assert "cube: score 0.90 (not in the model)" in page.recognitions_md.content
     assert set(page._rec_buttons) == {"cube", "plank", "wedge"}  # one "add" button each
+    # What vision sees, see-through in the 3D view: blue, none of it is in the model yet.
+    assert set(page.ghosts) == {"cube", "plank", "wedge"}
+    assert {tuple(m.color) for _, ms in page.ghosts.values() for m in ms} == {GHOST_RGBS["new"]}
     assert page.on_accept_one("wedge")  # a click on one adds just that block
     assert set(page.model.poses) == {"wedge"} and set(page._rec_buttons) == {"cube", "plank"}
     page.on_remove("wedge")
@@ -192,9 +198,18 @@ def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) ->
     assert page.object_frames["cube"].visible and not page.object_frames["wedge"].visible
     assert page.workpiece_dropdown.options == (NO_WORKPIECE, "cube", "plank")
     assert "cube: moved 2.1 mm" in page.model_md.content  # the correction, shown
+    page.update()  # the ghosts recoloured: the model settled the cube 2.1 mm from vision's
+    assert tuple(page.ghosts["cube"][1][0].color) == GHOST_RGBS["off"]
+    assert tuple(page.ghosts["plank"][1][0].color) == GHOST_RGBS["agrees"]
+    assert "cube: score 0.90 (in the model, **a few mm off**)" in page.recognitions_md.content
     assert page.session.X_WO["cube"][2, 3] == pytest.approx(
         CUBE_HALF + page.session.params.eps_barrier_m, abs=1e-5
     )
+    page.on_select("cube")  # picked, then the model changes under it: nothing stays picked
+    assert "dragging" in page.task_md.content
+    assert page.on_accept_recognitions() == 2
+    assert page.workpiece_dropdown.value == NO_WORKPIECE and not page.dragger.visible
+    assert "dragging" not in page.task_md.content and "Pick a block" in page.task_md.content
     # Remove mode: a click in the 3D view takes a block out of the model.
     page.remove_mode.value = True
     page.on_click_object("plank")
@@ -329,3 +344,65 @@ def test_a_watcher_s_controls_are_disabled_but_stop(page: OperatorPage) -> None:
     page._show_control()
     assert not page.program_button.disabled and "control: **you**" in page._status_text()
     page.link.status.holder = ""
+
+
+def test_the_gizmo_has_the_table_s_axes_snaps_nudges_and_takes_a_typed_pose(page) -> None:
+    page.on_select("cube")
+    start = page.session.X_WO["cube"].copy()  # yawed 15° in the scene file
+    np.testing.assert_allclose(page.dragger.wxyz, (1.0, 0.0, 0.0, 0.0), atol=1e-12)
+    np.testing.assert_allclose(page.pose_xyz.value, np.round(start[:3, 3] * 1e3, 2))
+    page.own_axes_checkbox.value = True
+    page._set_axes(True)  # what the checkbox's callback does for a person's click
+    np.testing.assert_allclose(page.dragger.wxyz, R_to_quat_wxyz(start[:3, :3]), atol=1e-12)
+    page._set_axes(False)
+    # A drag of 12.3 mm along x ends 12 mm along: snapped to whole millimetres; the gizmo
+    # jumps to the snapped pose when it is let go.
+    at = np.array(page.dragger.position)
+    step_x = np.array([0.012, 0.0, 0.0])
+    page.dragger.position = tuple(at + np.array([0.0123, 0.0, 0.0]))
+    page.on_drag("start")
+    page.on_drag("update")
+    page.on_drag("end")
+    np.testing.assert_allclose(page.session.sim.state.X_WD[:3, 3], at + step_x, atol=1e-12)
+    np.testing.assert_allclose(page.dragger.position, at + step_x, atol=1e-12)
+    # A nudge: one millimetre, one undo step.
+    page.on_nudge("+y")
+    np.testing.assert_allclose(
+        page.session.sim.state.X_WD[:3, 3], at + step_x + [0.0, 0.001, 0.0], atol=1e-12
+    )
+    page.on_nudge("↺z")
+    yaw = np.degrees(np.arctan2(*page.session.sim.state.X_WD[1::-1, 0]))
+    assert yaw == pytest.approx(20.0, abs=1e-9)
+    # A typed pose, in millimetres and degrees in the table's frame.
+    page.on_pose_typed((400.0, -50.0, 25.0), (0.0, 0.0, 30.0))
+    np.testing.assert_allclose(page.session.sim.state.X_WD[:3, 3], [0.4, -0.05, 0.025])
+    page.on_pose_typed((400.0, float("nan"), 25.0), (0.0, 0.0, 30.0))
+    assert "six numbers" in page.task_md.content
+    for _ in range(3):
+        page.on_undo()  # the typed pose, the turn, the nudge
+    np.testing.assert_allclose(page.session.sim.state.X_WD[:3, 3], at + step_x, atol=1e-12)
+
+
+def test_the_camera_image_outlines_the_model_through_the_frame_s_calibration(page) -> None:
+    from operator_site.ui.overlay import project_edges_px
+    from protocol import CameraFrame
+
+    cam = page.scene.camera
+    # The camera stands 2 cm off the scene file's pose; each frame says where it is.
+    X_WC = cam.X_WC.copy()
+    X_WC[:3, 3] += [0.02, 0.0, 0.0]
+    page.link.camera_frame = CameraFrame(
+        seq=1, stamp_s=1.0, X_WC=X_WC, K=cam.K, dist=cam.dist,
+        image=np.zeros((cam.height, cam.width), dtype=np.uint8),
+    )  # fmt: skip
+    out = page._camera_view()  # RGB
+    cube = page.scene.object("cube")
+
+    def midpoints_drawn(X_WC_drawn: np.ndarray) -> int:
+        camera = dataclasses.replace(cam, X_WC=X_WC_drawn)
+        edges = project_edges_px(cube.model, cube.X_WO, camera)
+        mid = np.round(edges.mean(axis=1)).astype(int)
+        return sum(out[v - 1 : v + 2, u - 1 : u + 2, 1].max() > 0 for u, v in mid)
+
+    assert midpoints_drawn(X_WC) == 12  # every edge, through the frame's calibration
+    assert midpoints_drawn(cam.X_WC) < 6  # not through the scene file's nominal pose

@@ -13,12 +13,22 @@ from operator_site.model_editor import WorkSiteModel
 from operator_site.session import ACCEPT_SCORE, OperatorSession
 from operator_site.ui.task_panel import NO_WORKPIECE
 from operator_site.ui.text import plain
+from operator_site.ui.words import short_program_name
 
 MODEL_HELP = (
-    "Blocks the work site's camera recognised are outlined on its image (orange: not in the "
-    "model yet, green: in it). Accept them to build the model the robot will work in; "
-    "**remove mode**: click a block in the 3D view to take it out."
+    "On the camera image, the model's blocks are outlined green and blocks vision recognised "
+    "that the model lacks orange. In the 3D view, what vision sees is drawn see-through "
+    "now: **green** where the model agrees, **orange** a few millimetres off, **red** far "
+    "off, **blue** not in the model. Accept them to build the model the robot will work in; "
+    "after the robot moved a block, *update the model from vision*. **Remove mode**: click a "
+    "block in the 3D view to take it out."
 )
+KIND_WORDS = {
+    "agrees": "in the model, agrees",
+    "off": "in the model, **a few mm off**",
+    "far": "in the model, **far off**",
+    "new": "not in the model",
+}
 
 
 class ModelPanel:
@@ -30,6 +40,7 @@ class ModelPanel:
     model: WorkSiteModel
     op: OperatorSession
     _lock: threading.Lock
+    _offered_after: str | None = None  # the program after which the update was offered
 
     def _build_model_panel(self, gui: viser.GuiApi) -> None:
         """The panel's widgets, in the folder ``gui`` has open, and their callbacks."""
@@ -39,15 +50,23 @@ class ModelPanel:
         self._rec_buttons: dict[str, object] = {}
         self.accept_button = gui.add_button("accept the recognised blocks")
         self.scene_layout_button = gui.add_button("use the scene file's layout (no vision)")
+        self.update_button = gui.add_button(
+            "update the model from vision",
+            hint="every block vision sees now goes where it sees it; the others stay",
+        )
+        self.show_vision = gui.add_checkbox("show what vision sees in 3D", True)
         self.remove_mode = gui.add_checkbox("remove mode", False)
         self.model_md = gui.add_markdown("")
         self.accept_button.on_click(lambda _: self.on_accept_recognitions())
         self.scene_layout_button.on_click(lambda _: self.on_use_scene_layout())
+        self.update_button.on_click(lambda _: self.on_update_from_vision())
+        self.show_vision.on_update(
+            lambda _: setattr(self.vision_root, "visible", self.show_vision.value)
+        )
 
     def _model_changed(self, corrections=()) -> None:
         """The model's objects changed (the session started its task afresh): show it."""
-        self.dragger.visible = False
-        self._show_fingers(None)
+        self._nothing_picked()
         self._task_changed()
         self._show_model()
         if self.workpiece_dropdown.value != NO_WORKPIECE:
@@ -99,6 +118,18 @@ class ModelPanel:
         self._show_recognitions()
         return True
 
+    def on_update_from_vision(self) -> int:
+        """The model brought up to date with what vision sees now (after the robot moved a
+        block): each block recognised goes where vision sees it, the others stay; the number
+        updated."""
+        accepted = self.on_accept_recognitions()
+        if accepted:
+            self.model_md.content = (
+                f"updated from vision: {accepted} blocks where the camera sees them now  \n"
+                + self.model_md.content
+            )
+        return accepted
+
     def on_use_scene_layout(self) -> None:
         """The model from the scene file's layout: every block where the file puts it."""
         with self._lock:
@@ -118,11 +149,13 @@ class ModelPanel:
             return
         self._recognitions_shown = recs.seq
         if not recs.objects:
+            self._show_ghosts(())
             self.recognitions_md.content = f"frame {recs.seq}: nothing recognised"
             return
+        kinds = self._show_ghosts(recs.objects)
         lines = [f"frame {recs.seq}, {recs.elapsed_s * 1e3:.0f} ms:"]
         for r in sorted(recs.objects, key=lambda r: r.model):  # in one place frame to frame
-            state = "in the model" if r.model in self.model.poses else "not accepted"
+            state = KIND_WORDS[kinds.get(r.model, "new")]
             lines.append(f"- {plain(r.model)}: score {r.score:.2f} ({state})")
         self.recognitions_md.content = "\n".join(lines)
         self._show_add_buttons({r.model for r in recs.objects if r.model not in self.model.poses})
@@ -140,3 +173,28 @@ class ModelPanel:
                 button = self.server.gui.add_button(f"add {name}")
                 button.on_click(lambda _, n=name: self.on_accept_one(n))
                 self._rec_buttons[name] = button
+
+    def _offer_update(self) -> None:
+        """Once a program has ended and vision has looked since, say which blocks it sees
+        away from the model, next to the button that updates the model."""
+        ended = [
+            r
+            for r in self.link.status.reports
+            if r.command_index == -1 and r.status in ("done", "failed", "stopped")
+        ]
+        recs = self.link.recognitions
+        if not ended or recs is None or ended[-1].program_id == self._offered_after:
+            return
+        if recs.stamp_s <= ended[-1].stamp_s:
+            return  # vision has not looked since the robot stopped
+        self._offered_after = ended[-1].program_id
+        kinds = self._show_ghosts(recs.objects)
+        moved = sorted(t for t, k in kinds.items() if k in ("off", "far", "new"))
+        after = f"after {short_program_name(ended[-1].program_id)}"
+        if moved:
+            self.model_md.content = (
+                f"**{after}, vision sees {plain(', '.join(moved))} away from the model**: "
+                "*update the model from vision* to work on from where they are."
+            )
+        else:
+            self.model_md.content = f"{after}, vision agrees with the model."

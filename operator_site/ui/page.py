@@ -14,8 +14,8 @@ Text from the wire or from files reaches the page's markdown only through
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-import math
 import threading
 import time
 
@@ -38,8 +38,8 @@ from operator_site.ui.access import (
 from operator_site.ui.model_panel import ModelPanel
 from operator_site.ui.overlay import draw_wireframes
 from operator_site.ui.program_panel import ProgramPanel
-from operator_site.ui.scene_view import SceneView
-from operator_site.ui.status import log_markdown, status_markdown, waiting_image
+from operator_site.ui.scene_view import VIEW_FOV_RAD, SceneView, initial_view_W
+from operator_site.ui.status import status_markdown, waiting_image
 from operator_site.ui.task_panel import TaskPanel
 from protocol import MotionProgram
 
@@ -48,8 +48,6 @@ log = logging.getLogger("operator-site")
 UI_PERIOD_S = 0.05
 """The page is refreshed from the link at most this often (20 Hz)."""
 STATUS_PERIOD_S = 0.5
-INITIAL_EYE_W = (1.05, -0.85, 0.75)
-INITIAL_LOOK_AT_W = (0.40, 0.0, 0.05)
 READ_ONLY_HELP = (
     "**Read only.** This page controls a robot: to control it, open the address with the "
     "access token that `operator-site serve` printed when it started, or type the token here."
@@ -93,8 +91,10 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
         # viser moves to the next free port if this one is taken: the URL says where it is.
         self.url = page_url(host, self.server.get_port(), token, browse_host)
         self.server.scene.set_up_direction("+z")
-        self.server.initial_camera.position = INITIAL_EYE_W
-        self.server.initial_camera.look_at = INITIAL_LOOK_AT_W
+        eye_W, look_at_W = initial_view_W(scene)
+        self.server.initial_camera.fov = VIEW_FOV_RAD
+        self.server.initial_camera.position = tuple(eye_W)
+        self.server.initial_camera.look_at = tuple(look_at_W)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         self.op = OperatorSession(scene, link)
         if initial_model == "scene":
@@ -111,7 +111,6 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
         self._show_model()
         self.frames_shown = 0
         self.states_shown = 0
-        self._last_drag_s = -math.inf
         self.server.on_client_connect(self._on_client_connect)
         self.server.on_client_disconnect(lambda client: self.access.forget(client.client_id))
 
@@ -140,7 +139,7 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
         self.camera_image = gui.add_image(
             # Half size: cheap to send, and never mistaken for a frame from the work site.
             waiting_image(cam.width // 2, cam.height // 2, "waiting for the work site's camera"),
-            label="work-site camera",
+            label="work-site camera (point at it and click the corner icon to enlarge)",
             format="jpeg",
             jpeg_quality=85,
         )
@@ -148,10 +147,8 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
             self._build_model_panel(gui)
         with gui.add_folder("Task"):
             self._build_task_panel(gui)
-        with gui.add_folder("Program"):
+        with gui.add_folder("Program and execution log"):
             self._build_program_panel(gui)
-        with gui.add_folder("Execution log"):
-            self.log_md = gui.add_markdown(log_markdown([]))
 
     def _on_client_connect(self, client: viser.ClientHandle) -> None:
         """A client without the token is told it sees a read-only page, and how to get access."""
@@ -176,19 +173,27 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
         button.on_click(on_token)
 
     def _camera_view(self) -> np.ndarray:
-        """The latest frame, with the latest recognitions outlined (vision runs slower than
-        the camera: they may be of a frame or two before)."""
+        """The latest frame with the model's blocks outlined (green) and the blocks vision
+        recognised that the model lacks (orange), drawn through the calibration the frame was
+        taken with (vision runs slower than the camera: recognitions may be a frame or two
+        older)."""
         frame = self.link.camera_frame
-        recs = self.link.recognitions
-        if recs is None or not recs.objects:
-            return frame.image
+        height, width = frame.image.shape[:2]
+        camera = dataclasses.replace(
+            self.scene.camera, width=width, height=height, K=frame.K, dist=frame.dist,
+            X_WC=frame.X_WC,
+        )  # fmt: skip
         known = {o.name: o.model for o in self.scene.movable}
-        objects = [
-            (known[r.model], r.X_WO, r.model in self.model.poses)
-            for r in recs.objects
-            if r.model in known
+        objects = [(known[n], X, True) for n, X in self.model.poses.items() if n in known]
+        recs = self.link.recognitions
+        objects += [
+            (known[r.model], r.X_WO, False)
+            for r in (recs.objects if recs is not None else ())
+            if r.model in known and r.model not in self.model.poses
         ]
-        return draw_wireframes(frame.image, self.scene.camera, objects)[..., ::-1]
+        if not objects:
+            return frame.image
+        return draw_wireframes(frame.image, camera, objects)[..., ::-1]
 
     def update(self) -> None:
         """Poll the link once and show what changed."""
@@ -211,7 +216,8 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
             self.step_task()
             if t >= next_status:
                 self.status_md.content = self._status_text()
-                self.log_md.content = log_markdown(self.link.status.reports)
+                self._show_log(self.link.status.reports)
+                self._offer_update()
                 self._show_control()
                 next_status = t + STATUS_PERIOD_S
             stop.wait(max(0.0, UI_PERIOD_S - (time.monotonic() - t)))

@@ -12,7 +12,9 @@ from operator_site.failures import RunError
 from operator_site.link import WorkSiteLink
 from operator_site.session import OperatorSession, load_program, save_program
 from operator_site.task import TaskSession
+from operator_site.ui.status import log_details_markdown, log_markdown
 from operator_site.ui.text import plain
+from operator_site.ui.words import short_program_name
 from protocol import MotionProgram
 
 DEFAULT_PROGRAM_FILE = "program.msgpack"
@@ -33,6 +35,7 @@ class ProgramPanel:
     op: OperatorSession
     pending_program: MotionProgram | None
     last_program: MotionProgram | None
+    _log_shown: object = ()  # what the log shows: (count, newest id, seq), None for none
     _lock: threading.Lock
 
     def _build_program_panel(self, gui: viser.GuiApi) -> None:
@@ -41,12 +44,9 @@ class ProgramPanel:
         self.progress = gui.add_progress_bar(0.0, visible=False, animated=True)
         self.program_md = gui.add_markdown("")
         self.send_button = gui.add_button("send it to the robot", disabled=True)
-        self.program_file = gui.add_text("program file", DEFAULT_PROGRAM_FILE)
-        self.save_program_button = gui.add_button("save the program")
-        self.load_program_button = gui.add_button("load a program")
-        self.save_program_button.on_click(lambda _: self.on_save_program(self.program_file.value))
-        self.load_program_button.on_click(lambda _: self.on_load_program(self.program_file.value))
-        # The panel scrolls: a second stop where the operator's eyes are after sending.
+        # Where the operator's eyes are after sending: what the robot does, newest first, a
+        # second stop, and the ways back after a failure.
+        self.log_md = gui.add_markdown(log_markdown([]))
         gui.add_button("STOP", color="red").on_click(lambda _: self.on_stop())
         gui.add_markdown(RECOVERY_HELP)
         self.recovery_buttons = []
@@ -57,8 +57,24 @@ class ProgramPanel:
         resume = gui.add_button("resume the stopped program")
         resume.on_click(lambda _: self.on_resume())
         self.recovery_buttons.append(resume)
+        with gui.add_folder("the work site's own words", expand_by_default=False):
+            self.log_details_md = gui.add_markdown(log_details_markdown([]))
+        self.program_file = gui.add_text("program file", DEFAULT_PROGRAM_FILE)
+        self.save_program_button = gui.add_button("save the program")
+        self.load_program_button = gui.add_button("load a program")
+        self.save_program_button.on_click(lambda _: self.on_save_program(self.program_file.value))
+        self.load_program_button.on_click(lambda _: self.on_load_program(self.program_file.value))
         self.program_button.on_click(lambda _: self.on_make_program())
         self.send_button.on_click(lambda _: self.on_send_program())
+
+    def _show_log(self, reports) -> None:
+        """The execution log and its detail, redrawn only when a report came in."""
+        newest = (len(reports), reports[-1].program_id, reports[-1].seq) if reports else None
+        if newest == self._log_shown:
+            return
+        self._log_shown = newest
+        self.log_md.content = log_markdown(reports)
+        self.log_details_md.content = log_details_markdown(reports)
 
     def _task_changed(self) -> None:
         """The task the program was made from changed (another block, an undo, a reset, a new
@@ -87,8 +103,8 @@ class ProgramPanel:
             self.program_md.content = f"⚠ {plain(RECOVERY_BUTTONS[action])}: {plain(e)}"
             return
         self.program_md.content = (
-            f"**{plain(RECOVERY_BUTTONS[action])}** sent as {plain(program.program_id)}: "
-            "follow it in the execution log"
+            f"**{plain(RECOVERY_BUTTONS[action])}** sent as "
+            f"{short_program_name(program.program_id)}: follow it in the log below"
         )
 
     def on_resume(self) -> None:
@@ -102,8 +118,8 @@ class ProgramPanel:
             sent = self.op.resume(program)
         self.last_program = sent
         self.program_md.content = (
-            f"**resume** of {plain(program.program_id)} sent as {plain(sent.program_id)}: "
-            "follow it in the execution log"
+            f"**resume** of {short_program_name(program.program_id)} sent as "
+            f"{short_program_name(sent.program_id)}: follow it in the log below"
         )
 
     def on_make_program(self) -> None:
@@ -130,8 +146,8 @@ class ProgramPanel:
         self.progress.value = 100.0
         self._show_path(made.raw.centres_W, made.deformed.path.centres_W)
         lines = [
-            f"**program {plain(made.program.program_id)}**, {len(made.program.commands)} "
-            "commands; path "
+            f"**program {short_program_name(made.program.program_id)}**, "
+            f"{len(made.program.commands)} commands; path "
             f"{made.raw.length_m() * 1e3:.0f} → {made.deformed.path.length_m() * 1e3:.0f} mm "
             f"(grey: as dragged, green: as the robot will go):"
         ]
@@ -156,7 +172,8 @@ class ProgramPanel:
             sent = self.op.send(program)
         self.last_program = sent
         self.program_md.content += (
-            f"  \nsent to the work site {plain(self.link.site_id)} as {plain(sent.program_id)}"
+            f"  \nsent to the work site {plain(self.link.site_id)} as "
+            f"{short_program_name(sent.program_id)}: follow it in the log below"
         )
 
     def on_save_program(self, path: str) -> None:
@@ -171,7 +188,8 @@ class ProgramPanel:
             self.program_md.content = f"⚠ could not save to {plain(path)}: {plain(e.strerror)}"
             return
         self.program_md.content = (
-            f"program {plain(program.program_id)} saved to {plain(Path(path).resolve())}"
+            f"program {short_program_name(program.program_id)} saved to "
+            f"{plain(Path(path).resolve())}"
         )
 
     def on_load_program(self, path: str) -> None:
@@ -185,8 +203,8 @@ class ProgramPanel:
         self.pending_program = program = self.op.renamed(program)
         self._show_path(None, None)
         lines = [
-            f"**program {plain(program.program_id)}** (a new id) loaded from {plain(path)}, "
-            f"{len(program.commands)} commands:",
+            f"**program {short_program_name(program.program_id)}** (a new id) loaded from "
+            f"{plain(path)}, {len(program.commands)} commands:",
             *_command_lines(program),
             "It runs as it was made: check that the blocks lie as they did then.",
         ]

@@ -4,6 +4,8 @@ contacts, the gripper's fingers on the workpiece and the paths. Poses go to vise
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import viser
 
@@ -11,7 +13,9 @@ from models.robot import RobotModel
 from models.scene import Scene
 from models.transforms import R_to_quat_wxyz
 from operator_site.model_editor import WorkSiteModel
+from operator_site.session import DEFAULT_TOLERANCE_DEG, DEFAULT_TOLERANCE_MM
 from operator_site.task import TaskSession
+from operator_site.taskfile import pose_error
 
 CONTACT_RGB = (230, 40, 40)
 FINGER_RGB = (40, 40, 48)
@@ -27,6 +31,23 @@ BLOCK_RGBS = (
 )
 """The movable blocks' colours in the 3D view, one each in the scene's order (the camera sees
 them all the same wood): which block is which at a glance."""
+GHOST_OPACITY = 0.35
+GHOST_RGBS = {
+    "agrees": (60, 190, 80),
+    "off": (240, 150, 30),
+    "far": (220, 40, 40),
+    "new": (90, 140, 235),
+}
+"""What vision sees now, drawn see-through over the model: green where it agrees with the
+model (within the task's tolerance), orange up to :data:`FAR_FACTOR` times that, red beyond,
+blue for a block not in the model."""
+FAR_FACTOR = 5.0
+SKY_RGB = (255, 255, 255)
+GROUND_RGB = (110, 100, 90)
+ROBOT_SHOWN_RAD = 1e-4
+"""The 3D view's arm is redrawn when a joint (or the fingers, in m) moved more than this."""
+GIZMO_PX = 150.0
+"""The gizmo's size on the screen, in pixels."""
 LABEL_ABOVE_M = 0.01
 """A block's name floats this far above its top."""
 
@@ -34,6 +55,65 @@ LABEL_ABOVE_M = 0.01
 def block_label(name: str) -> str:
     """A block's name as the page writes it ("tall block" for ``tall_block``)."""
     return name.replace("_", " ")
+
+
+def disagreement(error_m: float | None, angle_rad: float | None) -> str:
+    """How a recognition compares with the model's pose of that block (None: not in the
+    model): a key of :data:`GHOST_RGBS`."""
+    if error_m is None or angle_rad is None:
+        return "new"
+    within = error_m / (DEFAULT_TOLERANCE_MM * 1e-3)
+    turned = angle_rad / math.radians(DEFAULT_TOLERANCE_DEG)
+    worst = max(within, turned)
+    if worst <= 1.0:
+        return "agrees"
+    return "off" if worst <= FAR_FACTOR else "far"
+
+
+VIEW_FOV_RAD = math.radians(45.0)
+VIEW_DIRECTION_W = (0.65, -0.85, 0.70)
+"""The 3D view starts looking along this direction (from the far side of the work area, to
+the robot's right, from above) with this vertical field of view."""
+VIEW_MARGIN_M = 0.05
+ABOVE_TILT = 1e-3
+ABOVE_FIELD_M = 0.30
+"""Seen from above over a picked block, the view is this much of the table high."""
+VIEWS = ("from the start", "from above")
+"""The views a button puts every browser's camera in."""
+
+
+def work_area_W(scene: Scene) -> tuple[np.ndarray, float]:
+    """The work area's centre in W and its radius (m): every movable block and the frame (or,
+    without one, the blocks alone), with a margin."""
+    names = [o.name for o in scene.movable] + [o.name for o in scene.objects if o.name == "frame"]
+    points = np.array([scene.object(n).X_WO[:3, 3] for n in names])
+    centre = (points.min(axis=0) + points.max(axis=0)) / 2
+    return centre, float(np.max(np.linalg.norm(points - centre, axis=1))) + VIEW_MARGIN_M
+
+
+def initial_view_W(scene: Scene, fov_rad: float = VIEW_FOV_RAD) -> tuple[np.ndarray, np.ndarray]:
+    """``(eye, look_at)`` in W framing the work area from :data:`VIEW_DIRECTION_W`."""
+    centre, radius = work_area_W(scene)
+    direction = np.asarray(VIEW_DIRECTION_W) / np.linalg.norm(VIEW_DIRECTION_W)
+    return centre + direction * radius / math.sin(fov_rad / 2), centre
+
+
+def view_from_above_W(
+    scene: Scene, look_at_W: np.ndarray | None = None, fov_rad: float = VIEW_FOV_RAD
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(eye, look_at)`` in W looking down, the table's +x (away from the robot) up on the
+    screen: on the whole work area, or close over ``look_at_W`` (:data:`ABOVE_FIELD_M` across)
+    to place a block precisely."""
+    centre, radius = work_area_W(scene)
+    if look_at_W is None:
+        look_at, distance = centre, radius / math.sin(fov_rad / 2)
+    else:
+        look_at = np.asarray(look_at_W, dtype=np.float64)
+        distance = (ABOVE_FIELD_M / 2) / math.tan(fov_rad / 2)
+    # Straight down is a pole of the orbit controls: a hair towards the robot gives the view
+    # its up direction.
+    direction = np.array([-ABOVE_TILT, 0.0, 1.0]) / math.hypot(ABOVE_TILT, 1.0)
+    return look_at + direction * distance, look_at
 
 
 def rgb255(rgba) -> tuple[int, int, int]:
@@ -60,6 +140,16 @@ class SceneView:
 
     def _build_scene(self) -> None:
         scene = self.server.scene
+        # Image-based lighting and shadow maps are most of what a browser without a graphics
+        # card spends on this view (a frame several times slower): a sky-and-ground light
+        # instead, shadows on request (the Task panel's view options).
+        scene.configure_environment_map(None)
+        scene.configure_default_lights(True, cast_shadow=False)
+        scene.add_light_hemisphere(
+            "/lights/sky", sky_color=SKY_RGB, ground_color=GROUND_RGB, intensity=1.2
+        )
+        scene.add_light_ambient("/lights/ambient", intensity=0.3)
+        self._shown_q: np.ndarray | None = None
         self.object_frames = {}
         self.object_meshes: dict[str, list] = {}
         self.labels = {}
@@ -91,8 +181,14 @@ class SceneView:
                     position=(0.0, 0.0, top_O + LABEL_ABOVE_M),
                     anchor="bottom-center",
                 )
-        self.dragger = scene.add_transform_controls("/dragger", scale=0.12, visible=False)
-        self.dragger.on_update(lambda _: self.on_drag())
+        # Sized in pixels, drawn over everything: visible at any zoom, never inside the
+        # block or behind the fingers.
+        self.vision_root = scene.add_frame("/vision", show_axes=False)
+        self.ghosts: dict[str, tuple] = {}
+        self.dragger = scene.add_transform_controls(
+            "/dragger", scale=GIZMO_PX, fixed=True, depth_test=False, visible=False
+        )
+        self.dragger.on_update(lambda e: self.on_drag(e.phase))
         self.contact_points = scene.add_point_cloud(
             "/contacts", np.zeros((0, 3)), CONTACT_RGB, point_size=0.006, visible=False
         )
@@ -123,7 +219,34 @@ class SceneView:
                 set_pose(h, v.X_LV)
         self._show_robot(self.scene.robot.q_home_rad, 0.04)
 
+    def set_view(self, view: str, client: viser.ClientHandle | None = None) -> None:
+        """Put ``client``'s camera (default: every browser's) in ``view`` (:data:`VIEWS`);
+        from above, over the workpiece when one is picked."""
+        if view == "from above":
+            name = self.session.workpiece
+            target = self.session.X_WO[name][:3, 3] if name is not None else None
+            eye, look_at = view_from_above_W(self.scene, target)
+        elif view == "from the start":
+            eye, look_at = initial_view_W(self.scene)
+        else:
+            raise ValueError(f"view must be one of {VIEWS}, not {view!r}")
+        clients = [client] if client is not None else self.server.get_clients().values()
+        for c in clients:
+            c.camera.position = tuple(eye)
+            c.camera.look_at = tuple(look_at)
+            c.camera.up_direction = (0.0, 0.0, 1.0)
+
+    def set_shadows(self, on: bool) -> None:
+        """Shadows in the 3D view (a cue for contact; costly without a graphics card)."""
+        self.server.scene.configure_default_lights(True, cast_shadow=on)
+
     def _show_robot(self, q: np.ndarray, opening_m: float) -> None:
+        """The arm at joint angles ``q`` (rad) and finger opening (m), redrawn only when it
+        moved: an arm at rest sends the browsers nothing."""
+        state = np.append(np.asarray(q, dtype=np.float64), opening_m)
+        if self._shown_q is not None and np.max(np.abs(state - self._shown_q)) < ROBOT_SHOWN_RAD:
+            return
+        self._shown_q = state
         poses = self.robot.link_poses_W(q, opening_m, self.scene.robot.X_WB)
         with self.server.atomic():
             for name, X_WL in poses.items():
@@ -175,3 +298,45 @@ class SceneView:
             self.path_lines.append(
                 self.server.scene.add_line_segments(name, segments, rgb, thickness=0.002)
             )
+
+    def _show_ghosts(self, recognitions) -> dict[str, str]:
+        """What vision sees now, see-through, coloured by how far it is from the model; for
+        each recognised block (``name`` or ``name#2`` for a second one), its colour's key."""
+        known = {o.name: o.model for o in self.scene.movable}
+        counts: dict[str, int] = {}
+        seen: dict[str, str] = {}
+        for r in recognitions:
+            if r.model not in known:
+                continue
+            counts[r.model] = counts.get(r.model, 0) + 1
+            tag = r.model if counts[r.model] == 1 else f"{r.model}#{counts[r.model]}"
+            X_model = self.model.poses.get(r.model)
+            if X_model is None:
+                kind = disagreement(None, None)
+            else:
+                kind = disagreement(*pose_error(X_model, r.X_WO, self.model.symmetries(r.model)))
+            seen[tag] = kind
+            if tag not in self.ghosts:
+                frame = self.server.scene.add_frame(f"/vision/{tag}", show_axes=False)
+                meshes = [
+                    self.server.scene.add_mesh_simple(
+                        f"/vision/{tag}/part_{k}",
+                        part.vertices_O,
+                        part.triangles(),
+                        color=GHOST_RGBS[kind],
+                        opacity=GHOST_OPACITY,
+                        flat_shading=True,
+                        cast_shadow=False,
+                        receive_shadow=False,
+                    )
+                    for k, part in enumerate(known[r.model].parts)
+                ]
+                self.ghosts[tag] = (frame, meshes)
+            frame, meshes = self.ghosts[tag]
+            set_pose(frame, r.X_WO)
+            for mesh in meshes:
+                mesh.color = GHOST_RGBS[kind]
+        for tag in [t for t in self.ghosts if t not in seen]:
+            frame, _ = self.ghosts.pop(tag)
+            frame.remove()
+        return seen

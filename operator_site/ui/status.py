@@ -3,13 +3,17 @@ the link's state, free of viser."""
 
 from __future__ import annotations
 
+import re
+
 import cv2
 import numpy as np
 
 from operator_site.link import LinkStatus
 from operator_site.ui.text import plain
+from operator_site.ui.words import in_words, short_program_name
 
-LOG_LINES = 8
+LOG_LINES = 40
+"""Reports the log shows: a whole run of a long program."""
 
 
 def waiting_image(width: int, height: int, text: str) -> np.ndarray:
@@ -57,33 +61,80 @@ def status_markdown(site_id: str, status: LinkStatus, operator_id: str = "") -> 
         lines.append(f"⚠ {status.rejected} invalid messages rejected")
     if status.reports:
         r = status.reports[-1]
-        lines.append(
-            f"last report: program {plain(r.program_id)} {plain(r.status)}: {plain(r.message)}"
-        )
+        # The status, not the message: the log below says it all, and this line is redrawn
+        # twice a second.
+        step = "" if r.command_index < 0 else f" step {r.command_index + 1}"
+        lines.append(f"last report: {short_program_name(r.program_id)}{step} {plain(r.status)}")
     return "  \n".join(lines)
 
 
 NEXT_STEP = {
     "failed": "The robot holds where it stopped. Next: *back off* if it presses something, "
-    "*open the gripper* to let the block go, *go home*; then check the camera and the model.",
-    "stopped": "The robot holds where it stopped. Next: *back off*, *open the gripper* or "
-    "*go home* (Program panel), or make a new program from here.",
+    "*open the gripper* to let the block go, *go home*; then look at the camera, update the "
+    "model from vision, and make the program again.",
+    "stopped": "The robot holds where it stopped. Next: *resume*, *back off*, *open the "
+    "gripper* or *go home* (below), or make a new program from here.",
     "refused": "Nothing moved. The line above says why; change the task or the model, and make "
     "the program again.",
 }
-"""What the operator may do after a program ends so, shown under the log."""
+"""What the operator may do after a program ends so, shown under its outcome."""
+
+KIND_WORDS = {
+    "guarded_grasp": "grasp the block",
+    "move": "move",
+    "guarded_move": "move into contact",
+    "contact_move": "move keeping contact",
+    "release": "let go",
+    "open_gripper": "open the gripper",
+}
+"""A command's kind as the log says it."""
+_FELT = re.compile(r"([A-Za-z0-9_.-]+) (-?[0-9.]+) N along")
+
+
+def report_words(r) -> str:
+    """One report as a line of the log (outside text escaped)."""
+    if r.command_index < 0:
+        if r.status == "accepted":
+            return "checked and accepted by the work site"
+        if r.status in NEXT_STEP or r.status == "done":
+            return in_words(r.status, r.message).sentence
+        return f"{plain(r.status)} {plain(r.message)}"
+    step = f"step {r.command_index + 1}"
+    if r.status == "started":
+        if r.message in KIND_WORDS:
+            return f"{step}: {KIND_WORDS[r.message]}"
+        return f"{step}: {plain(r.message)}"  # e.g. "holding 54 g" after weighing the grasp
+    if r.status == "contact_verified":
+        felt = ", ".join(f"{plain(n)} {float(f):.1f} N" for n, f in _FELT.findall(r.message))
+        return f"{step}: contact felt ({felt})" if felt else f"{step}: contact felt"
+    if r.status == "done":
+        return f"{step} done"
+    return f"{step}: {plain(r.status)} {plain(r.message)}"
 
 
 def log_markdown(reports) -> str:
-    """The execution log: the last :data:`LOG_LINES` reports, newest last, and what to do
-    next when the newest program ended badly."""
+    """The execution log, newest first: the newest program's outcome in words and what to do
+    next when it ended badly, then the last :data:`LOG_LINES` reports."""
     if not reports:
         return "no program sent yet"
     lines = []
-    for r in reports[-LOG_LINES:]:
+    last = reports[-1]
+    if last.command_index == -1 and (last.status in NEXT_STEP or last.status == "done"):
+        lines.append(f"**{short_program_name(last.program_id)}: {plain(last.status)}**")
+        if last.status in NEXT_STEP:
+            lines.append(f"➜ {NEXT_STEP[last.status]}")
+    for r in reversed(reports[-LOG_LINES:]):
+        lines.append(f"{short_program_name(r.program_id)} · {report_words(r)}")
+    return "  \n".join(lines)
+
+
+def log_details_markdown(reports) -> str:
+    """The work site's own words for the same reports, newest first (the engineering detail
+    behind the log's sentences)."""
+    if not reports:
+        return "nothing yet"
+    lines = []
+    for r in reversed(reports[-LOG_LINES:]):
         where = "program" if r.command_index < 0 else f"command {r.command_index}"
         lines.append(f"{plain(r.program_id)} {where}: **{plain(r.status)}** {plain(r.message)}")
-    last = reports[-1]
-    if last.command_index == -1 and last.status in NEXT_STEP:
-        lines.append(f"➜ {NEXT_STEP[last.status]}")
     return "  \n".join(lines)

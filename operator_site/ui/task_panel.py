@@ -4,34 +4,41 @@ the operator measures it from."""
 
 from __future__ import annotations
 
+import math
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import viser
 
 from models.scene import Scene
-from models.transforms import make_pose, quat_wxyz_to_R
+from models.transforms import R_to_rpy, make_pose, quat_wxyz_to_R, rpy_to_R
 from operator_site.failures import RunError
 from operator_site.model_editor import WorkSiteModel
 from operator_site.session import OperatorSession
 from operator_site.task import TaskSession
 from operator_site.taskfile import load_task, save_task
-from operator_site.ui.scene_view import set_pose
+from operator_site.ui.gizmo import NO_SNAP, SNAP_STEP_M, SNAP_STEP_RAD, Gizmo, Snap
+from operator_site.ui.scene_view import VIEWS, set_pose
 from operator_site.ui.text import plain
 
 NO_WORKPIECE = "(none)"
 TASK_HELP = (
-    "Pick a block (click it, or choose it below), then drag the arrows and rings around it: "
-    "the block follows on a spring and bumps, slides and settles against what it meets. "
+    "Pick a block (click it, or choose it below), then drag the arrows and rings around it "
+    "(red, green, blue: the table's x, y, z), or type a pose or nudge it below: the block "
+    "follows on a spring and bumps, slides and settles against what it meets. "
     "**Capture mode**: click the frame or the table to keep the block touching it. "
     "**Undo** takes the last drag back. A saved task is measured from the object chosen "
     "below: loaded on another layout, it is done relative to where that object is there."
 )
+PICK_HELP = "Pick a block to move (click it, or choose it below)."
 DEFAULT_TASK_FILE = "task.json"
-GESTURE_GAP_S = 0.5
-"""A dragger update after a pause this long begins a new drag (what "undo" takes back)."""
+NUDGES = {
+    "−x": (0, -1), "+x": (0, 1), "−y": (1, -1), "+y": (1, 1), "−z": (2, -1), "+z": (2, 1),
+    "↻z": (5, -1), "↺z": (5, 1),
+}  # fmt: skip
+"""The nudge buttons: which coordinate of (x, y, z, roll, pitch, yaw) in the world, and which
+way; a nudge is one snapping step (a millimetre, five degrees)."""
 
 
 def _reason(error: Exception) -> str:
@@ -48,16 +55,34 @@ class TaskPanel:
     op: OperatorSession
     message: str
     _lock: threading.Lock
-    _last_drag_s: float
 
     def _build_task_panel(self, gui: viser.GuiApi) -> None:
         """The panel's widgets, in the folder ``gui`` has open, and their callbacks."""
         gui.add_markdown(TASK_HELP)
         self.workpiece_dropdown = gui.add_dropdown("workpiece", self._workpiece_options())
+        self.gizmo = Gizmo()
+        self.snap_checkbox = gui.add_checkbox(
+            f"snap: {SNAP_STEP_M * 1e3:g} mm, {math.degrees(SNAP_STEP_RAD):g}°",
+            True,
+            hint="the gizmo moves the block in whole steps from where the drag began",
+        )
+        self.own_axes_checkbox = gui.add_checkbox(
+            "gizmo along the block's own axes",
+            False,
+            hint="off: the gizmo's axes are the table's (red x, green y, blue z)",
+        )
+        self.nudge_buttons = gui.add_button_group("nudge", tuple(NUDGES))
+        self.view_buttons = gui.add_button_group("view", VIEWS)
+        self.shadows_checkbox = gui.add_checkbox(
+            "shadows", False, hint="a cue for contact; slow in a browser without a graphics card"
+        )
+        self.pose_xyz = gui.add_vector3("target x, y, z (mm)", (0.0, 0.0, 0.0), step=1.0)
+        self.pose_rpy = gui.add_vector3("roll, pitch, yaw (°)", (0.0, 0.0, 0.0), step=1.0)
+        self.pose_button = gui.add_button("move the block there")
         self.capture_mode = gui.add_checkbox("capture mode", False)
         self.undo_button = gui.add_button("undo the last drag")
         self.reset_button = gui.add_button("put the block back")
-        self.task_md = gui.add_markdown("")
+        self.task_md = gui.add_markdown(PICK_HELP)
         self.reference_dropdown = gui.add_dropdown(
             "measured from", self._reference_options(), initial_value=self.op.reference
         )
@@ -73,6 +98,14 @@ class TaskPanel:
             lambda e: e.client is None or self.on_reference(self.reference_dropdown.value)
         )
         self.undo_button.on_click(lambda _: self.on_undo())
+        self.snap_checkbox.on_update(lambda _: self._set_snap(self.snap_checkbox.value))
+        self.own_axes_checkbox.on_update(lambda _: self._set_axes(self.own_axes_checkbox.value))
+        self.nudge_buttons.on_click(lambda _: self.on_nudge(self.nudge_buttons.value))
+        self.view_buttons.on_click(lambda e: self.set_view(self.view_buttons.value, e.client))
+        self.shadows_checkbox.on_update(lambda _: self.set_shadows(self.shadows_checkbox.value))
+        self.pose_button.on_click(
+            lambda _: self.on_pose_typed(self.pose_xyz.value, self.pose_rpy.value)
+        )
         self.reset_button.on_click(lambda _: self.on_reset())
         self.save_button.on_click(lambda _: self.on_save(self.task_file.value))
         self.load_button.on_click(lambda _: self.on_load(self.task_file.value))
@@ -100,23 +133,29 @@ class TaskPanel:
             if name == self.session.workpiece:
                 return  # the dropdown echoing our own selection back
             if name == NO_WORKPIECE:
-                self.dragger.visible = False
-                self._show_fingers(None)
-                self.message = ""
+                self._nothing_picked()
                 return
             try:
                 self.op.select(name)
             except (KeyError, ValueError) as e:
                 self.message = plain(_reason(e))
                 return
-            X = self.session.X_WO[name]
-            set_pose(self.dragger, X)
+            self._place_gizmo(self.session.X_WO[name])
             self.dragger.visible = True
             self._show_fingers(name)
             self._task_changed()
             self.message = f"dragging **{plain(name)}**, held as the gripper will hold it"
+            self.task_md.content = self.message
         if self.workpiece_dropdown.value != name:
             self.workpiece_dropdown.value = name
+
+    def _nothing_picked(self) -> None:
+        """No block picked: no gizmo, fingers, contacts or "dragging …" left from before."""
+        self.dragger.visible = False
+        self._show_fingers(None)
+        self.contact_points.visible = False
+        self.message = ""
+        self.task_md.content = PICK_HELP
 
     def on_click_object(self, name: str) -> None:
         """A click on an object: removes it in remove mode, toggles capture in capture mode,
@@ -136,18 +175,81 @@ class TaskPanel:
         if not self.scene.object(name).fixed:
             self.on_select(name)
 
-    def on_drag(self) -> None:
-        """The dragger moved: it is the spring's new target."""
-        X_WD = make_pose(
+    def _place_gizmo(self, X_WO: np.ndarray) -> None:
+        """Put the gizmo on the block's target ``X_WO`` and show that pose in the fields."""
+        set_pose(self.dragger, self.gizmo.place(X_WO))
+        self.pose_xyz.value = tuple(float(v) for v in np.round(X_WO[:3, 3] * 1e3, 2))
+        self.pose_rpy.value = tuple(
+            float(v) for v in np.round(np.degrees(R_to_rpy(X_WO[:3, :3])), 2)
+        )
+
+    def _set_snap(self, on: bool) -> None:
+        self.gizmo.snap = Snap() if on else NO_SNAP
+
+    def _set_axes(self, own: bool) -> None:
+        """The gizmo's axes: the block's own or the table's, on the block's current target."""
+        with self._lock:
+            self.gizmo.world_axes = not own
+            if self.session.sim is not None:
+                self._place_gizmo(self.session.sim.state.X_WD)
+
+    def on_drag(self, phase: str = "update") -> None:
+        """The gizmo moved (``phase``: start, update, end of a drag): the block's target is
+        where the gizmo's motion since the drag began puts it, snapped; at the end the gizmo
+        shows the snapped pose."""
+        X_WG = make_pose(
             quat_wxyz_to_R(np.asarray(self.dragger.wxyz)), np.asarray(self.dragger.position)
         )
-        now = time.monotonic()
         with self._lock:
-            if self.session.sim is not None:
-                if now - self._last_drag_s > GESTURE_GAP_S:
-                    self.op.mark()  # a new drag begins: undo comes back here
-                self._last_drag_s = now
-                self.op.set_target(X_WD)
+            if self.session.sim is None:
+                return
+            if phase == "start" or self.gizmo.X_WG0 is None:
+                self.op.mark()  # a new drag begins: undo comes back here
+                self.gizmo.begin()
+            target_WO, _ = self.gizmo.target_W(X_WG)
+            self.op.set_target(target_WO)
+            if phase == "end":
+                self._place_gizmo(target_WO)
+
+    def _move_target(self, move, what: str) -> None:
+        """The block's target set at once (typed or nudged) to ``move(current target)``: one
+        undo step, the gizmo on it."""
+        with self._lock:
+            if self.session.sim is None:
+                self.message = "Pick a block first."
+                self.task_md.content = self.message
+                return
+            X_WO = move(self.session.sim.state.X_WD.copy())
+            self.op.mark()
+            self.op.set_target(X_WO)
+            self._place_gizmo(X_WO)
+            self.message = what
+
+    def on_nudge(self, which: str) -> None:
+        """Move the block's target one snapping step along or about a world axis."""
+        if which not in NUDGES:
+            return
+        axis, sign = NUDGES[which]
+
+        def nudged(X: np.ndarray) -> np.ndarray:
+            if axis < 3:
+                X[axis, 3] += sign * SNAP_STEP_M
+            else:
+                X[:3, :3] = rpy_to_R(np.array([0.0, 0.0, sign * SNAP_STEP_RAD])) @ X[:3, :3]
+            return X
+
+        self._move_target(nudged, f"nudged {which}")
+
+    def on_pose_typed(self, xyz_mm, rpy_deg) -> None:
+        """The block's target typed in: position (mm) and roll, pitch, yaw (°) in the world."""
+        values = np.array([*xyz_mm, *rpy_deg], dtype=np.float64)
+        if not np.all(np.isfinite(values)):
+            self.message = "⚠ the pose needs six numbers"
+            self.task_md.content = self.message
+            return
+        X = make_pose(rpy_to_R(np.radians(values[3:])), values[:3] * 1e-3)
+        x, y, z = values[:3]
+        self._move_target(lambda _: X, f"target set to ({x:.1f}, {y:.1f}, {z:.1f}) mm")
 
     def on_undo(self) -> None:
         """Take the last drag back: the block, its captures and its path as they were before."""
@@ -156,7 +258,7 @@ class TaskPanel:
             if X is None:
                 self.message = "nothing to undo"
             else:
-                set_pose(self.dragger, self.session.sim.state.X_WD)
+                self._place_gizmo(self.session.sim.state.X_WD)
                 set_pose(self.object_frames[self.session.workpiece], X)
                 self._task_changed()
                 self.message = "the last drag was undone"
@@ -169,7 +271,7 @@ class TaskPanel:
             self._task_changed()
             if self.session.workpiece is not None:
                 X = self.session.X_WO[self.session.workpiece]
-                set_pose(self.dragger, X)
+                self._place_gizmo(X)
                 set_pose(self.object_frames[self.session.workpiece], X)
 
     def on_save(self, path: str) -> None:
@@ -210,7 +312,7 @@ class TaskPanel:
                 return
             name = task.workpiece
             X = self.op.task.X_WO[name]
-            set_pose(self.dragger, X)
+            self._place_gizmo(self.session.sim.state.X_WD)
             set_pose(self.object_frames[name], X)
             self.dragger.visible = True
             self._show_fingers(name)
