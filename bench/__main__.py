@@ -20,6 +20,7 @@ BENCHMARKS: dict[str, str] = {
     "e2e": "the scripted tasks end to end, each seed against its own work site",
     "trade": "each user knob's effect on a scripted task end to end",
     "tasks": "every shipped task file end to end on seeded layouts",
+    "ui": "a first task in the operator's page in Chromium, timed step by step",
     "report": "rebuild the summary of docs/benchmarks.md from the benchmarks' JSON",
 }
 """Each benchmark's name, the module bench.NAME that runs it, and what it measures."""

@@ -1,0 +1,384 @@
+"""``python -m bench ui``: a first task done in the operator's page as a person would do it, in
+Debian's headless Chromium against a real work site on loopback, timed step by step.
+
+The steps (each screenshotted into ``--out``): the page loads; vision's recognitions arrive;
+the operator accepts them; picks the cube; drags it along the table with the gizmo (mouse events
+on the gizmo's arrow in the 3D view, not a back door); makes the program; sends it; the robot
+does it ("done" in the log); the page offers the model brought up to date from vision, and the
+operator takes it. The times: ``vision_wait_s`` (page loaded to the first recognitions),
+``operator_s`` (the operator's clicks and drag, as scripted), ``program_s`` (making the
+program), ``robot_s`` (sent to done), ``page_s`` (everything but vision and the robot).
+
+The flow is :func:`first_task`, which the browser test runs too (``tests/test_browser_ui.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from models.transforms import quat_wxyz_to_R
+from operator_site.ui.scene_view import block_label
+
+VIEWPORT = {"width": 1400, "height": 900}
+GRIP_FRACTIONS = (0.9, 0.85, 0.95, 0.8)
+"""Where along a gizmo arrow (a fraction of its length, from the block) the mouse grips it,
+in the order tried: its cone, beyond the rotation rings that cross the shafts."""
+GRIP_CLEAR_PX = 6.0
+"""A grip point this close to another object's outline on the screen is not used: the click
+would go to that object."""
+DRAG_STEPS = 12
+"""Mouse moves in one drag (the gizmo follows pointer moves, not jumps)."""
+
+
+@dataclass
+class Timings:
+    """What each part of the first task took, in seconds (see the module docstring)."""
+
+    marks: dict[str, float] = field(default_factory=dict)
+    parts: dict[str, float] = field(default_factory=dict)
+
+    def add(self, part: str, seconds: float) -> None:
+        self.parts[part] = self.parts.get(part, 0.0) + seconds
+
+
+def project_px(camera, box: dict, p_W: np.ndarray) -> tuple[float, float]:
+    """Where the page's 3D view shows world point ``p_W``: page pixels (x right, y down), from
+    the client's camera (viser's: OpenCV axes, vertical ``fov``) and the canvas's box."""
+    R_WC = quat_wxyz_to_R(np.asarray(camera.wxyz))
+    p_C = R_WC.T @ (np.asarray(p_W, dtype=np.float64) - np.asarray(camera.position))
+    f_px = (box["height"] / 2) / math.tan(camera.fov / 2)
+    return (
+        box["x"] + box["width"] / 2 + f_px * p_C[0] / p_C[2],
+        box["y"] + box["height"] / 2 + f_px * p_C[1] / p_C[2],
+    )
+
+
+def outlines_px(page, camera, box: dict, skip: set[str]) -> list[np.ndarray]:
+    """The screen outlines (convex hulls of their projected corners) of the objects in the
+    page's 3D view that take clicks, except ``skip`` and the table (under everything)."""
+    hulls = []
+    for obj in page.scene.objects:
+        if obj.name in skip or obj.name == "table" or not page.object_frames[obj.name].visible:
+            continue
+        X = page.session.X_WO.get(obj.name, obj.X_WO)
+        corners_O = obj.model.feature_edges_O.reshape(-1, 3)
+        pts = np.array([project_px(camera, box, X[:3, :3] @ c + X[:3, 3]) for c in corners_O])
+        hulls.append(cv2.convexHull(pts.astype(np.float32)))
+    return hulls
+
+
+def gizmo_grip_px(page, camera, box: dict, axis: int, gizmo_px: float) -> tuple[float, float]:
+    """A point on the gizmo's ``axis`` arrow (0, 1, 2: the table's x, y, z) that no other
+    object's outline covers, in page pixels; ValueError when every candidate is covered."""
+    p0 = np.asarray(page.dragger.position, dtype=np.float64)
+    R_WG = quat_wxyz_to_R(np.asarray(page.dragger.wxyz))
+    depth_m = float(np.linalg.norm(p0 - np.asarray(camera.position)))
+    # The gizmo keeps its size in pixels: its arrow is gizmo_px long seen square-on.
+    length_m = gizmo_px * 2 * depth_m * math.tan(camera.fov / 2) / box["height"]
+    hulls = outlines_px(page, camera, box, {page.session.workpiece})
+    for fraction in GRIP_FRACTIONS:
+        u, v = project_px(camera, box, p0 + R_WG[:, axis] * fraction * length_m)
+        clear = all(cv2.pointPolygonTest(h, (u, v), True) < -GRIP_CLEAR_PX for h in hulls)
+        inside = box["x"] < u < box["x"] + box["width"] and box["y"] < v < box["y"] + box["height"]
+        if clear and inside:
+            return u, v
+    raise ValueError(f"the gizmo's axis {axis} is covered by other objects on the screen")
+
+
+def settled_camera(client, timeout_s: float = 20.0, still_s: float = 0.5):
+    """The client's camera once it has stopped changing (the page's first view is animated
+    into place)."""
+    last, since = None, time.monotonic()
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        now = (tuple(client.camera.position), tuple(client.camera.wxyz), client.camera.fov)
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since >= still_s:
+            return client.camera
+        time.sleep(0.05)
+    raise TimeoutError(f"the page's camera kept moving for {timeout_s:g} s")
+
+
+def drag_gizmo(tab, page, axis: int, shift_m: float, gizmo_px: float) -> None:
+    """Drag the gizmo's ``axis`` arrow with the mouse so that the block's target moves about
+    ``shift_m`` along it."""
+    client = next(iter(page.server.get_clients().values()))
+    camera = settled_camera(client)
+    box = tab.locator("canvas").first.bounding_box()
+    u, v = gizmo_grip_px(page, camera, box, axis, gizmo_px)
+    p0 = np.asarray(page.dragger.position, dtype=np.float64)
+    R_WG = quat_wxyz_to_R(np.asarray(page.dragger.wxyz))
+    u0, v0 = project_px(camera, box, p0)
+    u1, v1 = project_px(camera, box, p0 + R_WG[:, axis] * shift_m)
+    du, dv = u1 - u0, v1 - v0  # the screen motion that moves the gizmo shift_m along the axis
+    tab.mouse.move(u, v)
+    tab.mouse.down()
+    for k in range(1, DRAG_STEPS + 1):
+        tab.mouse.move(u + du * k / DRAG_STEPS, v + dv * k / DRAG_STEPS)
+    tab.mouse.up()
+
+
+def run_page(page) -> Callable[[], None]:
+    """Refresh ``page`` in a thread; the function that stops it."""
+    stop = threading.Event()
+    runner = threading.Thread(target=page.run, args=(stop,), daemon=True)
+    runner.start()
+
+    def stopper() -> None:
+        stop.set()
+        runner.join(timeout=10)
+
+    return stopper
+
+
+def shot(tab, out: Path | None, name: str) -> None:
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        tab.screenshot(path=str(out / f"ui_{name}.png"))
+
+
+ENDED = re.compile(r"#\d+: (done|failed|stopped|refused)$")
+"""The execution log's head once a program has ended."""
+
+
+def click_block(tab, page, name: str) -> None:
+    """Click block ``name`` in the 3D view, at its top face's centre, as a person picks it."""
+    client = next(iter(page.server.get_clients().values()))
+    camera = settled_camera(client)
+    box = tab.locator("canvas").first.bounding_box()
+    X = page.session.X_WO[name]
+    top_O = max(float(p.vertices_O[:, 2].max()) for p in page.scene.object(name).model.parts)
+    u, v = project_px(camera, box, X[:3, :3] @ np.array([0.0, 0.0, top_O]) + X[:3, 3])
+    tab.mouse.click(u, v)
+
+
+def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
+    """Wait until ``condition()``; TimeoutError naming ``what`` after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{what}: not within {timeout_s:g} s")
+        time.sleep(0.05)
+
+
+def first_task(
+    tab,
+    page,
+    out: Path | None = None,
+    workpiece: str = "cube",
+    shift_m: float = -0.04,
+    gizmo_px: float = 150.0,
+) -> Timings:
+    """The first task of the module docstring, in ``tab`` (a Playwright page already showing
+    ``page``, an :class:`~operator_site.ui.page.OperatorPage` refreshed by :func:`run_page`);
+    the timings. Raises (TimeoutError, AssertionError) at the first step that does not come."""
+    t = Timings()
+    now = time.monotonic
+    tab.get_by_text("work site: connected").wait_for(timeout=60_000)
+    start = now()
+    shot(tab, out, "1_loaded")
+    # Vision's recognitions: listed, outlined on the camera image, see-through in 3D.
+    tab.get_by_text(re.compile(r"score \d")).first.wait_for(timeout=180_000)
+    t.add("vision_wait_s", now() - start)
+    shot(tab, out, "2_recognised")
+    mark = now()
+    tab.get_by_role("button", name="accept the recognised blocks").click()
+    tab.get_by_text(re.compile(r"^model: \d+ blocks")).wait_for(timeout=30_000)
+    t.add("operator_s", now() - mark)
+    if workpiece not in page.model.poses:
+        raise AssertionError(f"vision did not find the {workpiece}: {sorted(page.model.poses)}")
+    # Each block of the model is named in the 3D view (the names are drawn in the canvas,
+    # not the page's text: what the page sent it is checked).
+    t.marks["blocks_accepted"] = len(page.model.poses)
+    t.marks["labels_shown"] = sum(
+        page.labels[n].text == block_label(n) and page.object_frames[n].visible
+        for n in page.model.poses
+    )
+    # Pick the block with a click in the 3D view, look from above, drag the gizmo's x arrow.
+    mark = now()
+    click_block(tab, page, workpiece)
+    tab.get_by_text(f"dragging {workpiece}").wait_for(timeout=30_000)
+    tab.get_by_role("button", name="from above").click()
+    start_W = page.session.X_WO[workpiece][:3, 3].copy()
+    drag_gizmo(tab, page, 0, shift_m, gizmo_px)
+    wait_for(
+        lambda: (
+            abs(page.session.X_WO[workpiece][0, 3] - page.session.sim.state.X_WD[0, 3]) < 1e-3
+            and abs(page.session.sim.state.X_WD[0, 3] - start_W[0]) > 1e-3
+        ),
+        30,
+        "the block following the gizmo",
+    )
+    t.add("operator_s", now() - mark)
+    t.marks["moved_m"] = float(page.session.sim.state.X_WD[0, 3] - start_W[0])
+    shot(tab, out, "3_dragged")
+    mark = now()
+    tab.get_by_role("button", name="make the robot program").click()
+    tab.get_by_text("guarded_grasp to").first.wait_for(timeout=120_000)
+    t.add("program_s", now() - mark)
+    shot(tab, out, "4_program")
+    mark = now()
+    tab.get_by_role("button", name="send it to the robot").click()
+    t.add("operator_s", now() - mark)
+    mark = now()
+    tab.get_by_text("checked and accepted by the work site").first.wait_for(timeout=60_000)
+    t.marks["log_in_view"] = float(
+        tab.get_by_text("checked and accepted by the work site").first.evaluate(
+            "e => { const r = e.getBoundingClientRect();"
+            " return r.top >= 0 && r.bottom <= window.innerHeight ? 1 : 0; }"
+        )
+    )
+    ended = tab.get_by_text(ENDED).first
+    ended.wait_for(timeout=300_000)
+    t.add("robot_s", now() - mark)
+    t.marks["outcome"] = ended.inner_text()
+    shot(tab, out, "5_done")
+    # After the run, the page says what vision sees now; the operator takes it into the model.
+    mark = now()
+    tab.get_by_text(re.compile(r"vision (sees|agrees)")).first.wait_for(timeout=120_000)
+    t.add("vision_wait_s", now() - mark)
+    mark = now()
+    tab.get_by_role("button", name="update the model from vision").click()
+    tab.get_by_text("updated from vision").first.wait_for(timeout=30_000)
+    t.add("operator_s", now() - mark)
+    shot(tab, out, "6_updated")
+    return t
+
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_FLAGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--use-gl=swiftshader", "--enable-unsafe-swiftshader",
+]  # fmt: skip
+"""Debian's Chromium, headless, software WebGL, nothing fetched from outside."""
+PARTS = ("vision_wait_s", "operator_s", "program_s", "robot_s", "page_s")
+
+
+def run(args: argparse.Namespace) -> dict:
+    """One first task per run, each against its own work site; the summary (the median run's
+    parts, and each run's)."""
+    from playwright.sync_api import sync_playwright
+
+    from bench.netsafety import start_work_site
+    from models.scene import load_scene
+    from operator_site.link import WorkSiteLink
+    from operator_site.ui import OperatorPage
+    from operator_site.ui.scene_view import GIZMO_PX
+    from protocol import make_config
+    from tests.conftest import free_port
+
+    if not Path(CHROMIUM).exists():
+        raise SystemExit(f"bench ui: {CHROMIUM} is missing (Debian's chromium package)")
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for k in range(args.runs):
+        ws = start_work_site(args.out, k, site_id=f"ui{k}", vision=True)
+        link = WorkSiteLink(make_config(connect=[ws.endpoint]), ws.site_id)
+        page = OperatorPage(load_scene(), link, port=free_port(), initial_model="empty")
+        stop = run_page(page)
+        row: dict = {"run": k, "success": False}
+        try:
+            with sync_playwright() as pw:
+                browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
+                try:
+                    tab = browser.new_page(viewport=VIEWPORT)
+                    began = time.monotonic()
+                    tab.goto(f"http://127.0.0.1:{page.server.get_port()}/")
+                    t = first_task(tab, page, args.out if k == 0 else None, gizmo_px=GIZMO_PX)
+                    row["total_s"] = time.monotonic() - began
+                    row.update(t.parts)
+                    row["page_s"] = row["total_s"] - row["vision_wait_s"] - row["robot_s"]
+                    row["success"] = t.marks["outcome"].endswith(": done")
+                    row["outcome"] = t.marks["outcome"]
+                except (TimeoutError, AssertionError, ValueError) as e:
+                    row["error"] = str(e).splitlines()[0]
+                finally:
+                    browser.close()
+        finally:
+            stop()
+            page.close()
+            link.close()
+            ws.kill()
+        print(f"bench ui: run {k + 1}/{args.runs}: {row}", file=sys.stderr, flush=True)
+        rows.append(row)
+    done = [r for r in rows if r["success"]]
+    summary: dict = {"runs": len(rows), "success": len(done)}
+    if done:
+        middle = sorted(done, key=lambda r: r["total_s"])[len(done) // 2]
+        summary["total_s"] = round(middle["total_s"], 2)
+        for part in PARTS:
+            summary[part] = round(middle.get(part, 0.0), 2)
+    write_outputs(args.out, rows, summary)
+    return summary
+
+
+def write_outputs(out: Path, rows: list[dict], summary: dict) -> None:
+    """ui.json (the summary), ui.csv (each run) and ui.png (each run's parts, stacked)."""
+    import csv
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    (out / "ui.json").write_text(json.dumps(summary, indent=1) + "\n")
+    with (out / "ui.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, ["run", "success", "total_s", *PARTS, "outcome", "error"])
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: r.get(k, "") for k in w.fieldnames})
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    shown = ("vision_wait_s", "robot_s", "program_s", "operator_s")
+    for k, r in enumerate(rows):
+        left = 0.0
+        for part, colour in zip(shown, ("#7aa6d8", "#e0a040", "#60b060", "#b080c0"), strict=True):
+            width = r.get(part, 0.0)
+            ax.barh(k, width, left=left, color=colour, label=part if k == 0 else None)
+            left += width
+        rest = r.get("total_s", left) - left
+        ax.barh(
+            k, max(rest, 0.0), left=left, color="#bbbbbb", label="page rest" if k == 0 else None
+        )
+    ax.set_xlabel("s from page load to the model updated after the run")
+    ax.set_ylabel("run")
+    ax.legend(loc="lower right", fontsize=7)
+    ax.set_title("A first task in the page: where the time goes")
+    fig.tight_layout()
+    fig.savefig(out / "ui.png", dpi=120)
+    plt.close(fig)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``python -m bench ui``."""
+    parser.add_argument("--runs", type=int, default=3, help="first tasks, each with its own "
+                        "work site (default: %(default)s)")  # fmt: skip
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("docs/bench"),
+        help="directory for ui.json, ui.csv, ui.png and the first run's screenshots "
+        "ui_*.png (default: %(default)s)",
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the benchmark; print its JSON (one line) last."""
+    if args.runs < 1:
+        raise SystemExit(f"bench ui: --runs must be at least 1, not {args.runs}")
+    summary = run(args)
+    print(json.dumps(summary), flush=True)
+    return 0 if summary["success"] == summary["runs"] else 1

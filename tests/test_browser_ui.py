@@ -1,0 +1,86 @@
+"""A first task in the page as a person does it, in Debian's headless Chromium against a real
+work site with vision on loopback (:func:`bench.ui.first_task`: recognitions, accept, pick the
+cube with a click, look from above, drag the gizmo's arrow with the mouse, make the program,
+send, "done", update the model from vision), and what the page must show on the way."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.ui import VIEWPORT, first_task, run_page
+from models.scene import load_scene
+from operator_site.link import WorkSiteLink
+from operator_site.ui import NO_WORKPIECE, OperatorPage
+from operator_site.ui.scene_view import GIZMO_PX
+from protocol import make_config
+from tests.conftest import REPO, free_port
+from tests.test_browser import CHROMIUM, CHROMIUM_FLAGS
+
+pytestmark = [pytest.mark.browser, pytest.mark.integration]
+
+SHIFT_M = -0.04
+"""The drag: the cube 4 cm along the table towards the robot."""
+
+
+def test_a_first_task_as_a_person_does_it(work_site, tmp_path: Path) -> None:
+    if not os.access(CHROMIUM, os.X_OK):
+        print(f"skipping: {CHROMIUM} is missing (`make test` installs Debian's chromium as root)")
+        pytest.skip(f"{CHROMIUM} is missing (`make test` installs Debian's chromium as root)")
+    playwright = pytest.importorskip("playwright.sync_api")
+    ws = work_site(vision=True)
+    link = WorkSiteLink(make_config(connect=[ws.endpoint]), ws.site_id)
+    page = OperatorPage(load_scene(), link, port=free_port(), initial_model="empty")
+    stop = run_page(page)
+    try:
+        with playwright.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
+            try:
+                tab = browser.new_page(viewport=VIEWPORT)
+                tab.goto(f"http://127.0.0.1:{page.server.get_port()}/")
+                try:
+                    timings = first_task(
+                        tab, page, REPO / "out" / "screenshots", shift_m=SHIFT_M,
+                        gizmo_px=GIZMO_PX,
+                    )  # fmt: skip
+                finally:
+                    tab.screenshot(path=str(tmp_path / "last.png"))
+                # Bad paths are said, not swallowed: saving where nothing can be written, and
+                # loading a file that is not there.
+                field = tab.locator('input[value="task.json"]').first
+                field.fill("/proc/no-such-dir/task.json")
+                tab.keyboard.press("Enter")
+                tab.get_by_role("button", name="save the task").click()
+                tab.get_by_text("nothing saved").or_(
+                    tab.get_by_text("could not save")
+                ).first.wait_for(timeout=30_000)
+                tab.get_by_role("button", name="load a task").click()
+                tab.get_by_text("no such file").first.wait_for(timeout=30_000)
+            finally:
+                browser.close()
+    finally:
+        stop()
+        page.close()
+        link.close()
+    log = ws.log()
+    assert timings.marks["outcome"].endswith(": done"), (timings.marks, log[-2000:])
+    # The drag moved the target a whole number of millimetres (snapping) along the table's x
+    # (the gizmo's red arrow is the table's x, whatever the cube's own frame).
+    # Each block accepted into the model is named in the 3D view.
+    assert timings.marks["labels_shown"] == timings.marks["blocks_accepted"] > 0
+    moved_mm = timings.marks["moved_m"] * 1e3
+    assert moved_mm == pytest.approx(round(moved_mm), abs=1e-6) and moved_mm < -10.0
+    # The log was in view right after the send, without scrolling.
+    assert timings.marks["log_in_view"] == 1.0
+    # What vision saw was drawn in 3D; after the update the model has the cube where the robot
+    # put it, and nothing is left picked from before.
+    assert page.ghosts
+    assert page.workpiece_dropdown.value == NO_WORKPIECE
+    assert "dragging" not in page.task_md.content
+    placed = page.model.poses["cube"][:3, 3]
+    start = load_scene().object("cube").X_WO[:3, 3]
+    expected = start[:2] + np.array([moved_mm * 1e-3, 0.0])
+    assert np.linalg.norm(placed[:2] - expected) < 5e-3, placed
