@@ -265,3 +265,29 @@ def test_a_movable_object_is_predicted_pressed_as_the_work_site_presses_it() -> 
     assert near[0][2] == pytest.approx(MOVABLE_PRESS_N) and far[0][2] < 1.0
     fixed = predicted_contact_forces_n(program, 0, {"l_block": 0.0}, set())
     assert fixed[0][2] == pytest.approx(5.0)
+
+
+def test_contacts_the_robot_can_feel_and_those_it_cannot() -> None:
+    from types import SimpleNamespace
+
+    from operator_site.program.feasibility import contact_move_forces_n, felt_contacts
+
+    def touching(*pairs):
+        return SimpleNamespace(
+            contacts=[
+                SimpleNamespace(object=name, normals_W=np.array([n], dtype=float))
+                for name, n in pairs
+            ]
+        )
+
+    # In a corner, a contact move presses the table and both walls: all three are felt.
+    corner = touching(("table", (0, 0, 1)), ("frame", (1, 0, 0)), ("bar", (0, 1, 0)))
+    assert felt_contacts(corner) == {"table": True, "frame": True, "bar": True}
+    # Squeezed between two opposite walls: no press reaches both, so neither is felt.
+    squeezed = touching(("table", (0, 0, 1)), ("frame", (1, 0, 0)), ("bar", (-1, 0, 0)))
+    felt = felt_contacts(squeezed)
+    assert felt["table"] and not (felt["frame"] and felt["bar"])
+    # A movable block pressed sideways is pressed with at most MOVABLE_PRESS_N: still felt.
+    side = touching(("table", (0, 0, 1)), ("cube", (1, 0, 0)))
+    assert felt_contacts(side, {"cube"}) == {"table": True, "cube": True}
+    assert contact_move_forces_n([]).shape == (0,)

@@ -14,7 +14,7 @@ from models.transforms import R_to_quat_wxyz, invert_pose, make_pose
 from operator_site.link import WorkSiteLink
 from operator_site.task import TaskSession
 from operator_site.ui import NO_WORKPIECE, OperatorPage
-from operator_site.ui.scene_view import GHOST_RGBS
+from operator_site.ui.scene_view import FELT_RGB, GHOST_RGBS
 from protocol import make_config
 from tests.conftest import free_port, wait_until
 
@@ -126,7 +126,8 @@ def test_page_callbacks_pick_drag_capture_and_reset(page: OperatorPage) -> None:
     # viser skips updates closer than np.allclose's default tolerance (a few µm here).
     np.testing.assert_allclose(page.object_frames["cube"].position, moved[:3, 3], atol=1e-5)
     assert page.contact_points.visible and len(page.contact_points.points) == 4
-    assert "touching: table" in page.task_md.content
+    assert "touching: table (the robot can feel it)" in page.task_md.content
+    assert np.all(np.asarray(page.contact_points.colors) == FELT_RGB)  # green: felt
     # Capture mode: a click on the table captures it, a second releases it.
     page.capture_mode.value = True
     page.on_click_object("table")

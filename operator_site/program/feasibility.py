@@ -39,6 +39,7 @@ from operator_site.grasp import (
     grasp_problem,
     grip_area_m2,
 )
+from operator_site.program.commands import contact_states
 from operator_site.simulator.world import SimWorld
 from protocol import MotionCommand, MotionProgram
 from protocol.execution import (
@@ -89,6 +90,40 @@ def _gaps_m(world: SimWorld, X_WP: np.ndarray, names: set[str]) -> dict[str, flo
     return out
 
 
+def contact_move_forces_n(
+    directions: Sequence[tuple[str, np.ndarray]],
+    movable: Container[str] = frozenset(),
+    gaps_m: dict[str, float] | None = None,
+) -> np.ndarray:
+    """The force (N) a contact move keeping these contact directions (object, unit normal into
+    the workpiece) reads along each when the work site verifies it: each pressed by stiffness ×
+    (how far the bias reaches into it − its gap, default 0), capped as the work site caps it,
+    the wrist force split over the normals by non-negative least squares."""
+    if not directions:
+        return np.zeros(0)
+    gaps_m = gaps_m or {}
+    N = np.array([n for _, n in directions]).reshape(-1, 3)
+    dp = contact_bias_W(directions, movable)
+    depth = np.array([-(n @ dp) - gaps_m.get(name, 0.0) for name, n in directions])
+    press = np.minimum(
+        NORMAL_STIFFNESS_N_PER_M * np.maximum(depth, 0.0), press_caps_n(directions, movable)
+    )
+    return nnls(N.T, press @ N)[0]
+
+
+def felt_contacts(step, movable: Container[str] = frozenset()) -> dict[str, bool]:
+    """For each object the workpiece touches in ``step`` (a simulator step's result, or a path
+    node: anything with ``contacts``), whether a contact move keeping all of them would press
+    it with :data:`CONTACT_VERIFY_N` along each of its directions: whether the robot can feel
+    it by force (a program that needs one it cannot feel is refused)."""
+    directions = contact_directions(contact_states(step))
+    forces = contact_move_forces_n(directions, movable)
+    felt = {c.object: True for c in step.contacts}
+    for (name, _), f in zip(directions, forces, strict=True):
+        felt[name] = felt[name] and f >= CONTACT_VERIFY_N
+    return felt
+
+
 def predicted_contact_forces_n(
     program: MotionProgram,
     k: int,
@@ -106,12 +141,8 @@ def predicted_contact_forces_n(
     directions = contact_directions(cmd.contacts)
     N = np.array([n for _, n in directions]).reshape(-1, 3)
     if cmd.kind == "contact_move":
-        dp = contact_bias_W(directions, movable)
-        depth = np.array([-(n @ dp) - gaps_m.get(name, 0.0) for name, n in directions])
-        press = np.minimum(
-            NORMAL_STIFFNESS_N_PER_M * np.maximum(depth, 0.0), press_caps_n(directions, movable)
-        )
-        force_W = press @ N
+        f = contact_move_forces_n(directions, movable, gaps_m)
+        return [(name, n, float(fi)) for (name, n), fi in zip(directions, f, strict=True)]
     else:  # guarded_move: the force that stops it is against its motion
         here = program.commands[k - 1].X_WP if k > 0 else cmd.X_WP
         direction = np.asarray(cmd.X_WP)[:3, 3] - np.asarray(here)[:3, 3]

@@ -18,6 +18,10 @@ from operator_site.task import TaskSession
 from operator_site.taskfile import pose_error
 
 CONTACT_RGB = (230, 40, 40)
+FELT_RGB = (40, 170, 60)
+UNFELT_RGB = (240, 140, 20)
+"""Contact points: green where the robot will feel the contact by force (a contact move keeping
+the contacts shown presses each with the force the work site verifies), orange where not."""
 FINGER_RGB = (40, 40, 48)
 BLOCK_RGBS = (
     (214, 160, 92),

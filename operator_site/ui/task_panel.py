@@ -15,11 +15,12 @@ from models.scene import Scene
 from models.transforms import R_to_rpy, make_pose, quat_wxyz_to_R, rpy_to_R
 from operator_site.failures import RunError
 from operator_site.model_editor import WorkSiteModel
+from operator_site.program.feasibility import felt_contacts, movable_names
 from operator_site.session import OperatorSession
 from operator_site.task import TaskSession
 from operator_site.taskfile import load_task, save_task
 from operator_site.ui.gizmo import NO_SNAP, SNAP_STEP_M, SNAP_STEP_RAD, Gizmo, Snap
-from operator_site.ui.scene_view import VIEWS, set_pose
+from operator_site.ui.scene_view import FELT_RGB, UNFELT_RGB, VIEWS, set_pose
 from operator_site.ui.text import plain
 
 NO_WORKPIECE = "(none)"
@@ -27,6 +28,8 @@ TASK_HELP = (
     "Pick a block (click it, or choose it below), then drag the arrows and rings around it "
     "(red, green, blue: the table's x, y, z), or type a pose or nudge it below: the block "
     "follows on a spring and bumps, slides and settles against what it meets. "
+    "Contacts show as dots: **green** where the robot will feel the contact by force, "
+    "**orange** where it cannot (a program that needs it is refused). "
     "**Capture mode**: click the frame or the table to keep the block touching it. "
     "**Undo** takes the last drag back. A saved task is measured from the object chosen "
     "below: loaded on another layout, it is done relative to where that object is there."
@@ -332,17 +335,34 @@ class TaskPanel:
         if result is None:
             return
         set_pose(self.object_frames[self.session.workpiece], result.X_WO)
+        # Each contact coloured by whether the robot will be able to feel it by force.
+        felt = felt_contacts(result, movable_names(self.scene))
         points = [c.points_W for c in result.contacts]
         self.contact_points.points = np.vstack(points) if points else np.zeros((0, 3))
+        self.contact_points.colors = (
+            np.vstack(
+                [
+                    np.tile(FELT_RGB if felt[c.object] else UNFELT_RGB, (len(c.points_W), 1))
+                    for c in result.contacts
+                ]
+            ).astype(np.uint8)
+            if points
+            else np.zeros((0, 3), dtype=np.uint8)
+        )
         self.contact_points.visible = bool(points)
-        touching = ", ".join(sorted(c.object for c in result.contacts)) or "nothing"
-        self.task_md.content = "  \n".join(
+        touching = ", ".join(
+            f"{plain(c)} (the robot {'can' if felt[c] else '**cannot**'} feel it)"
+            for c in sorted(felt)
+        )
+        text = "  \n".join(
             filter(
                 None,
                 [
                     self.message,
-                    f"touching: {plain(touching)}",
+                    f"touching: {touching or 'nothing'}",
                     f"captured: {plain(', '.join(captured))}" if captured else "",
                 ],
             )
         )
+        if text != self.task_md.content:  # redrawn on change only
+            self.task_md.content = text
