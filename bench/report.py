@@ -210,6 +210,15 @@ FIGURES: tuple[Figure, ...] = (
            "program_sweeps.json",
            lambda d: d["around-corner"][str(d["default_max_sweeps"])]["cpu_s_median"],
            "{:.2f} s", "(reported)"),
+    Figure("Operator's page (24)", "a first task in Chromium: runs done", "ui.json",
+           lambda d: (d["success"], d["runs"]), "{0} / {1}", "all",
+           lambda v: v[1] > 0 and v[0] == v[1]),
+    Figure("Operator's page (24)", "page load → model updated after the run (median run)",
+           "ui.json", lambda d: d["total_s"], "{:.1f} s", "(reported)"),
+    Figure("Operator's page (24)", "waiting for vision / the robot (median run)", "ui.json",
+           lambda d: (d["vision_wait_s"], d["robot_s"]), "{0:.1f} / {1:.1f} s", "(reported)"),
+    Figure("Operator's page (24)", "the page's part: all but vision and the robot", "ui.json",
+           lambda d: d["page_s"], "{:.1f} s", "≤ 5 s on 2 cores", lambda v: v <= 5.0),
 )  # fmt: skip
 
 TASK_LAYOUTS = 20

@@ -302,6 +302,8 @@ def test_page_undo_and_the_program_progress(page: OperatorPage, monkeypatch) -> 
     page.on_make_program()
     assert page.pending_program is not None
     assert seen == sorted(seen) and len(seen) == 5 and 0.0 < seen[0] and seen[-1] < 1.0
+    assert "commands; path" in page.program_md.content  # the summary; the commands folded
+    assert shown(page.commands_md.content).startswith("1\\. guarded_grasp to")
     assert not page.progress.visible
     page.on_undo()
     assert "undone" in page.task_md.content

@@ -43,6 +43,9 @@ class ProgramPanel:
         self.program_button = gui.add_button("make the robot program")
         self.progress = gui.add_progress_bar(0.0, visible=False, animated=True)
         self.program_md = gui.add_markdown("")
+        # The commands one click away: the send button, and the log under it, stay in view.
+        with gui.add_folder("the program's commands", expand_by_default=False):
+            self.commands_md = gui.add_markdown("no program yet")
         self.send_button = gui.add_button("send it to the robot", disabled=True)
         # Where the operator's eyes are after sending: what the robot does, newest first, a
         # second stop, and the ways back after a failure.
@@ -84,6 +87,7 @@ class ProgramPanel:
             self.pending_program = None
             self.send_button.disabled = True
             self.program_md.content = "The task changed: make its program again."
+            self.commands_md.content = "no program yet"
 
     def on_stop(self) -> None:
         """The stop button: stop the robot now."""
@@ -149,11 +153,14 @@ class ProgramPanel:
             f"**program {short_program_name(made.program.program_id)}**, "
             f"{len(made.program.commands)} commands; path "
             f"{made.raw.length_m() * 1e3:.0f} → {made.deformed.path.length_m() * 1e3:.0f} mm "
-            f"(grey: as dragged, green: as the robot will go):"
+            f"(grey: as dragged, green: as the robot will go)."
         ]
-        lines += _command_lines(made.program)
-        lines.append("Check the green path in the 3D view, then send it.")
+        lines.append(
+            "Check the green path in the 3D view (the commands are in the folder below), then "
+            "send it."
+        )
         self.program_md.content = "  \n".join(lines)
+        self.commands_md.content = "  \n".join(_command_lines(made.program))
         self.progress.visible = False
         self.send_button.disabled = False
 
@@ -204,11 +211,11 @@ class ProgramPanel:
         self._show_path(None, None)
         lines = [
             f"**program {short_program_name(program.program_id)}** (a new id) loaded from "
-            f"{plain(path)}, {len(program.commands)} commands:",
-            *_command_lines(program),
+            f"{plain(path)}, {len(program.commands)} commands (in the folder below).",
             "It runs as it was made: check that the blocks lie as they did then.",
         ]
         self.program_md.content = "  \n".join(lines)
+        self.commands_md.content = "  \n".join(_command_lines(program))
         self.send_button.disabled = False
 
 
