@@ -17,12 +17,12 @@ import msgpack
 import numpy as np
 import pytest
 
+from bench.ui import CHROMIUM, CHROMIUM_FLAGS
 from models.scene import load_scene
 from operator_site.link import WorkSiteLink
 from operator_site.ui import OperatorPage
 from protocol import ExecutionReport, encode, key, make_config
 from tests.conftest import free_port, one_move_program, wait_until
-from tests.test_browser import CHROMIUM, CHROMIUM_FLAGS
 
 pytestmark = [pytest.mark.browser, pytest.mark.integration]
 

@@ -11,14 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.ui import VIEWPORT, first_task, run_page
+from bench.ui import CHROMIUM, chromium_tab, first_task, page_for
 from models.scene import load_scene
-from operator_site.link import WorkSiteLink
-from operator_site.ui import NO_WORKPIECE, OperatorPage
+from operator_site.ui import NO_WORKPIECE
 from operator_site.ui.scene_view import GIZMO_PX
-from protocol import make_config
-from tests.conftest import REPO, free_port
-from tests.test_browser import CHROMIUM, CHROMIUM_FLAGS
+from tests.conftest import REPO
 
 pytestmark = [pytest.mark.browser, pytest.mark.integration]
 
@@ -32,45 +29,28 @@ def test_a_first_task_as_a_person_does_it(work_site, tmp_path: Path) -> None:
         pytest.skip(f"{CHROMIUM} is missing (`make test` installs Debian's chromium as root)")
     playwright = pytest.importorskip("playwright.sync_api")
     ws = work_site(vision=True)
-    link = WorkSiteLink(make_config(connect=[ws.endpoint]), ws.site_id)
-    page = OperatorPage(load_scene(), link, port=free_port(), initial_model="empty")
-    stop = run_page(page)
-    try:
-        with playwright.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
-            try:
-                tab = browser.new_page(viewport=VIEWPORT)
-                tab.goto(f"http://127.0.0.1:{page.server.get_port()}/")
-                try:
-                    timings = first_task(
-                        tab, page, REPO / "out" / "screenshots", shift_m=SHIFT_M,
-                        gizmo_px=GIZMO_PX,
-                    )  # fmt: skip
-                finally:
-                    tab.screenshot(path=str(tmp_path / "last.png"))
-                # Bad paths are said, not swallowed: saving where nothing can be written, and
-                # loading a file that is not there.
-                field = tab.locator('input[value="task.json"]').first
-                field.fill("/proc/no-such-dir/task.json")
-                tab.keyboard.press("Enter")
-                tab.get_by_role("button", name="save the task").click()
-                tab.get_by_text("nothing saved").or_(
-                    tab.get_by_text("could not save")
-                ).first.wait_for(timeout=30_000)
-                tab.get_by_role("button", name="load a task").click()
-                tab.get_by_text("no such file").first.wait_for(timeout=30_000)
-            finally:
-                browser.close()
-    finally:
-        stop()
-        page.close()
-        link.close()
+    with page_for(ws) as page, playwright.sync_playwright() as pw, chromium_tab(pw, page) as tab:
+        try:
+            timings = first_task(tab, page, REPO / "out" / "screenshots", shift_m=SHIFT_M,
+                                 gizmo_px=GIZMO_PX)  # fmt: skip
+        finally:
+            tab.screenshot(path=str(tmp_path / "last.png"))
+        # Bad paths are said, not swallowed: saving where nothing can be written, and loading
+        # a file that is not there.
+        field = tab.locator('input[value="task.json"]').first
+        field.fill("/proc/no-such-dir/task.json")
+        tab.keyboard.press("Enter")
+        tab.get_by_role("button", name="save the task").click()
+        said = tab.get_by_text("nothing saved").or_(tab.get_by_text("could not save"))
+        said.first.wait_for(timeout=30_000)
+        tab.get_by_role("button", name="load a task").click()
+        tab.get_by_text("no such file").first.wait_for(timeout=30_000)
     log = ws.log()
     assert timings.marks["outcome"].endswith(": done"), (timings.marks, log[-2000:])
-    # The drag moved the target a whole number of millimetres (snapping) along the table's x
-    # (the gizmo's red arrow is the table's x, whatever the cube's own frame).
     # Each block accepted into the model is named in the 3D view.
     assert timings.marks["labels_shown"] == timings.marks["blocks_accepted"] > 0
+    # The drag moved the target a whole number of millimetres (snapping) along the table's x
+    # (the gizmo's red arrow is the table's x, whatever the cube's own frame).
     moved_mm = timings.marks["moved_m"] * 1e3
     assert moved_mm == pytest.approx(round(moved_mm), abs=1e-6) and moved_mm < -10.0
     # The log was in view right after the send, without scrolling.
