@@ -172,6 +172,9 @@ def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) ->
     assert page.workpiece_dropdown.options == (NO_WORKPIECE,)
     assert page.on_accept_recognitions() == 0  # nothing recognised yet: says so
     assert "Nothing recognised yet" in page.model_md.content
+    assert page.on_update_from_vision() == 0  # the update answers too, saying why not
+    assert "nothing updated from vision" in page.model_md.content
+    assert "Nothing recognised yet" in page.model_md.content
     scene = page.scene
     sunk = scene.object("cube").X_WO.copy()
     sunk[2, 3] -= 0.002  # vision put it 2 mm into the table

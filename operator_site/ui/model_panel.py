@@ -123,11 +123,13 @@ class ModelPanel:
         block): each block recognised goes where vision sees it, the others stay; the number
         updated."""
         accepted = self.on_accept_recognitions()
+        said = self.model_md.content
         if accepted:
             self.model_md.content = (
-                f"updated from vision: {accepted} blocks where the camera sees them now  \n"
-                + self.model_md.content
+                f"updated from vision: {accepted} blocks where the camera sees them now  \n{said}"
             )
+        else:  # always an answer: the operator waits for one
+            self.model_md.content = f"⚠ nothing updated from vision  \n{said}"
         return accepted
 
     def on_use_scene_layout(self) -> None:
