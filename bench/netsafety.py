@@ -269,7 +269,9 @@ class Observer:
     work site ``ws`` (anything with ``endpoint`` and ``site_id``)."""
 
     def __init__(self, ws, timeout_s: float = 20.0) -> None:
-        self.link = WorkSiteLink(make_config(connect=[ws.endpoint]), ws.site_id)
+        self.link = WorkSiteLink(
+            make_config(connect=[ws.endpoint]), ws.site_id, heartbeat_process=False
+        )
         self._states_in = self.link.session.declare_subscriber(
             key(ws.site_id, "robot_state"), zenoh.handlers.FifoChannel(100_000)
         )

@@ -15,6 +15,7 @@ the work site keeps: a new process sending the same id gets every report again.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import sys
 import time
@@ -38,10 +39,18 @@ def main(argv: list[str]) -> int:
         help="send only once a live report of this program has arrived (an operator that "
         "comes back while its program runs: the replay then arrives after newer reports)",
     )
+    parser.add_argument("--operator-id", help="who it is to the work site's control lease")
+    parser.add_argument(
+        "--hold-interpreter-s",
+        type=float,
+        default=0.0,
+        help="once the program's first report has come, hold the interpreter this long (a C "
+        "call that does not release it: a stall that the heartbeat thread cannot run through)",
+    )
     args = parser.parse_args(argv)
     points = [[float(v) for v in p.split(",")] for p in args.points]
     program = moves_program(args.program_id, points, args.speed)
-    link = WorkSiteLink(make_config(connect=[args.endpoint]), args.site_id)
+    link = WorkSiteLink(make_config(connect=[args.endpoint]), args.site_id, args.operator_id)
     try:
         deadline = time.monotonic() + args.timeout
         while link.status.label != "connected":
@@ -62,6 +71,10 @@ def main(argv: list[str]) -> int:
         while time.monotonic() < deadline:
             link.poll()
             mine = [r for r in link.status.reports if r.program_id == args.program_id]
+            if mine and args.hold_interpreter_s > 0:
+                # PyDLL keeps the interpreter lock through the call (CDLL would release it).
+                ctypes.PyDLL(None).usleep(round(1e6 * args.hold_interpreter_s))
+                args.hold_interpreter_s = 0.0
             for r in mine:
                 if id(r) not in printed:
                     printed.add(id(r))

@@ -5,8 +5,10 @@ reader); :meth:`WorkSiteLink.poll` drains them on the caller's thread and decode
 that fails validation is counted and logged once per kind, never raised.
 
 While a program of this link's is unfinished, a thread of the link's sends the work site a
-heartbeat every :data:`HEARTBEAT_PERIOD_S`: the work site's dead-man stops the robot when they
-stop coming (the operator's process died, the link was cut).
+heartbeat every :data:`HEARTBEAT_PERIOD_S`, and so does a child process of its
+(``operator_site/heartbeats.py``: beats that a stall of this interpreter does not hold up): the
+work site's dead-man stops the robot when they stop coming (the operator's process died or
+froze, the link was cut).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from dataclasses import dataclass, field
 
 import zenoh
 
+from operator_site.heartbeats import HEARTBEAT_PERIOD_S, HeartbeatProcess
 from protocol import (
     CameraFrame,
     ExecutionReport,
@@ -53,10 +56,6 @@ RESEND_AFTER_S = 1.0
 GIVE_UP_AFTER_S = 30.0
 """A program still unanswered this long after it was first sent is given up (and logged)."""
 REMEMBERED_REPORTS = 10_000
-HEARTBEAT_PERIOD_S = 0.1
-"""Heartbeats go this often while a program of ours is unfinished: several within the work
-site's dead-man timeout (``work-site serve --deadman-s``, 0.5 s by default), so that one lost
-or late beat stops nothing."""
 LATE_WAKE_S = 0.25
 """The heartbeat thread warns when it wakes this much later than asked: the beats it could not
 send meanwhile are what a dead-man stop at the work site reports missing (half its default)."""
@@ -141,8 +140,15 @@ class WorkSiteLink:
     """Subscribes to one work site's topics; open with a zenoh config, close when done."""
 
     def __init__(
-        self, zenoh_config: zenoh.Config, site_id: str, operator_id: str | None = None
+        self,
+        zenoh_config: zenoh.Config,
+        site_id: str,
+        operator_id: str | None = None,
+        *,
+        heartbeat_process: bool = True,
     ) -> None:
+        """``heartbeat_process=False``: no child process beats for this link (a link that only
+        watches; its programs, if any, then live on its thread's beats alone)."""
         self.site_id = site_id
         self.operator_id = operator_id or default_operator_id()
         """Who this operator site is to the work site's control lease."""
@@ -192,6 +198,10 @@ class WorkSiteLink:
         self._seen_reports: set[tuple] = set()
         self._seen_order: collections.deque[tuple] = collections.deque()
         self._closing = threading.Event()
+        # Started now, so that it is up (about a second) before a program needs it.
+        self._beats = HeartbeatProcess(zenoh_config, site_id, self.operator_id)
+        if heartbeat_process:
+            self._beats.start()
         self._beating = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
         self._beating.start()
 
@@ -204,16 +214,18 @@ class WorkSiteLink:
             late_s, woke_s = now - woke_s - HEARTBEAT_PERIOD_S, now
             if late_s > LATE_WAKE_S:
                 # This process did not run this thread for that long (the machine, or another
-                # thread holding the interpreter): say so, as the work site's dead-man will.
+                # thread holding the interpreter): the child's beats went on meanwhile.
                 log.warning("heartbeat thread woke %.3f s late", late_s)
             idle_s += HEARTBEAT_PERIOD_S
-            if (
-                self._unanswered
-                or self._unfinished
-                or (self.holds_control and idle_s >= LEASE_BEAT_PERIOD_S)
-            ):
+            running = bool(self._unanswered or self._unfinished)
+            if running or (self.holds_control and idle_s >= LEASE_BEAT_PERIOD_S):
                 self._send_heartbeat()
                 idle_s = 0.0
+            if running:
+                self._beats.beat()
+            else:
+                self._beats.rest()
+        self._beats.close()
 
     @property
     def holds_control(self) -> bool:
@@ -338,7 +350,9 @@ class WorkSiteLink:
         payload = encode(program)
         now = time.monotonic()
         self._unanswered[program.program_id] = (payload, now, now)
+        self._beats.wait_ready()  # at once, but for a program sent as the link opened
         self._send_heartbeat()  # the dead-man's clock starts with the program, not a beat later
+        self._beats.beat()  # from now, not from the thread's next turn
         self._pub_program.put(payload)
 
     def pending_programs(self) -> list[str]:

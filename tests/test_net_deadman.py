@@ -19,7 +19,8 @@ import pytest
 from bench.control import corner_program
 from bench.netsafety import Observer, Relay
 from models.scene import load_scene
-from operator_site.link import WorkSiteLink
+from operator_site.heartbeats import OPERATOR_FROZEN_S
+from operator_site.link import FINAL_STATUSES, WorkSiteLink
 from protocol import make_config
 from tests.conftest import REPO, wait_until
 from work_site.control.controller import EASE_S
@@ -139,3 +140,46 @@ def test_a_link_cut_during_a_contact_move_stops_and_eases_the_press(work_site) -
     assert easing_n <= pressing + HOLD_FORCE_N  # easing off does not jolt the hand
     assert pressing >= PRESSING_N  # it was pressing when the link was cut ...
     assert hold_n <= HOLD_FORCE_N, (pressing, hold_n)  # ... and is no longer
+
+
+def test_a_stalled_operator_keeps_its_program_and_a_frozen_one_loses_it(work_site) -> None:
+    """A stall of the operator's interpreter longer than the dead-man's timeout (a C call that
+    holds it) stops nothing: the heartbeat process beats on. A process frozen longer than
+    OPERATOR_FROZEN_S (SIGSTOP) is treated as gone."""
+    ws = work_site("--no-camera", "--deadman-s", str(DEADMAN_S))
+    observer = Observer(ws)
+    points = ("0.40,-0.1,0.15", "0.45,-0.1,0.12", "0.45,0.0,0.12", "0.40,0.05,0.15")
+
+    def operator(pid: str, *extra: str) -> subprocess.Popen:
+        return subprocess.Popen(
+            [sys.executable, "-m", "bench.operator_process", ws.endpoint, ws.site_id, pid,
+             *points, "--operator-id", "tester", *extra],
+            cwd=REPO, stdout=subprocess.DEVNULL, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )  # fmt: skip
+
+    stalled = operator("stalled", "--hold-interpreter-s", str(3 * DEADMAN_S))
+    frozen = None
+    try:
+
+        def final() -> bool:
+            observer.poll()
+            return any(observer.report("stalled", -1, s) is not None for s in FINAL_STATUSES)
+
+        assert wait_until(final, 120)
+        assert observer.report("stalled", -1, "done") is not None, observer.link.status.reports
+        frozen = operator("frozen")
+        observer.wait_report("frozen", 1, "started", 60)
+        frozen.send_signal(signal.SIGSTOP)
+        silent_s = time.time()
+        stopped = observer.wait_report("frozen", -1, "stopped", 5 + OPERATOR_FROZEN_S + DEADMAN_S)
+        assert stopped.message == f"no heartbeat from the operator for {DEADMAN_S:g} s", stopped
+        frozen_for_s = stopped.stamp_s - silent_s
+        assert frozen_for_s >= DEADMAN_S, frozen_for_s
+    finally:
+        for proc in (stalled, frozen):
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGCONT)
+                proc.kill()
+                proc.wait()
+        observer.close()
+    print(f"frozen operator: stopped {frozen_for_s:.2f} s after the freeze")
