@@ -263,7 +263,8 @@ def first_task(
     shot(tab, out, "5_done")
     # After the run, the page says what vision sees now; the operator takes it into the model.
     mark = now()
-    tab.get_by_text(re.compile(r"vision (sees|agrees)")).first.wait_for(timeout=120_000)
+    # (Not the help text's "what vision sees": the offer after the program.)
+    tab.get_by_text(re.compile(r"after .+, vision (sees|agrees)")).first.wait_for(timeout=120_000)
     t.add("vision_wait_s", now() - mark)
     mark = now()
     tab.get_by_role("button", name="update the model from vision").click()

@@ -29,9 +29,7 @@ def test_an_unmoved_gizmo_asks_for_the_block_where_it_is(world_axes: bool) -> No
     gizmo = Gizmo(world_axes)
     X_WG = gizmo.place(X_WO)
     gizmo.begin()
-    target, shown = gizmo.target_W(X_WG)
-    np.testing.assert_allclose(target, X_WO, atol=1e-12)
-    np.testing.assert_allclose(shown, X_WG, atol=1e-12)
+    np.testing.assert_allclose(gizmo.target_W(X_WG), X_WO, atol=1e-12)
 
 
 def test_a_turn_about_the_world_z_axis_turns_the_block_about_its_origin() -> None:
@@ -39,7 +37,7 @@ def test_a_turn_about_the_world_z_axis_turns_the_block_about_its_origin() -> Non
     X_WG = gizmo.place(X_WO)
     gizmo.begin()
     turn = make_pose(rpy_to_R(np.array([0.0, 0.0, math.radians(30.0)])), X_WG[:3, 3])
-    target, _ = gizmo.target_W(turn)
+    target = gizmo.target_W(turn)
     np.testing.assert_allclose(target[:3, 3], X_WO[:3, 3], atol=1e-12)
     np.testing.assert_allclose(
         target[:3, :3],

@@ -412,3 +412,38 @@ def test_the_camera_image_outlines_the_model_through_the_frame_s_calibration(pag
 
     assert midpoints_drawn(X_WC) == 12  # every edge, through the frame's calibration
     assert midpoints_drawn(cam.X_WC) < 6  # not through the scene file's nominal pose
+
+
+def test_after_a_program_the_page_offers_an_update_and_an_update_answers_it(page) -> None:
+    from protocol import ExecutionReport, Recognition, Recognitions
+
+    scene = page.scene
+
+    def ended(pid: str, stamp_s: float) -> None:
+        page.link.status.reports.append(
+            ExecutionReport(program_id=pid, command_index=-1, status="done",
+                            wrench_S=np.zeros(6), message="program complete", stamp_s=stamp_s,
+                            seq=3)
+        )  # fmt: skip
+
+    def vision(seq: int, stamp_s: float, x_m: float) -> None:
+        X_WO = scene.object("cube").X_WO.copy()
+        X_WO[0, 3] += x_m
+        page.link.recognitions = Recognitions(
+            seq=seq, stamp_s=stamp_s, elapsed_s=0.05,
+            objects=(Recognition(model="cube", X_WO=X_WO, score=0.9),),
+        )  # fmt: skip
+
+    ended("cube-1795000000-1", 1.0)
+    vision(1, 0.5, 0.05)
+    page._offer_update()  # vision has not looked since the program ended: nothing yet
+    assert "vision sees" not in page.model_md.content
+    vision(2, 2.0, 0.05)
+    page._offer_update()
+    assert "after cube #1, vision sees cube away from the model" in shown(page.model_md.content)
+    assert page.on_update_from_vision() == 1
+    ended("cube-1795000000-2", 3.0)
+    assert page.on_update_from_vision() == 1  # before vision looked again: still an answer
+    vision(3, 4.0, 0.0)
+    page._offer_update()  # comes after the answer: it is not to replace it
+    assert page.model_md.content.startswith("updated from vision:"), page.model_md.content

@@ -95,10 +95,10 @@ class Gizmo:
         may already carry some motion)."""
         self.X_WG0 = self.X_WG_placed.copy()
 
-    def target_W(self, X_WG: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The gizmo dragged to ``X_WG``: the block's target and the gizmo's pose as snapped
-        (where it should be shown once the drag ends)."""
+    def target_W(self, X_WG: np.ndarray) -> np.ndarray:
+        """The gizmo dragged to ``X_WG``: the block's target pose, the motion since the drag
+        began snapped."""
         X_WG = np.asarray(X_WG, dtype=np.float64)
         if self.X_WG0 is not None:
             X_WG = snapped_motion(self.X_WG0, X_WG, self.snap)
-        return X_WG @ self.X_GO, X_WG
+        return X_WG @ self.X_GO

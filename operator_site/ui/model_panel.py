@@ -23,7 +23,7 @@ MODEL_HELP = (
     "after the robot moved a block, *update the model from vision*. **Remove mode**: click a "
     "block in the 3D view to take it out."
 )
-KIND_WORDS = {
+AGREEMENT_WORDS = {
     "agrees": "in the model, agrees",
     "off": "in the model, **a few mm off**",
     "far": "in the model, **far off**",
@@ -123,6 +123,9 @@ class ModelPanel:
         block): each block recognised goes where vision sees it, the others stay; the number
         updated."""
         accepted = self.on_accept_recognitions()
+        # This answers the offer after the last program: it is not to come over the answer.
+        if (ended := self._last_ended_report()) is not None:
+            self._offered_after = ended.program_id
         said = self.model_md.content
         if accepted:
             self.model_md.content = (
@@ -157,7 +160,7 @@ class ModelPanel:
         kinds = self._show_ghosts(recs.objects)
         lines = [f"frame {recs.seq}, {recs.elapsed_s * 1e3:.0f} ms:"]
         for r in sorted(recs.objects, key=lambda r: r.model):  # in one place frame to frame
-            state = KIND_WORDS[kinds.get(r.model, "new")]
+            state = AGREEMENT_WORDS[kinds.get(r.model, "new")]
             lines.append(f"- {plain(r.model)}: score {r.score:.2f} ({state})")
         self.recognitions_md.content = "\n".join(lines)
         self._show_add_buttons({r.model for r in recs.objects if r.model not in self.model.poses})
@@ -176,23 +179,26 @@ class ModelPanel:
                 button.on_click(lambda _, n=name: self.on_accept_one(n))
                 self._rec_buttons[name] = button
 
+    def _last_ended_report(self):
+        """The final report of the last program that moved the robot and ended (None: none)."""
+        for r in reversed(self.link.status.reports):
+            if r.command_index == -1 and r.status in ("done", "failed", "stopped"):
+                return r
+        return None
+
     def _offer_update(self) -> None:
         """Once a program has ended and vision has looked since, say which blocks it sees
         away from the model, next to the button that updates the model."""
-        ended = [
-            r
-            for r in self.link.status.reports
-            if r.command_index == -1 and r.status in ("done", "failed", "stopped")
-        ]
+        ended = self._last_ended_report()
         recs = self.link.recognitions
-        if not ended or recs is None or ended[-1].program_id == self._offered_after:
+        if ended is None or recs is None or ended.program_id == self._offered_after:
             return
-        if recs.stamp_s <= ended[-1].stamp_s:
+        if recs.stamp_s <= ended.stamp_s:
             return  # vision has not looked since the robot stopped
-        self._offered_after = ended[-1].program_id
-        kinds = self._show_ghosts(recs.objects)
-        moved = sorted(t for t, k in kinds.items() if k in ("off", "far", "new"))
-        after = f"after {short_program_name(ended[-1].program_id)}"
+        self._offered_after = ended.program_id
+        kinds = self._ghost_kinds(recs.objects)  # as drawn for this frame: not drawn again
+        moved = sorted(t for t, (_, k) in kinds.items() if k in ("off", "far", "new"))
+        after = f"after {short_program_name(ended.program_id)}"
         if moved:
             self.model_md.content = (
                 f"**{after}, vision sees {plain(', '.join(moved))} away from the model**: "

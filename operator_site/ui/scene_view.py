@@ -49,7 +49,9 @@ FAR_FACTOR = 5.0
 SKY_RGB = (255, 255, 255)
 GROUND_RGB = (110, 100, 90)
 ROBOT_SHOWN_RAD = 1e-4
-"""The 3D view's arm is redrawn when a joint (or the fingers, in m) moved more than this."""
+"""The 3D view's arm is redrawn when a joint moved more than this ..."""
+FINGERS_SHOWN_M = 1e-4
+"""... or the gripper's opening changed by more than this."""
 GIZMO_PX = 150.0
 """The gizmo's size on the screen, in pixels."""
 LABEL_ABOVE_M = 0.01
@@ -153,7 +155,7 @@ class SceneView:
             "/lights/sky", sky_color=SKY_RGB, ground_color=GROUND_RGB, intensity=1.2
         )
         scene.add_light_ambient("/lights/ambient", intensity=0.3)
-        self._shown_q: np.ndarray | None = None
+        self._shown_q: tuple[np.ndarray, float] | None = None  # (joints, opening) drawn
         self.object_frames = {}
         self.object_meshes: dict[str, list] = {}
         self.labels = {}
@@ -247,10 +249,15 @@ class SceneView:
     def _show_robot(self, q: np.ndarray, opening_m: float) -> None:
         """The arm at joint angles ``q`` (rad) and finger opening (m), redrawn only when it
         moved: an arm at rest sends the browsers nothing."""
-        state = np.append(np.asarray(q, dtype=np.float64), opening_m)
-        if self._shown_q is not None and np.max(np.abs(state - self._shown_q)) < ROBOT_SHOWN_RAD:
-            return
-        self._shown_q = state
+        q = np.asarray(q, dtype=np.float64)
+        if self._shown_q is not None:
+            shown_q, shown_opening_m = self._shown_q
+            if (
+                np.max(np.abs(q - shown_q)) < ROBOT_SHOWN_RAD
+                and abs(opening_m - shown_opening_m) < FINGERS_SHOWN_M
+            ):
+                return
+        self._shown_q = (q.copy(), float(opening_m))
         poses = self.robot.link_poses_W(q, opening_m, self.scene.robot.X_WB)
         with self.server.atomic():
             for name, X_WL in poses.items():
@@ -303,12 +310,12 @@ class SceneView:
                 self.server.scene.add_line_segments(name, segments, rgb, thickness=0.002)
             )
 
-    def _show_ghosts(self, recognitions) -> dict[str, str]:
-        """What vision sees now, see-through, coloured by how far it is from the model; for
-        each recognised block (``name`` or ``name#2`` for a second one), its colour's key."""
-        known = {o.name: o.model for o in self.scene.movable}
+    def _ghost_kinds(self, recognitions) -> dict[str, tuple[object, str]]:
+        """For each recognised block of the scene (``name``, or ``name#2`` for a second one):
+        its recognition and how far it is from the model (a key of ``GHOST_RGBS``)."""
+        known = {o.name for o in self.scene.movable}
         counts: dict[str, int] = {}
-        seen: dict[str, str] = {}
+        kinds: dict[str, tuple[object, str]] = {}
         for r in recognitions:
             if r.model not in known:
                 continue
@@ -319,6 +326,15 @@ class SceneView:
                 kind = disagreement(None, None)
             else:
                 kind = disagreement(*pose_error(X_model, r.X_WO, self.model.symmetries(r.model)))
+            kinds[tag] = (r, kind)
+        return kinds
+
+    def _show_ghosts(self, recognitions) -> dict[str, str]:
+        """What vision sees now, see-through, coloured by how far it is from the model; for
+        each recognised block (``name`` or ``name#2`` for a second one), its colour's key."""
+        known = {o.name: o.model for o in self.scene.movable}
+        seen: dict[str, str] = {}
+        for tag, (r, kind) in self._ghost_kinds(recognitions).items():
             seen[tag] = kind
             if tag not in self.ghosts:
                 frame = self.server.scene.add_frame(f"/vision/{tag}", show_axes=False)

@@ -79,7 +79,7 @@ NEXT_STEP = {
 }
 """What the operator may do after a program ends so, shown under its outcome."""
 
-KIND_WORDS = {
+COMMAND_WORDS = {
     "guarded_grasp": "grasp the block",
     "move": "move",
     "guarded_move": "move into contact",
@@ -101,8 +101,8 @@ def report_words(r) -> str:
         return f"{plain(r.status)} {plain(r.message)}"
     step = f"step {r.command_index + 1}"
     if r.status == "started":
-        if r.message in KIND_WORDS:
-            return f"{step}: {KIND_WORDS[r.message]}"
+        if r.message in COMMAND_WORDS:
+            return f"{step}: {COMMAND_WORDS[r.message]}"
         return f"{step}: {plain(r.message)}"  # e.g. "holding 54 g" after weighing the grasp
     if r.status == "contact_verified":
         felt = ", ".join(f"{plain(n)} {float(f):.1f} N" for n, f in _FELT.findall(r.message))

@@ -209,7 +209,7 @@ class TaskPanel:
             if phase == "start" or self.gizmo.X_WG0 is None:
                 self.op.mark()  # a new drag begins: undo comes back here
                 self.gizmo.begin()
-            target_WO, _ = self.gizmo.target_W(X_WG)
+            target_WO = self.gizmo.target_W(X_WG)
             self.op.set_target(target_WO)
             if phase == "end":
                 self._place_gizmo(target_WO)
