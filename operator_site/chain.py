@@ -29,8 +29,15 @@ from operator_site.failures import RunError
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import Correction, WorkSiteModel
 from operator_site.program import Generated
-from operator_site.session import OperatorSession, generated_program
+from operator_site.session import (
+    ACCEPT_SCORE,
+    DEFAULT_TOLERANCE_DEG,
+    DEFAULT_TOLERANCE_MM,
+    OperatorSession,
+    generated_program,
+)
 from operator_site.task import TaskSession
+from operator_site.taskfile import pose_error
 from protocol import Recognition, Recognitions, TruthPoses, decode, key, make_config
 from protocol.messages import contact_directions
 from protocol.session import free_port_pair, link_endpoints
@@ -77,25 +84,39 @@ def model_from_frames(
     log: Callable[[str], None] = lambda _: None,
     max_frames: int = WORKPIECE_FRAMES,
     operator: OperatorSession | None = None,
+    trusted: bool = False,
 ) -> RecognisedModel:
     """The model built as a person builds it in the page (``operator``'s, or a new operator
-    session's): every recognition of the first of ``frames`` scoring at least
-    :data:`~operator_site.session.ACCEPT_SCORE` accepted and made consistent; until ``ready``
-    says the model holds what the task needs, the next frames' recognitions of blocks not yet
-    in it are added (each frame has its own sensor noise), ``max_frames`` frames in all at
-    most."""
+    session's), who takes a block into the model once vision has seen it in the same place
+    twice (the ghost agrees): each recognition scoring at least
+    :data:`~operator_site.session.ACCEPT_SCORE` is accepted, and the model made consistent,
+    when the frame before recognised that block within the default tolerance of it (each frame
+    has its own sensor noise: one that mistakes a block for another is not taken at its word).
+    Frames are read until ``ready`` says the model holds what the task needs, ``max_frames``
+    in all at most. ``trusted``: the frames are the ground truth, each taken at its word."""
     op = operator or OperatorSession(scene)
     corrections: dict[str, Correction] = {}
+    last_seen: dict[str, Recognition] = {}
     n, vision_s, model_s = 0, 0.0, 0.0
     for recs in frames:
         n += 1
         vision_s += recs.elapsed_s
         log(f"frame {n}: recognised {[(r.model, round(r.score, 2)) for r in recs.objects]}")
-        new = [r for r in recs.objects if r.model not in op.model.poses]
-        if new:
+        seen = {}
+        for r in recs.objects:
+            if r.score >= ACCEPT_SCORE:  # a second of one block is not a block of the scene
+                seen.setdefault(r.model, r)
+        twice = [
+            r
+            for name, r in seen.items()
+            if name not in op.model.poses
+            and (trusted or (name in last_seen and _same_place(op.model, last_seen[name], r)))
+        ]
+        last_seen = seen
+        if twice:
             t0 = time.monotonic()
             try:
-                op.accept_all(replace(recs, objects=tuple(new)))
+                op.accept_all(replace(recs, objects=tuple(twice)))
             except ValueError as e:
                 log(f"frame {n}: not added to the model: {e}")
             corrections |= {c.name: c for c in op.corrections}
@@ -103,6 +124,14 @@ def model_from_frames(
         if ready(op.model) or n >= max_frames:
             break
     return RecognisedModel(op.model, list(corrections.values()), n, vision_s, model_s)
+
+
+def _same_place(model: WorkSiteModel, a: Recognition, b: Recognition) -> bool:
+    """Whether two recognitions of one block agree within the default goal tolerance."""
+    error_m, angle_rad = pose_error(a.X_WO, b.X_WO, model.symmetries(a.model))
+    return error_m <= DEFAULT_TOLERANCE_MM * 1e-3 and angle_rad <= math.radians(
+        DEFAULT_TOLERANCE_DEG
+    )
 
 
 ProgramMaker = Callable[[TaskSession, str], Generated]
@@ -279,7 +308,7 @@ def run_chain(
         else:
             frames = _recognised_frames(link)
         operator = OperatorSession(scene, link)
-        rec = model_from_frames(scene, frames, task.ready, log, operator=operator)
+        rec = model_from_frames(scene, frames, task.ready, log, operator=operator, trusted=oracle)
         model, corrections = rec.model, rec.corrections
         stage_s["vision"], stage_s["model"] = rec.vision_s, rec.model_s
         out["vision_frames"] = rec.frames

@@ -30,6 +30,10 @@ SEPARATION_MARGIN_M = 0.5e-3
 MAX_SEPARATION_ROUNDS = 20
 UNSETTLED_MM = 5.0
 """A settle that moves an object further than this is reported as a warning (m·1e-3)."""
+CONFLICT_OVERLAP_M = UNSETTLED_MM * 1e-3
+"""Two recognitions overlapping deeper than this are not pushed apart but refused: more than
+vision's pose error explains (a block seen as another, or one seen where another is), and
+pushing one aside would put it where nothing is."""
 
 
 @dataclass(frozen=True)
@@ -146,6 +150,12 @@ class WorkSiteModel:
                 # The less certain of two overlapping recognitions is the one that moves.
                 for b in [*names[:i], *others]:
                     depth, away = self._overlap(a, b)
+                    if depth > CONFLICT_OVERLAP_M:
+                        raise ValueError(
+                            f"{a} and {b} overlap by {depth * 1e3:.0f} mm, more than vision's "
+                            f"error explains: one of them is not where vision put it (remove "
+                            f"one, or accept a later frame)"
+                        )
                     if depth > 0.0 and np.any(away):
                         self.poses[a][:3, 3] += (depth + SEPARATION_MARGIN_M) * away
                         why[a] = f"overlapped {b} by {depth * 1e3:.1f} mm"

@@ -62,6 +62,20 @@ def test_overlapping_blocks_are_pushed_apart_sideways_not_stacked(scene) -> None
     assert depth == 0.0
 
 
+def test_blocks_overlapping_deeper_than_vision_errs_are_refused_not_pushed(scene) -> None:
+    """A block seen as another, where a third is: not pushed centimetres aside, refused."""
+    from operator_site.model_editor import CONFLICT_OVERLAP_M
+    from operator_site.session import OperatorSession
+
+    op = OperatorSession(scene)
+    op.accept("cube", truth(scene, "cube"), score=0.9)
+    into = truth(scene, "cube")
+    into[0, 3] += 2 * CONFLICT_OVERLAP_M  # the wedge's pose, as vision mistook the cube for it
+    with pytest.raises(ValueError, match=r"wedge and cube overlap by \d+ mm"):
+        op.accept("wedge", into, score=0.8)
+    assert set(op.model.poses) == {"cube"}  # the model unchanged
+
+
 def test_the_scene_holds_only_the_environment_and_accepted_objects(scene) -> None:
     model = WorkSiteModel(scene)
     assert {o.name for o in model.scene().objects} == {"table", "frame"}

@@ -1,6 +1,7 @@
-"""The scripted operator's use of vision (issue 9): the model is built from the first recognised
-frame, and later frames are watched only while the task's workpiece is missing. The frames are
-real protocol records made here; the whole chain with a real work site is tests/test_e2e.py's."""
+"""The scripted operator's use of vision (issue 9): a block goes into the model once two frames
+in a row saw it in the same place, and frames are watched only while the task's workpiece is
+missing. The frames are real protocol records made here; the whole chain with a real work site
+is tests/test_e2e.py's."""
 
 from __future__ import annotations
 
@@ -34,11 +35,15 @@ def _ready(task: str):
     return lambda model: bool(workpiece_candidates(task, model))
 
 
-def test_the_first_frame_is_enough_when_it_has_the_workpiece(layout) -> None:
-    frames = [_frame(1, layout, {"cube": 0.9, "plank": 0.8}), _frame(2, layout, {"wedge": 0.9})]
+def test_two_frames_that_agree_are_enough_when_they_have_the_workpiece(layout) -> None:
+    frames = [
+        _frame(1, layout, {"cube": 0.9, "plank": 0.8}),
+        _frame(2, layout, {"cube": 0.9, "plank": 0.8}),
+        _frame(3, layout, {"wedge": 0.9}),
+    ]
     rec = model_from_frames(load_scene(), iter(frames), _ready("corner"))
-    assert rec.frames == 1 and set(rec.model.poses) == {"cube", "plank"}
-    assert rec.vision_s == pytest.approx(0.07)
+    assert rec.frames == 2 and set(rec.model.poses) == {"cube", "plank"}
+    assert rec.vision_s == pytest.approx(2 * 0.07)
     assert [c.name for c in rec.corrections] == ["cube", "plank"]
 
 
@@ -49,13 +54,30 @@ def test_later_frames_add_the_missing_workpiece_and_their_vision_time(layout) ->
         _frame(1, layout, {"plank": 0.9}),
         _frame(2, layout, {"plank": 0.8, "cube": low}),  # below the threshold: not accepted
         _frame(3, layout, {"cube": 0.7, "wedge": 0.6}),
-        _frame(4, layout, {"tall_block": 0.9}),
+        _frame(4, layout, {"cube": 0.8, "wedge": 0.7}),
+        _frame(5, layout, {"tall_block": 0.9}),
     ]
     rec = model_from_frames(scene, iter(frames), _ready("around-corner"))
-    assert rec.frames == 3
+    assert rec.frames == 4
     assert set(rec.model.poses) == {"plank", "cube", "wedge"}
     assert workpiece_candidates("around-corner", rec.model) == ["cube"]
-    assert rec.vision_s == pytest.approx(3 * 0.07)
+    assert rec.vision_s == pytest.approx(4 * 0.07)
+
+
+def test_a_block_mistaken_for_another_in_one_frame_is_not_taken_at_its_word(layout) -> None:
+    """Vision, in one frame of ten, saw the cube as the wedge (and missed the real wedge):
+    the model has each where the frames after it agree, the cube where it is."""
+    mistaken = dict(layout, wedge=layout["cube"])
+    frames = [
+        _frame(1, mistaken, {"wedge": 0.95, "plank": 0.9}),
+        _frame(2, layout, {"cube": 0.9, "wedge": 0.8, "plank": 0.9}),
+        _frame(3, layout, {"cube": 0.9, "wedge": 0.8, "plank": 0.9}),
+    ]
+    rec = model_from_frames(load_scene(), iter(frames), _ready("corner"))
+    assert rec.frames == 3 and set(rec.model.poses) == {"cube", "wedge", "plank"}
+    for name in ("cube", "wedge"):
+        error_m = np.linalg.norm(rec.model.poses[name][:2, 3] - layout[name][:2, 3])
+        assert error_m < 1e-3, (name, error_m)
 
 
 def test_the_frames_watched_are_bounded_when_the_workpiece_never_shows(layout) -> None:
