@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from operator_site.link import WorkSiteLink
+from operator_site.link import FINAL_STATUSES, WorkSiteLink
 from protocol import RobotState, decode, encode, key, make_config
 from protocol.session import TlsFiles, free_port_pair, link_endpoints
 from tests.conftest import one_move_program, wait_until
@@ -29,6 +29,17 @@ pytestmark = pytest.mark.integration
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((REPO / "deploy" / "zenoh").glob("*.json5"))
+PROGRAM_TIMEOUT_S = 120.0
+"""A one-move program's end is waited for this long: it bounds a hang, not the run (a loaded
+machine simulates slower than real time)."""
+
+
+def _ended(report, program_id: str) -> bool:
+    return (
+        report.program_id == program_id
+        and report.command_index == -1
+        and report.status in FINAL_STATUSES
+    )
 
 
 @dataclass
@@ -135,9 +146,10 @@ def test_two_work_sites_and_an_operator_through_a_router(spawn, links, single_li
 
     def a_done() -> bool:
         a.poll(), b.poll()
-        return any(r.program_id == "to-a" and r.status == "done" for r in a.status.reports)
+        return any(_ended(r, "to-a") for r in a.status.reports)
 
-    assert wait_until(a_done, 30.0), (a.status.reports, spawn.texts())
+    assert wait_until(a_done, PROGRAM_TIMEOUT_S), (a.status.reports, spawn.texts())
+    assert [r.status for r in a.status.reports if _ended(r, "to-a")] == ["done"], spawn.texts()
     # Site b heard nothing of it and did not move; site a did.
     assert b.status.reports == []
     np.testing.assert_allclose(b.robot_state.q, q_b, atol=1e-4)
@@ -224,9 +236,11 @@ def test_a_secured_router_admits_each_cells_operator_only(spawn, links, certs: P
 
     def a_done() -> bool:
         op_a.poll(), op_b.poll()
-        return any(r.program_id == "op-to-a" and r.status == "done" for r in op_a.status.reports)
+        return any(_ended(r, "op-to-a") for r in op_a.status.reports)
 
-    assert wait_until(a_done, 30.0), (op_a.status.reports, spawn.texts())
+    assert wait_until(a_done, PROGRAM_TIMEOUT_S), (op_a.status.reports, spawn.texts())
+    ended = [r.status for r in op_a.status.reports if _ended(r, "op-to-a")]
+    assert ended == ["done"], (ended, spawn.texts())
     assert np.linalg.norm(op_a.robot_state.q - q_a) > 0.05
     assert op_b.status.reports == []
 

@@ -103,7 +103,14 @@ def _mutated(path: tuple, value: object) -> dict:
     return doc
 
 
-_DELETE = object()
+class _Delete:
+    """Marks a field to take out; its name is the same in every process (test ids)."""
+
+    def __repr__(self) -> str:
+        return "<delete>"
+
+
+_DELETE = _Delete()
 
 FAULTS = [
     (("task",), 2, "task.task: format version 2 is not supported"),
