@@ -31,9 +31,8 @@ from operator_site.model_editor import Correction, WorkSiteModel
 from operator_site.program import Generated
 from operator_site.session import (
     ACCEPT_SCORE,
-    DEFAULT_TOLERANCE_DEG,
-    DEFAULT_TOLERANCE_MM,
     OperatorSession,
+    disagreement,
     generated_program,
 )
 from operator_site.task import TaskSession
@@ -88,10 +87,10 @@ def model_from_frames(
 ) -> RecognisedModel:
     """The model built as a person builds it in the page (``operator``'s, or a new operator
     session's), who takes a block into the model once vision has seen it in the same place
-    twice (the ghost agrees): each recognition scoring at least
-    :data:`~operator_site.session.ACCEPT_SCORE` is accepted, and the model made consistent,
-    when the frame before recognised that block within the default tolerance of it (each frame
-    has its own sensor noise: one that mistakes a block for another is not taken at its word).
+    twice: a recognition scoring at least :data:`~operator_site.session.ACCEPT_SCORE` is
+    accepted, and the model made consistent, when vision's last sighting of that block in an
+    earlier frame was not far from it (:func:`~operator_site.session.disagreement`). Each frame
+    has its own sensor noise: one that mistakes a block for another is not taken at its word.
     Frames are read until ``ready`` says the model holds what the task needs, ``max_frames``
     in all at most. ``trusted``: the frames are the ground truth, each taken at its word."""
     op = operator or OperatorSession(scene)
@@ -112,7 +111,7 @@ def model_from_frames(
             if name not in op.model.poses
             and (trusted or (name in last_seen and _same_place(op.model, last_seen[name], r)))
         ]
-        last_seen = seen
+        last_seen |= seen  # a block missed in a frame is compared with its last sighting
         if twice:
             t0 = time.monotonic()
             try:
@@ -127,11 +126,10 @@ def model_from_frames(
 
 
 def _same_place(model: WorkSiteModel, a: Recognition, b: Recognition) -> bool:
-    """Whether two recognitions of one block agree within the default goal tolerance."""
-    error_m, angle_rad = pose_error(a.X_WO, b.X_WO, model.symmetries(a.model))
-    return error_m <= DEFAULT_TOLERANCE_MM * 1e-3 and angle_rad <= math.radians(
-        DEFAULT_TOLERANCE_DEG
-    )
+    """Whether two recognitions of one block are of one placement: not far apart (vision's
+    error about a block far from the camera is a few millimetres; a block mistaken for
+    another is centimetres away)."""
+    return disagreement(*pose_error(a.X_WO, b.X_WO, model.symmetries(a.model))) != "far"
 
 
 ProgramMaker = Callable[[TaskSession, str], Generated]

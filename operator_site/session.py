@@ -53,9 +53,26 @@ a capture or release is made): fine enough that dragging through them again foll
 path to well within a millimetre."""
 DEFAULT_TOLERANCE_MM = 1.5
 DEFAULT_TOLERANCE_DEG = 1.5
+FAR_FACTOR = 5.0
+"""A recognition more than this many default tolerances from a pose of its block is "far": a
+different placement (or a different block), not vision's error about the same one."""
 MAX_PROGRAM_FILE_BYTES = 16 * 1024 * 1024
 FINISHED = ("done", "failed", "refused", "stopped")
 """A whole-program report with one of these statuses ends the program."""
+
+
+def disagreement(error_m: float | None, angle_rad: float | None) -> str:
+    """How a recognition compares with another pose of that block (None: there is none):
+    ``agrees`` (within the default tolerance), ``off`` (up to :data:`FAR_FACTOR` times it),
+    ``far`` (beyond) or ``new``."""
+    if error_m is None or angle_rad is None:
+        return "new"
+    within = error_m / (DEFAULT_TOLERANCE_MM * 1e-3)
+    turned = angle_rad / math.radians(DEFAULT_TOLERANCE_DEG)
+    worst = max(within, turned)
+    if worst <= 1.0:
+        return "agrees"
+    return "off" if worst <= FAR_FACTOR else "far"
 
 
 def generated_program(

@@ -13,7 +13,7 @@ from models.robot import RobotModel
 from models.scene import Scene
 from models.transforms import R_to_quat_wxyz
 from operator_site.model_editor import WorkSiteModel
-from operator_site.session import DEFAULT_TOLERANCE_DEG, DEFAULT_TOLERANCE_MM
+from operator_site.session import disagreement
 from operator_site.task import TaskSession
 from operator_site.taskfile import pose_error
 
@@ -42,10 +42,9 @@ GHOST_RGBS = {
     "far": (220, 40, 40),
     "new": (90, 140, 235),
 }
-"""What vision sees now, drawn see-through over the model: green where it agrees with the
-model (within the task's tolerance), orange up to :data:`FAR_FACTOR` times that, red beyond,
-blue for a block not in the model."""
-FAR_FACTOR = 5.0
+"""What vision sees now, drawn see-through over the model, by
+:func:`~operator_site.session.disagreement`: green where it agrees with the model (within the
+task's tolerance), orange a few millimetres off, red far off, blue for a block not in it."""
 SKY_RGB = (255, 255, 255)
 GROUND_RGB = (110, 100, 90)
 ROBOT_SHOWN_RAD = 1e-4
@@ -61,19 +60,6 @@ LABEL_ABOVE_M = 0.01
 def block_label(name: str) -> str:
     """A block's name as the page writes it ("tall block" for ``tall_block``)."""
     return name.replace("_", " ")
-
-
-def disagreement(error_m: float | None, angle_rad: float | None) -> str:
-    """How a recognition compares with the model's pose of that block (None: not in the
-    model): a key of :data:`GHOST_RGBS`."""
-    if error_m is None or angle_rad is None:
-        return "new"
-    within = error_m / (DEFAULT_TOLERANCE_MM * 1e-3)
-    turned = angle_rad / math.radians(DEFAULT_TOLERANCE_DEG)
-    worst = max(within, turned)
-    if worst <= 1.0:
-        return "agrees"
-    return "off" if worst <= FAR_FACTOR else "far"
 
 
 VIEW_FOV_RAD = math.radians(45.0)
