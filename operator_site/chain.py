@@ -103,8 +103,8 @@ def model_from_frames(
         log(f"frame {n}: recognised {[(r.model, round(r.score, 2)) for r in recs.objects]}")
         seen = {}
         for r in recs.objects:
-            if r.score >= ACCEPT_SCORE:  # a second of one block is not a block of the scene
-                seen.setdefault(r.model, r)
+            if r.score >= ACCEPT_SCORE:
+                seen.setdefault(r.model, r)  # a second of one block is not a block of the scene
         twice = [
             r
             for name, r in seen.items()

@@ -57,8 +57,9 @@ GIVE_UP_AFTER_S = 30.0
 """A program still unanswered this long after it was first sent is given up (and logged)."""
 REMEMBERED_REPORTS = 10_000
 LATE_WAKE_S = 0.25
-"""The heartbeat thread warns when it wakes this much later than asked: the beats it could not
-send meanwhile are what a dead-man stop at the work site reports missing (half its default)."""
+"""The heartbeat thread warns when it wakes this much later than asked (half the dead-man's
+default): the heartbeat process's beats covered the gap, unless the stall outlasted
+:data:`~operator_site.heartbeats.OPERATOR_FROZEN_S`."""
 LEASE_BEAT_PERIOD_S = 1.0
 """While this operator holds the work site's control lease and runs nothing, it beats this
 often, so that the lease stays its own while its page is open (``work_site/lease.py``)."""
