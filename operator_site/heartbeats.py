@@ -31,6 +31,7 @@ import time
 import zenoh
 
 from protocol import Heartbeat, alive_key, encode, key
+from protocol.session import PeerWatch, renewal_config
 
 log = logging.getLogger("operator-site")
 
@@ -64,9 +65,8 @@ class HeartbeatProcess:
     :data:`MAX_STARTS` allows."""
 
     def __init__(self, zenoh_config: zenoh.Config, site_id: str, operator_id: str) -> None:
-        config = json.loads(str(zenoh_config))
         # A session of its own: its own id, and no listening on the parent's ports.
-        config.pop("id", None)
+        config = json.loads(renewal_config(zenoh_config))
         config.setdefault("listen", {})["endpoints"] = []
         self._setup = json.dumps(
             {"config": json.dumps(config), "site_id": site_id, "operator": operator_id}
@@ -172,14 +172,24 @@ def _end(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
-def _serve(setup: dict, stdin) -> int:
-    """The child: say "ready" once the work site is seen, then beat while told, until end of
-    file on ``stdin``."""
+def _open(setup: dict) -> tuple[zenoh.Session, zenoh.Publisher, zenoh.Subscriber]:
+    """A new session: its heartbeat publisher and its view of the work site's token."""
     session = zenoh.open(zenoh.Config.from_json5(setup["config"]))
     publisher = session.declare_publisher(
         key(setup["site_id"], "heartbeat"), priority=zenoh.Priority.REAL_TIME,
         congestion_control=zenoh.CongestionControl.BLOCK, express=True,
     )  # fmt: skip
+    seen = session.liveliness().declare_subscriber(
+        alive_key(setup["site_id"], "work_site"), zenoh.handlers.RingChannel(16), history=True
+    )
+    return session, publisher, seen
+
+
+def _serve(setup: dict, stdin) -> int:
+    """The child: say "ready" once the work site is seen, then beat while told, until end of
+    file on ``stdin``; a new session when the work site was lost (``PeerWatch``)."""
+    session, publisher, seen = _open(setup)
+    work_site = PeerWatch()
     told_s = [None]  # monotonic time the parent last said "beat"; None: resting
     parent_gone = threading.Event()
 
@@ -189,18 +199,19 @@ def _serve(setup: dict, stdin) -> int:
         parent_gone.set()
 
     threading.Thread(target=listen, name="parent", daemon=True).start()
-    seen = session.liveliness().declare_subscriber(
-        alive_key(setup["site_id"], "work_site"), zenoh.handlers.RingChannel(1), history=True
-    )
     deadline_s = time.monotonic() + SEE_WORK_SITE_S
-    while seen.try_recv() is None and time.monotonic() < deadline_s:
+    while not work_site.drain(seen) and time.monotonic() < deadline_s:
         if parent_gone.wait(0.01):
             break
-    seen.undeclare()
     print("ready", flush=True)
     seq, frozen_said = SEQ_OFFSET, False
     try:
         while not parent_gone.wait(HEARTBEAT_PERIOD_S):
+            work_site.drain(seen)
+            if work_site.lost:
+                work_site.lost = False
+                session.close()
+                session, publisher, seen = _open(setup)
             t = told_s[0]
             if t is None:
                 continue

@@ -9,6 +9,9 @@ heartbeat every :data:`HEARTBEAT_PERIOD_S`, and so does a child process of its
 (``operator_site/heartbeats.py``: beats that a stall of this interpreter does not hold up): the
 work site's dead-man stops the robot when they stop coming (the operator's process died or
 froze, the link was cut).
+
+When the work site's liveliness token goes and is not back, the link opens a new zenoh session
+in the background and drops the old one (``protocol.session.PeerWatch`` says why).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from protocol import (
     key,
 )
 from protocol.messages import MAX_CANCELS
+from protocol.session import PeerWatch, renewal_config
 
 log = logging.getLogger("operator-site")
 
@@ -137,6 +141,54 @@ class LinkStatus:
         return "connected"
 
 
+@dataclass
+class _Wire:
+    """One zenoh session of a link and what the link declared on it."""
+
+    session: zenoh.Session
+    sub_state: zenoh.Subscriber
+    sub_camera: zenoh.Subscriber
+    sub_report: zenoh.Subscriber
+    sub_recognitions: zenoh.Subscriber
+    sub_heartbeat: zenoh.Subscriber
+    sub_alive: zenoh.Subscriber
+    pub_program: zenoh.Publisher
+    pub_stop: zenoh.Publisher
+    pub_heartbeat: zenoh.Publisher
+
+    @classmethod
+    def open(cls, zenoh_config: zenoh.Config, site_id: str) -> _Wire:
+        session = zenoh.open(zenoh_config)
+        ring = zenoh.handlers.RingChannel
+        # Stops and beats are never dropped by this side's queue (zenoh's DROP gives a message
+        # up when the queue has not moved within a millisecond, which a loaded machine allows)
+        # and never batched: they wait for room instead, on the caller's thread (the page's
+        # for a stop, the beating thread's own for a beat), and go at once.
+        block = zenoh.CongestionControl.BLOCK
+        return cls(
+            session=session,
+            sub_state=session.declare_subscriber(key(site_id, "robot_state"), ring(4)),
+            sub_camera=session.declare_subscriber(key(site_id, "camera"), ring(1)),
+            sub_report=session.declare_subscriber(key(site_id, "report"), ring(256)),
+            sub_recognitions=session.declare_subscriber(key(site_id, "recognitions"), ring(1)),
+            sub_heartbeat=session.declare_subscriber(key(site_id, "heartbeat"), ring(4)),
+            sub_alive=session.liveliness().declare_subscriber(
+                alive_key(site_id, "work_site"), ring(16), history=True
+            ),
+            pub_program=session.declare_publisher(
+                key(site_id, "program"), priority=zenoh.Priority.INTERACTIVE_HIGH
+            ),
+            pub_stop=session.declare_publisher(
+                key(site_id, "stop"), priority=zenoh.Priority.REAL_TIME,
+                congestion_control=block, express=True,
+            ),
+            pub_heartbeat=session.declare_publisher(
+                key(site_id, "heartbeat"), priority=zenoh.Priority.REAL_TIME,
+                congestion_control=block, express=True,
+            ),
+        )  # fmt: skip
+
+
 class WorkSiteLink:
     """Subscribes to one work site's topics; open with a zenoh config, close when done."""
 
@@ -153,34 +205,11 @@ class WorkSiteLink:
         self.site_id = site_id
         self.operator_id = operator_id or default_operator_id()
         """Who this operator site is to the work site's control lease."""
-        self.session = zenoh.open(zenoh_config)
-        ring = zenoh.handlers.RingChannel
-        self._sub_state = self.session.declare_subscriber(key(site_id, "robot_state"), ring(4))
-        self._sub_camera = self.session.declare_subscriber(key(site_id, "camera"), ring(1))
-        self._sub_report = self.session.declare_subscriber(key(site_id, "report"), ring(256))
-        self._sub_recognitions = self.session.declare_subscriber(
-            key(site_id, "recognitions"), ring(1)
-        )
-        self._sub_heartbeat = self.session.declare_subscriber(key(site_id, "heartbeat"), ring(4))
-        self._sub_alive = self.session.liveliness().declare_subscriber(
-            alive_key(site_id, "work_site"), ring(16), history=True
-        )
-        self._pub_program = self.session.declare_publisher(
-            key(site_id, "program"), priority=zenoh.Priority.INTERACTIVE_HIGH
-        )
-        # Stops and beats are never dropped by this side's queue (zenoh's DROP gives a message
-        # up when the queue has not moved within a millisecond, which a loaded machine allows)
-        # and never batched: they wait for room instead, on the caller's thread (the page's
-        # for a stop, the beating thread's own for a beat), and go at once.
-        block = zenoh.CongestionControl.BLOCK
-        self._pub_stop = self.session.declare_publisher(
-            key(site_id, "stop"), priority=zenoh.Priority.REAL_TIME, congestion_control=block,
-            express=True,
-        )  # fmt: skip
-        self._pub_heartbeat = self.session.declare_publisher(
-            key(site_id, "heartbeat"), priority=zenoh.Priority.REAL_TIME,
-            congestion_control=block, express=True,
-        )  # fmt: skip
+        self._renewal_config = renewal_config(zenoh_config)
+        self._wire = _Wire.open(zenoh_config, site_id)
+        self._wire_lock = threading.Lock()  # a renewal's swap against close()
+        self._renewing: threading.Thread | None = None
+        self._work_site = PeerWatch()
         self._heartbeat_seq = 0
         self.status = LinkStatus()
         self.robot_state: RobotState | None = None
@@ -249,8 +278,8 @@ class WorkSiteLink:
         self._heartbeat_seq += 1
         t0 = time.monotonic()
         try:
-            self._pub_heartbeat.put(encode(beat))
-        except zenoh.ZError:  # the session is closing
+            self._put("pub_heartbeat", encode(beat))
+        except zenoh.ZError:  # the link is closing
             return
         took_s = time.monotonic() - t0
         if took_s > LATE_WAKE_S:  # the publisher blocks while the link is congested
@@ -271,29 +300,31 @@ class WorkSiteLink:
         """Drain the rings; returns (new robot state?, new camera frame?). Never blocks."""
         now = time.monotonic()
         new_state = new_frame = False
-        while (sample := self._sub_alive.try_recv()) is not None:
-            was_alive = self.status.work_site_alive
-            self.status.work_site_alive = sample.kind == zenoh.SampleKind.PUT
-            if self.status.work_site_alive and not was_alive:
-                for pid, payload in self._unfinished.items():  # back: ask for what we missed
-                    self._unanswered[pid] = (payload, now, -math.inf)
-        while (sample := self._sub_state.try_recv()) is not None:
+        wire = self._wire
+        if self._work_site.drain(wire.sub_alive):
+            for pid, payload in self._unfinished.items():  # back: ask for what we missed
+                self._unanswered[pid] = (payload, now, -math.inf)
+        self.status.work_site_alive = self._work_site.alive
+        if self._work_site.lost:
+            self._work_site.lost = False
+            self._renew()
+        while (sample := wire.sub_state.try_recv()) is not None:
             if (msg := self._decode(sample, RobotState, "robot state")) is not None:
                 self.robot_state, new_state = msg, True
                 self._state_rate.tick(now, msg.seq)
                 self._last_state_s = now
-        while (sample := self._sub_camera.try_recv()) is not None:
+        while (sample := wire.sub_camera.try_recv()) is not None:
             if (msg := self._decode(sample, CameraFrame, "camera frame")) is not None:
                 self.camera_frame, new_frame = msg, True
                 self._frame_rate.tick(now, msg.seq)
                 self._last_frame_s = now
-        while (sample := self._sub_report.try_recv()) is not None:
+        while (sample := wire.sub_report.try_recv()) is not None:
             if (msg := self._decode(sample, ExecutionReport, "execution report")) is not None:
                 self._on_report(msg)
-        while (sample := self._sub_recognitions.try_recv()) is not None:
+        while (sample := wire.sub_recognitions.try_recv()) is not None:
             if (msg := self._decode(sample, Recognitions, "recognitions")) is not None:
                 self.recognitions = msg
-        while (sample := self._sub_heartbeat.try_recv()) is not None:
+        while (sample := wire.sub_heartbeat.try_recv()) is not None:
             beat = self._decode(sample, Heartbeat, "heartbeat")
             if beat is not None and beat.role == "work_site" and beat.site_id == self.site_id:
                 self.status.holder = beat.operator
@@ -304,7 +335,7 @@ class WorkSiteLink:
                                 pid, GIVE_UP_AFTER_S)  # fmt: skip
                     self._unanswered.pop(pid, None)  # (a stop may have taken it meanwhile)
                 elif now - sent_s >= RESEND_AFTER_S:
-                    self._pub_program.put(payload)
+                    self._put("pub_program", payload)
                     self._unanswered[pid] = (payload, first_s, now)
         s = self.status
         s.state_rate_hz = self._state_rate.rate_hz(now)
@@ -354,7 +385,7 @@ class WorkSiteLink:
         self._beats.wait_ready()  # at once, but for a program sent as the link opened
         self._send_heartbeat()  # the dead-man's clock starts with the program, not a beat later
         self._beats.beat()  # from now, not from the thread's next turn
-        self._pub_program.put(payload)
+        self._put("pub_program", payload)
 
     def pending_programs(self) -> list[str]:
         """Ids of programs sent and not finished (answered or not)."""
@@ -364,8 +395,8 @@ class WorkSiteLink:
         """Publish a stop to the work site. It cancels the programs sent and not yet answered
         (a stop can reach the work site before them), which are not sent again."""
         unanswered = list(self._unanswered)[-MAX_CANCELS:]
-        self._pub_stop.put(
-            encode(Stop(reason=reason, stamp_s=time.time(), cancels=tuple(unanswered)))
+        self._put(
+            "pub_stop", encode(Stop(reason=reason, stamp_s=time.time(), cancels=tuple(unanswered)))
         )
         for pid in unanswered:
             self._unanswered.pop(pid, None)
@@ -375,5 +406,49 @@ class WorkSiteLink:
         self._closing.set()
         if self._beating.is_alive():
             self._beating.join()
-        if not self.session.is_closed():
-            self.session.close()
+        renewing = self._renewing
+        if renewing is not None:
+            renewing.join()
+        with self._wire_lock:
+            if not self._wire.session.is_closed():
+                self._wire.session.close()
+
+    @property
+    def session(self) -> zenoh.Session:
+        """The link's zenoh session now (a new one after the work site was lost)."""
+        return self._wire.session
+
+    def _put(self, publisher: str, payload: bytes) -> None:
+        """Put ``payload`` on the current session's ``publisher``: again on the new session
+        if a renewal closed the old one meanwhile. Raises ``zenoh.ZError`` once closed."""
+        for _ in range(2):
+            wire = self._wire
+            try:
+                getattr(wire, publisher).put(payload)
+                return
+            except zenoh.ZError:
+                if wire is self._wire:
+                    raise
+
+    def _renew(self) -> None:
+        """Replace the session by a new one (a new peer id), in a thread of its own, since
+        opening waits for the work site (see ``protocol.session.PeerWatch``)."""
+        if self._closing.is_set() or (self._renewing is not None and self._renewing.is_alive()):
+            return
+        self._renewing = threading.Thread(target=self._open_new_wire, name="renew", daemon=True)
+        self._renewing.start()
+
+    def _open_new_wire(self) -> None:
+        try:
+            wire = _Wire.open(zenoh.Config.from_json5(self._renewal_config), self.site_id)
+        except zenoh.ZError as e:  # the old session goes on: better than none
+            log.warning("work site %s lost; no new session (%s)", self.site_id, e)
+            return
+        with self._wire_lock:
+            if self._closing.is_set():
+                old = wire
+            else:
+                old, self._wire = self._wire, wire
+        old.session.close()
+        log.info("work site %s lost: a new session (%s) waits for it", self.site_id,
+                 wire.session.info.zid())  # fmt: skip

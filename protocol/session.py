@@ -415,3 +415,44 @@ def operator_site_config(
     """The operator site's config for the loopback demo: a peer connecting to ``endpoint``
     (split into two links by :func:`link_endpoints` unless ``single_link``)."""
     return make_config(connect=link_endpoints([endpoint], single_link)[0])
+
+
+def renewal_config(config: zenoh.Config) -> str:
+    """``config`` as JSON5 for :func:`zenoh.Config.from_json5`, without a fixed session id: each
+    session opened from it is a new peer to the others (see :class:`PeerWatch`)."""
+    conf = json.loads(str(config))
+    conf.pop("id", None)
+    return json.dumps(conf)
+
+
+class PeerWatch:
+    """A peer's liveliness token as seen by one of our sessions, and whether that session is to
+    be replaced by a new one.
+
+    A peer that came back after a cut link must be met by a new session of ours, not the old
+    one reconnecting. zenoh expires the links of a transport one by one: the side that gave up
+    first reconnects under the same session id, and the other side, still holding a link of
+    the old transport, adds the new links to it. That side then never declares its entities to
+    us again (its liveliness token, its subscribers), and the key-expression ids each side uses
+    differ: samples arrive under another key, or not at all, until a restart. A session with a
+    new id is a new transport on both sides. So: the token was there, it went, and it is not
+    back by the end of a drain: :attr:`lost` is set, and the owner opens a new session.
+    """
+
+    def __init__(self) -> None:
+        self.alive = False
+        self.lost = False
+
+    def drain(self, subscriber) -> bool:
+        """Take the liveliness samples waiting in ``subscriber``'s ring; returns whether the
+        peer came (back) in them. Sets :attr:`lost` as the class says (until the owner
+        clears it)."""
+        came = went = False
+        while (sample := subscriber.try_recv()) is not None:
+            alive = sample.kind == zenoh.SampleKind.PUT
+            came |= alive and not self.alive
+            went |= self.alive and not alive
+            self.alive = alive
+        if went and not self.alive:
+            self.lost = True
+        return came
