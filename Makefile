@@ -76,6 +76,7 @@ bench: $(BENCH_STAMP)
 	$(PY) -m bench vision --out docs/bench
 	$(PY) -m bench net --out docs/bench
 	$(PY) -m bench safety --out docs/bench
+	$(PY) -m bench linkcut --out docs/bench
 	$(PY) -m bench ui --out docs/bench
 	$(PY) -m bench lcp > docs/bench/lcp.json
 	$(PY) -m bench program_sweeps --out docs/bench
