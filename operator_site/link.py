@@ -25,6 +25,7 @@ import math
 import os
 import re
 import socket
+import statistics
 import threading
 import time
 from dataclasses import dataclass, field
@@ -68,6 +69,8 @@ LEASE_BEAT_PERIOD_S = 1.0
 """While this operator holds the work site's control lease and runs nothing, it beats this
 often, so that the lease stays its own while its page is open (``work_site/lease.py``)."""
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
+ROUND_TRIP_SAMPLES = 5
+"""The round trip shown is the median of the last this many (one a second)."""
 
 
 _LINKS = itertools.count(1)
@@ -127,6 +130,9 @@ class LinkStatus:
     rejected: int = 0
     holder: str = ""
     """The operator holding the work site's control lease, as its heartbeat says ("": none)."""
+    round_trip_s: float | None = None
+    """The round trip to the work site, measured by its heartbeats echoing ours (the median of
+    the last few; None: not measured, e.g. while this operator holds no control)."""
     reports: list[ExecutionReport] = field(default_factory=list)
     """The last 100 reports, each once; a program's reports in the order the work site sent
     them (by their stamps), also when its replay of earlier ones arrives after newer ones."""
@@ -211,6 +217,10 @@ class WorkSiteLink:
         self._renewing: threading.Thread | None = None
         self._work_site = PeerWatch()
         self._heartbeat_seq = 0
+        self._work_site_beat: tuple[float, float] | None = None
+        """The work site's latest heartbeat: its stamp (its clock) and when we read it
+        (monotonic s), echoed by ours."""
+        self._round_trips_s: collections.deque[float] = collections.deque(maxlen=ROUND_TRIP_SAMPLES)
         self.status = LinkStatus()
         self.robot_state: RobotState | None = None
         self.camera_frame: CameraFrame | None = None
@@ -268,12 +278,18 @@ class WorkSiteLink:
         return self.status.holder not in ("", self.operator_id)
 
     def _send_heartbeat(self) -> None:
+        echo_stamp_s = echo_held_s = 0.0
+        if (work_site_beat := self._work_site_beat) is not None:
+            echo_stamp_s = work_site_beat[0]
+            echo_held_s = max(0.0, time.monotonic() - work_site_beat[1])
         beat = Heartbeat(
             site_id=self.site_id,
             role="operator_site",
             seq=self._heartbeat_seq,
             stamp_s=time.time(),
             operator=self.operator_id,
+            echo_stamp_s=echo_stamp_s,
+            echo_held_s=echo_held_s,
         )
         self._heartbeat_seq += 1
         t0 = time.monotonic()
@@ -328,6 +344,11 @@ class WorkSiteLink:
             beat = self._decode(sample, Heartbeat, "heartbeat")
             if beat is not None and beat.role == "work_site" and beat.site_id == self.site_id:
                 self.status.holder = beat.operator
+                self._work_site_beat = (beat.stamp_s, now)
+                round_trip_s = beat.round_trip_s(time.time())
+                if beat.operator == self.operator_id and round_trip_s is not None:
+                    self._round_trips_s.append(round_trip_s)
+                    self.status.round_trip_s = statistics.median(self._round_trips_s)
         if self.status.work_site_alive:
             for pid, (payload, first_s, sent_s) in list(self._unanswered.items()):
                 if now - first_s > GIVE_UP_AFTER_S:

@@ -38,7 +38,16 @@ from ._schema import (
 )
 from .errors import ProtocolError
 from .images import decode_image, encode_image
-from .messages import MESSAGE_TYPES, SCHEMA_VERSION, Message, MotionProgram, Name
+from .messages import (
+    BODY_CHANGED_IN,
+    MESSAGE_TYPES,
+    OLDEST_READ_VERSION,
+    SCHEMA_VERSION,
+    Message,
+    MotionProgram,
+    Name,
+    readable_versions,
+)
 
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 """Largest payload ``encode`` produces and ``decode`` accepts (bytes), checked before unpacking."""
@@ -170,7 +179,7 @@ def _body_type(cls: type) -> type:
 def _envelope_type(cls: type) -> type:
     return msgspec.defstruct(
         f"{cls.__name__}Envelope",
-        [("v", Literal[SCHEMA_VERSION]), ("b", _body_type(cls))],
+        [("v", Literal[readable_versions(cls.TYPE)]), ("b", _body_type(cls))],
         tag_field="t",
         tag=cls.TYPE,
         forbid_unknown_fields=True,
@@ -314,7 +323,7 @@ def _explain_envelope(envelope: Any, exc: Exception, types: tuple[type, ...]) ->
             f"unknown {short_repr(extra)}"
         )
     version = envelope["v"]
-    if type(version) is not int or version != SCHEMA_VERSION:
+    if type(version) is not int or not OLDEST_READ_VERSION <= version <= SCHEMA_VERSION:
         return ProtocolError(
             f"envelope.v: unsupported schema version {short_repr(version)}, "
             f"this side speaks {SCHEMA_VERSION}"
@@ -323,6 +332,11 @@ def _explain_envelope(envelope: Any, exc: Exception, types: tuple[type, ...]) ->
     cls = MESSAGE_TYPES.get(tag) if isinstance(tag, str) else None
     if cls is None:
         return ProtocolError(f"envelope.t: unknown message type {short_repr(tag)}")
+    if version not in readable_versions(tag):
+        return ProtocolError(
+            f"envelope.v: a {tag} of schema version {version} is not read here: its fields "
+            f"changed in {BODY_CHANGED_IN[tag]} (this side speaks {SCHEMA_VERSION})"
+        )
     if cls not in types:
         names = ", ".join(t.__name__ for t in types)
         return ProtocolError(f"envelope.t: expected {names}, got {cls.__name__}")

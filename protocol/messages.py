@@ -29,13 +29,29 @@ from ._schema import (
 )
 from .images import DEFAULT_JPEG_QUALITY, ImageEncoding
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 """Version of the wire schema; bump on any incompatible change to a message.
 2: ``CameraFrame`` carries its image's ``encoding`` and ``quality``.
 3: ``ExecutionReport`` carries its number within its program (``seq``).
 4: ``MotionProgram`` and ``Heartbeat`` carry an ``operator`` (the control lease).
-6: ``Stop`` carries the programs it ``cancels``."""
+6: ``Stop`` carries the programs it ``cancels``.
+7: ``Heartbeat`` echoes the other side's latest beat (the round trip)."""
+OLDEST_READ_VERSION = 6
+"""The oldest schema version read, for a message type whose body has not changed since (a
+program saved by the version before stays loadable)."""
+BODY_CHANGED_IN: dict[str, int] = {"heartbeat": 7}
+"""The version in which a type's body last changed, where that is after
+:data:`OLDEST_READ_VERSION`: older envelopes of that type are refused."""
 
+
+def readable_versions(type_tag: str) -> tuple[int, ...]:
+    """The schema versions in which a message of ``type_tag`` is read."""
+    oldest = max(OLDEST_READ_VERSION, BODY_CHANGED_IN.get(type_tag, OLDEST_READ_VERSION))
+    return tuple(range(oldest, SCHEMA_VERSION + 1))
+
+
+MAX_ROUND_TRIP_S = 30.0
+"""A round trip measured by heartbeats longer than this is not believed (s)."""
 MAX_NAME_LEN = 256
 """Longest name or id (characters)."""
 
@@ -294,7 +310,8 @@ class Stop(Message):
 class Heartbeat(Message):
     """Periodic liveness message from a site; ``role`` is one of :data:`ROLES`. ``operator``:
     an operator site's own id; a work site's, the operator holding its control lease ("":
-    nobody)."""
+    nobody). The round trip is ``now − echo_stamp_s − echo_held_s`` on the echoed side's
+    clock."""
 
     TYPE: ClassVar[str] = "heartbeat"
     site_id: SiteId
@@ -302,6 +319,20 @@ class Heartbeat(Message):
     seq: Seq
     stamp_s: NonNegative
     operator: NameOrNone = ""
+    echo_stamp_s: NonNegative = 0.0
+    """The ``stamp_s`` of the other side's latest heartbeat this side heard (0: none), so that
+    the other side measures the round trip on its own clock."""
+    echo_held_s: NonNegative = 0.0
+    """How long before this beat was sent that echoed one was heard (s)."""
+
+    def round_trip_s(self, now_s: float) -> float | None:
+        """The round trip this beat's echo measures, ``now_s`` being the echoed side's
+        ``time.time()`` as it reads the beat; None without an echo, or when the figure is
+        negative or over :data:`MAX_ROUND_TRIP_S` (a clock stepped, an echo not ours)."""
+        if self.echo_stamp_s <= 0.0:
+            return None
+        round_trip_s = now_s - self.echo_stamp_s - self.echo_held_s
+        return round_trip_s if 0.0 <= round_trip_s <= MAX_ROUND_TRIP_S else None
 
 
 @dataclass(frozen=True, eq=False)

@@ -39,6 +39,7 @@ from protocol import (
     decode,
     encode,
 )
+from protocol.messages import OLDEST_READ_VERSION, readable_versions
 from tests.conftest import examples
 
 MANY = settings(
@@ -619,9 +620,32 @@ def test_oversized_payloads_of_every_kind_are_rejected() -> None:
     ),
 )
 def test_unknown_schema_version_is_rejected(msg: Any, version: Any) -> None:
+    assume(not (type(version) is int and version in readable_versions(msg.TYPE)))
     env = unpack(encode(msg))
     env["v"] = version
     reject(pack(env), "envelope.v:", "schema version")
+
+
+def test_an_older_version_is_read_for_a_type_whose_fields_have_not_changed_since() -> None:
+    stop = Stop(reason="x", stamp_s=1.0, cancels=("a",))
+    env = unpack(encode(stop))
+    env["v"] = OLDEST_READ_VERSION
+    assert decode(pack(env), Stop).cancels == stop.cancels  # a program saved before version 7 loads
+    env["v"] = OLDEST_READ_VERSION - 1
+    reject(pack(env), "envelope.v: unsupported schema version")
+    beat = Heartbeat(site_id="s", role="work_site", seq=0, stamp_s=1.0)
+    env = unpack(encode(beat))
+    env["v"] = SCHEMA_VERSION - 1
+    reject(pack(env), "envelope.v: a heartbeat of schema version", "changed in")
+
+
+def test_a_heartbeat_echo_measures_the_round_trip_on_the_echoed_clock() -> None:
+    beat = Heartbeat(site_id="s", role="operator_site", seq=0, stamp_s=500.0,
+                     echo_stamp_s=1000.0, echo_held_s=0.25)  # fmt: skip
+    assert beat.round_trip_s(1000.75) == pytest.approx(0.5)  # the sender's clock is not used
+    assert beat.round_trip_s(1000.1) is None  # negative: a clock stepped back
+    assert beat.round_trip_s(1000.25 + 31.0) is None  # beyond MAX_ROUND_TRIP_S
+    assert dataclasses.replace(beat, echo_stamp_s=0.0).round_trip_s(1000.75) is None
 
 
 @MANY

@@ -12,6 +12,7 @@ defence against an admitted operator that lies about its name.
 from __future__ import annotations
 
 import collections
+import statistics
 import threading
 
 LEASE_IDLE_S = 5.0
@@ -19,6 +20,9 @@ LEASE_IDLE_S = 5.0
 operator's idle beats (one a second), short enough that a closed page frees the robot soon."""
 MAX_TRACKED_OPERATORS = 64
 """Operators whose last heartbeat is remembered; the oldest is forgotten first."""
+ROUND_TRIP_SAMPLES = 5
+"""An operator's round trip is the median of its last this many measurements, one per beat of
+ours it echoes (one a second): a beat held up by a resend does not move it."""
 
 
 class ControlLease:
@@ -30,17 +34,56 @@ class ControlLease:
         self.idle_s = idle_s
         self._holder = ""
         self._last_s: collections.OrderedDict[str, float] = collections.OrderedDict()
+        self._round_trips_s: dict[str, collections.deque[float]] = {}
+        self._stamps_s: dict[str, float] = {}
+        self._echoed_s: dict[str, float] = {}
         self._lock = threading.Lock()
 
-    def heard(self, operator: str, now_s: float) -> None:
-        """Operator ``operator`` was heard from at ``now_s`` (monotonic s): a heartbeat."""
+    def heard(
+        self,
+        operator: str,
+        now_s: float,
+        round_trip_s: float | None = None,
+        stamp_s: float | None = None,
+        echo_stamp_s: float = 0.0,
+    ) -> None:
+        """Operator ``operator`` was heard from at ``now_s`` (monotonic s): a heartbeat stamped
+        ``stamp_s`` (its clock), which echoed our beat stamped ``echo_stamp_s`` and measured
+        the round trip ``round_trip_s`` (s; None: it echoed nothing). Only the first beat to
+        echo one of ours counts for the round trip: the next ones echo the same."""
         if not operator:
             return
         with self._lock:
             self._last_s[operator] = now_s
             self._last_s.move_to_end(operator)
             while len(self._last_s) > MAX_TRACKED_OPERATORS:
-                self._last_s.popitem(last=False)
+                forgotten, _ = self._last_s.popitem(last=False)
+                self._round_trips_s.pop(forgotten, None)
+                self._stamps_s.pop(forgotten, None)
+                self._echoed_s.pop(forgotten, None)
+            if stamp_s is not None:
+                self._stamps_s[operator] = stamp_s
+            if round_trip_s is not None and self._echoed_s.get(operator) != echo_stamp_s:
+                self._echoed_s[operator] = echo_stamp_s
+                samples = self._round_trips_s.setdefault(
+                    operator, collections.deque(maxlen=ROUND_TRIP_SAMPLES)
+                )
+                samples.append(round_trip_s)
+
+    def echo(self, operator: str, now_s: float) -> tuple[float, float]:
+        """What a heartbeat of ours echoes to ``operator``: its latest beat's stamp and how
+        long ago (s) it was heard, (0, 0) when none was."""
+        with self._lock:
+            stamp_s, heard_s = self._stamps_s.get(operator), self._last_s.get(operator)
+        if stamp_s is None or heard_s is None:
+            return 0.0, 0.0
+        return stamp_s, max(0.0, now_s - heard_s)
+
+    def round_trip_s(self, operator: str) -> float | None:
+        """``operator``'s round trip as its heartbeats measured it lately (None: not known)."""
+        with self._lock:
+            samples = self._round_trips_s.get(operator)
+            return statistics.median(samples) if samples else None
 
     def last_heard_s(self, operator: str) -> float | None:
         """When ``operator`` was last heard from (None: not lately)."""

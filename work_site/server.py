@@ -54,7 +54,7 @@ from work_site.intake import (
 )
 from work_site.journal import JournalWriter, journal_line, load_journal
 from work_site.lease import ControlLease
-from work_site.options import ServerOptions
+from work_site.options import DEADMAN_RANGE_S, ServerOptions
 from work_site.outbox import Outbox
 from work_site.recognition import VisionProcess
 from work_site.world import World
@@ -77,6 +77,21 @@ STOP_REPLY_PERIOD_S = 0.2
 reports."""
 DEADMAN_STALL_S = 0.05
 """A loop iteration this long after the last one means this process was starved (s)."""
+DEADMAN_ROUND_TRIPS = 3
+"""The dead-man waits this many of the operator's round trips beyond ``--deadman-s``. A beat
+lost on a long link holds every later one up until TCP resends it, about a round trip (plus
+200 ms) later, and twice that when the resend is lost too: on a 500 ms link a healthy
+operator's beats paused for more than the 0.5 s dead-man at 1 % loss. The trade: a cut link
+stops the robot this much later; it cannot be known sooner than a round trip anyway."""
+
+
+def deadman_timeout_s(base_s: float, round_trip_s: float | None) -> float:
+    """The dead-man's timeout for an operator whose round trip is ``round_trip_s`` (None: not
+    measured): ``base_s`` and :data:`DEADMAN_ROUND_TRIPS` round trips, at most the top of
+    ``--deadman-s``'s range (a forged echo buys no more)."""
+    if round_trip_s is None:
+        return base_s
+    return max(base_s, min(DEADMAN_RANGE_S[1], base_s + DEADMAN_ROUND_TRIPS * round_trip_s))
 
 
 def read_journal(
@@ -194,12 +209,7 @@ class WorkSiteServer(ProgramIntake):
         # queued (no flood can push one out), and a stop wakes this loop at once.
         wake = threading.Event()
         inbox_stop = stop_inbox(session, key(site, "stop"), wake)
-        inbox_heartbeat = heartbeat_inbox(
-            session,
-            key(site, "heartbeat"),
-            site,
-            lambda beat: self._lease.heard(beat.operator, time.monotonic()),
-        )
+        inbox_heartbeat = heartbeat_inbox(session, key(site, "heartbeat"), site, self._heard)
         inbox_program = session.declare_subscriber(
             key(site, "program"), zenoh.handlers.RingChannel(INBOX_CAPACITY)
         )
@@ -357,12 +367,17 @@ class WorkSiteServer(ProgramIntake):
     def _publish_heartbeat(self, elapsed_s: float) -> None:
         if elapsed_s < self._next_heartbeat_s:
             return
+        now_s = time.monotonic()
+        holder = self._lease.holder(now_s)
+        echo_stamp_s, echo_held_s = self._lease.echo(holder, now_s)
         beat = Heartbeat(
             site_id=self.options.site_id,
             role="work_site",
             seq=self._seq_heartbeat,
             stamp_s=time.time(),
-            operator=self._lease.holder(time.monotonic()),
+            operator=holder,
+            echo_stamp_s=echo_stamp_s,
+            echo_held_s=echo_held_s,
         )
         self._pub_heartbeat.put(encode(beat))
         self._seq_heartbeat += 1
@@ -524,6 +539,14 @@ class WorkSiteServer(ProgramIntake):
         )
         self._execution_started_s = time.monotonic()
 
+    def _heard(self, beat: Heartbeat) -> None:
+        """An operator's heartbeat came (zenoh's thread): the lease hears it, with the round
+        trip it measured when it echoes one of ours."""
+        round_trip_s = beat.round_trip_s(time.time())
+        self._lease.heard(
+            beat.operator, time.monotonic(), round_trip_s, beat.stamp_s, beat.echo_stamp_s
+        )
+
     def _check_deadman(self, inbox_heartbeat) -> None:
         """Stop the running program when the operator's heartbeats stopped coming: the newest
         beat, or the program's start if later, is more than ``deadman_s`` ago."""
@@ -543,7 +566,8 @@ class WorkSiteServer(ProgramIntake):
         # After a stall of this process, beats that came meanwhile may still be in the socket's
         # buffers: judge at the next iteration (unless silence is long past doubt).
         silent_s = now - last_s
-        deadman_s = self.options.deadman_s
+        round_trip_s = self._lease.round_trip_s(operator) if operator else None
+        deadman_s = deadman_timeout_s(self.options.deadman_s, round_trip_s)
         if silent_s > deadman_s and (not stalled or silent_s > 2 * deadman_s):
             beat = inbox_heartbeat.last
             # Whether the beat was sent late or arrived late (the operator's clock may differ).
@@ -555,6 +579,9 @@ class WorkSiteServer(ProgramIntake):
                 "-" if beat is None else f"{time.time() - beat.stamp_s:.3f}",
                 stalled_s,
             )
-            execution.stop(f"no heartbeat from the operator for {self.options.deadman_s:g} s")
+            why = f"no heartbeat from the operator for {deadman_s:.3g} s"
+            if deadman_s != self.options.deadman_s:
+                why += f" ({self.options.deadman_s:g} s and round trips of {round_trip_s:.3f} s)"
+            execution.stop(why)
             self.stats["deadman"] = self.stats.get("deadman", 0) + 1
             self._release_finished()

@@ -52,9 +52,10 @@ def status_markdown(site_id: str, status: LinkStatus, operator_id: str = "") -> 
     if status.work_site_alive:
         lines.append(control_words(status, operator_id))
     if status.work_site_alive:
-        lines.append(
-            f"robot state {status.state_rate_hz:.0f} Hz · camera {status.frame_rate_hz:.1f} Hz"
-        )
+        rates = f"robot state {status.state_rate_hz:.0f} Hz · camera {status.frame_rate_hz:.1f} Hz"
+        if status.round_trip_s is not None:
+            rates += f" · round trip {status.round_trip_s * 1e3:.0f} ms"
+        lines.append(rates)
     if status.last_frame_age_s is not None:
         lines.append(f"last camera frame {status.last_frame_age_s:.1f} s ago")
     if status.rejected:
