@@ -16,6 +16,7 @@ BENCHMARKS: dict[str, str] = {
     "step_gain": "free pulls of each block: steps to settle against the spring's step gain",
     "lcp": "time per contact LCP solve on random contact sets",
     "program_sweeps": "the deformation's sweep cap: generator CPU time against program change",
+    "latency": "a shipped task across an emulated long link: success and time against delay",
     "linkcut": "a link cut and restored: the work site seen gone, then alive again",
     "safety": "STOP latency (also through a flood), the dead-man, state rate during a check",
     "e2e": "the scripted tasks end to end, each seed against its own work site",

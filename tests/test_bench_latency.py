@@ -1,0 +1,50 @@
+"""bench/latency.py's arithmetic: the points from the runs, the grid's option parsing. (The
+benchmark itself runs real processes across network namespaces: ``python -m bench latency``.)"""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from bench import latency
+
+
+def _row(rtt_ms: float, loss: float, seed: int, success: bool, task_s: float | None) -> dict:
+    failure = None if success else {"kind": "execution_failed", "message": "stopped"}
+    return {"rtt_ms": rtt_ms, "loss": loss, "seed": seed, "success": success,
+            "failure": failure, "task_s": task_s, "execute_s": task_s}  # fmt: skip
+
+
+def test_points_count_successes_and_time_only_successful_runs_against_the_0_ms_link() -> None:
+    rows = [
+        _row(0, 0.0, 0, True, 40.0), _row(0, 0.0, 1, True, 42.0),
+        _row(500, 0.0, 0, True, 43.0), _row(500, 0.0, 1, False, 90.0),
+        _row(500, 0.01, 0, True, 45.0),  # no 0 ms point at this loss: against loss 0's
+    ]  # fmt: skip
+    points = {(p["rtt_ms"], p["loss"]): p for p in latency.summarise(rows)}
+    assert points[(0, 0.0)]["runs"] == 2 and points[(0, 0.0)]["successes"] == 2
+    assert points[(0, 0.0)]["task_s_median"] == pytest.approx(41.0)
+    assert points[(0, 0.0)]["overhead_s_median"] == pytest.approx(0.0)
+    slow = points[(500, 0.0)]
+    assert (slow["runs"], slow["successes"], slow["failures"]) == (2, 1, ["execution_failed"])
+    assert slow["task_s_median"] == pytest.approx(43.0)  # the failed run's time is not a task's
+    assert slow["overhead_s_median"] == pytest.approx(2.0)
+    assert points[(500, 0.01)]["overhead_s_median"] == pytest.approx(4.0)
+
+
+def test_a_point_without_successes_or_a_baseline_has_no_time() -> None:
+    points = latency.summarise([_row(1000, 0.05, 0, False, None), _row(250, 0.0, 0, True, 50.0)])
+    assert all(p["overhead_s_median"] is None for p in points)
+    assert points[0]["task_s_median"] is None
+
+
+@pytest.mark.parametrize(
+    ("text", "why"),
+    [("", "expected|each value"), ("1,x", "expected numbers"), ("-5", r"\[0, 5000\]"),
+     ("6000", r"\[0, 5000\]")],
+)  # fmt: skip
+def test_the_grid_options_name_their_range(text: str, why: str) -> None:
+    with pytest.raises(argparse.ArgumentTypeError, match=why):
+        latency._floats(text, 0.0, 5000.0, "--rtt-ms")
+    assert latency._floats("0, 250,1000", 0.0, 5000.0, "--rtt-ms") == [0.0, 250.0, 1000.0]
