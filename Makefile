@@ -68,6 +68,9 @@ E2E_SEEDS ?= 100
 TRADE_SEEDS ?= 5
 # tasks: every shipped task file (examples/tasks/) on TASK_SEEDS seeded layouts.
 TASK_SEEDS ?= 20
+# latency: the corner task across an emulated link at 0, 500 and 1,000 ms round trips with 1 %
+# loss, LATENCY_RUNS runs a point in real time (about a minute each).
+LATENCY_RUNS ?= 20
 bench: $(BENCH_STAMP)
 	$(PY) -m bench sim --out docs/bench
 	$(PY) -m bench step_gain --out docs/bench
@@ -77,6 +80,7 @@ bench: $(BENCH_STAMP)
 	$(PY) -m bench net --out docs/bench
 	$(PY) -m bench safety --out docs/bench
 	$(PY) -m bench linkcut --out docs/bench
+	$(PY) -m bench latency --rtt-ms 0,500,1000 --loss 0.01 --runs $(LATENCY_RUNS) --out docs/bench
 	$(PY) -m bench ui --out docs/bench
 	$(PY) -m bench lcp > docs/bench/lcp.json
 	$(PY) -m bench program_sweeps --out docs/bench

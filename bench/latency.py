@@ -11,8 +11,9 @@ program, and waits for its end.
 Per run: success (the work site's ground truth, as ``operator-site run`` judges it), the failure
 if any, ``task_s`` (from the work site seen to the program's end: vision, the operator's
 demonstration, the program, its execution), ``execute_s`` (program sent to its last report).
-Per point: ``runs``, ``successes``, ``task_s_median`` and ``overhead_s_median`` (its median
-less the 0 ms point's of the same loss, or of loss 0; none without a 0 ms point).
+Per point: ``runs``, ``successes``, ``task_s_median`` and ``overhead_s_median``: the median over
+seeds of a run's task time less the same seed's at the 0 ms point of the same loss (or of loss
+0), both successful; each seed lays the blocks out alike at every point.
 
 Needs root (network namespaces). Prints progress on stderr and, as the last line of stdout, a
 JSON list of the points; writes ``latency.json``, ``latency.csv`` (one row per run) and
@@ -119,11 +120,20 @@ def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             "task_s_median": statistics.median(times) if times else None,
             "failures": sorted({r["failure"]["kind"] for r in mine if r["failure"]}),
         })  # fmt: skip
+    timed = {
+        (r["rtt_ms"], r["loss"], r["seed"]): r["task_s"]
+        for r in rows
+        if r["success"] and r["task_s"] is not None
+    }
+    measured = {(q["rtt_ms"], q["loss"]) for q in points}
     for p in points:
-        base = next((q for q in points if q["rtt_ms"] == 0 and q["loss"] == p["loss"]), None)
-        base = base or next((q for q in points if q["rtt_ms"] == 0 and q["loss"] == 0), None)
-        known = base is not None and None not in (base["task_s_median"], p["task_s_median"])
-        p["overhead_s_median"] = p["task_s_median"] - base["task_s_median"] if known else None
+        base_loss = p["loss"] if (0.0, p["loss"]) in measured else 0.0
+        extra = [
+            t - timed[(0.0, base_loss, seed)]
+            for (rtt_ms, loss, seed), t in timed.items()
+            if (rtt_ms, loss) == (p["rtt_ms"], p["loss"]) and (0.0, base_loss, seed) in timed
+        ]
+        p["overhead_s_median"] = statistics.median(extra) if extra else None
     return points
 
 

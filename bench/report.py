@@ -32,6 +32,14 @@ ISSUE_SEEDS = 100
 however many of them succeed (ten successes in ten do not show 98 in 100)."""
 
 
+def _latency(d: dict, rtt_ms: float, loss: float, key: str) -> tuple[Any, int]:
+    """A latency point's ``key`` and its runs (StopIteration: the point was not measured)."""
+    point = next(p for p in d["points"] if p["rtt_ms"] == rtt_ms and p["loss"] == loss)
+    if point[key] is None:
+        raise KeyError(key)
+    return point[key], point["runs"]
+
+
 @dataclass(frozen=True)
 class Figure:
     """One headline figure: where it comes from and what it must reach."""
@@ -172,6 +180,15 @@ FIGURES: tuple[Figure, ...] = (
     Figure("Network (8)", "link cut for a lease, restored: work site seen again", "linkcut.json",
            lambda d: (d["healed"], d["cuts"], d["heal_s_median"], d["heal_s_max"]),
            "{0} of {1}, median {2:.1f} s, max {3:.1f} s", "all", lambda v: v[0] == v[1] > 0),
+    Figure("Network (8)", "500 ± 50 ms + 1 % link: corner task success", "latency.json",
+           lambda d: _latency(d, 500.0, 0.01, "successes"), "{0} of {1}", "≥ 19 of 20",
+           lambda v: v[1] >= 20 and v[0] >= 19),
+    Figure("Network (8)", "500 ± 50 ms + 1 % link: task time over 0 ms, median", "latency.json",
+           lambda d: _latency(d, 500.0, 0.01, "overhead_s_median")[0], "{:+.1f} s",
+           "≤ 3 round trips (1.5 s)", lambda v: v <= 1.5),
+    Figure("Network (8)", "1,000 ± 100 ms + 1 % link: corner task success", "latency.json",
+           lambda d: _latency(d, 1000.0, 0.01, "successes"), "{0} of {1}", "≥ 19 of 20",
+           lambda v: v[1] >= 20 and v[0] >= 19),
     Figure("Safety", "STOP → \"stopped\" report, median / p99", "safety.json",
            lambda d: (d["stop_ms_median"], d["stop_ms_p99"]), "{0:.1f} / {1:.1f} ms",
            "p99 ≤ 50 ms", lambda v: v[1] <= 50.0),

@@ -436,7 +436,8 @@ class WorkSiteLink:
 
     @property
     def session(self) -> zenoh.Session:
-        """The link's zenoh session now (a new one after the work site was lost)."""
+        """The link's zenoh session now: a new one after the work site was lost, so that what a
+        caller declares on it lasts until then only."""
         return self._wire.session
 
     def _put(self, publisher: str, payload: bytes) -> None:

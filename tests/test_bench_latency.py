@@ -16,7 +16,7 @@ def _row(rtt_ms: float, loss: float, seed: int, success: bool, task_s: float | N
             "failure": failure, "task_s": task_s, "execute_s": task_s}  # fmt: skip
 
 
-def test_points_count_successes_and_time_only_successful_runs_against_the_0_ms_link() -> None:
+def test_points_count_successes_and_time_successful_runs_against_the_same_seed_at_0_ms() -> None:
     rows = [
         _row(0, 0.0, 0, True, 40.0), _row(0, 0.0, 1, True, 42.0),
         _row(500, 0.0, 0, True, 43.0), _row(500, 0.0, 1, False, 90.0),
@@ -29,8 +29,8 @@ def test_points_count_successes_and_time_only_successful_runs_against_the_0_ms_l
     slow = points[(500, 0.0)]
     assert (slow["runs"], slow["successes"], slow["failures"]) == (2, 1, ["execution_failed"])
     assert slow["task_s_median"] == pytest.approx(43.0)  # the failed run's time is not a task's
-    assert slow["overhead_s_median"] == pytest.approx(2.0)
-    assert points[(500, 0.01)]["overhead_s_median"] == pytest.approx(4.0)
+    assert slow["overhead_s_median"] == pytest.approx(3.0)  # seed 0's 40 s, not the median
+    assert points[(500, 0.01)]["overhead_s_median"] == pytest.approx(5.0)
 
 
 def test_a_point_without_successes_or_a_baseline_has_no_time() -> None:
