@@ -80,8 +80,8 @@ DEADMAN_STALL_S = 0.05
 DEADMAN_ROUND_TRIPS = 3
 """The dead-man waits this many of the operator's round trips beyond ``--deadman-s``. A beat
 lost on a long link holds every later one up until TCP resends it, about a round trip (plus
-200 ms) later, and twice that when the resend is lost too: on a 500 ms link a healthy
-operator's beats paused for more than the 0.5 s dead-man at 1 % loss. The trade: a cut link
+200 ms) later, and twice that when the resend is lost too: over a round trip of a second, a
+little loss paused a healthy operator's beats past the default dead-man. The trade: a cut link
 stops the robot this much later; it cannot be known sooner than a round trip anyway."""
 
 
@@ -549,7 +549,7 @@ class WorkSiteServer(ProgramIntake):
 
     def _check_deadman(self, inbox_heartbeat) -> None:
         """Stop the running program when the operator's heartbeats stopped coming: the newest
-        beat, or the program's start if later, is more than ``deadman_s`` ago."""
+        beat, or the program's start if later, is older than :func:`deadman_timeout_s`."""
         now = time.monotonic()
         stalled_s = now - self._deadman_checked_s
         stalled = stalled_s > DEADMAN_STALL_S
