@@ -263,7 +263,8 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.5,
         metavar="S",
         help="stop a running program when its operator's heartbeats have not come for S "
-        "seconds, 0.2..5 (default: %(default)s)",
+        "seconds, 0.2..5 (default: %(default)s), and 3 of its round trips more as its "
+        "heartbeats measure them (at most 5 s in all)",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log more")
 
