@@ -12,6 +12,7 @@ import numpy as np
 
 from operator_site.link import WorkSiteLink
 from protocol import ExecutionReport, decode, encode, make_config
+from protocol.messages import OLDEST_READ_VERSION
 from work_site.server import read_journal
 
 
@@ -45,7 +46,7 @@ def test_the_link_orders_each_programs_reports_by_seq_and_drops_replays() -> Non
 def test_the_journal_keeps_seq_and_remembers_what_it_cannot_replay(tmp_path: Path) -> None:
     journal = tmp_path / "journal.jsonl"
     old_schema = msgpack.unpackb(encode(report("old", 0, -1, "accepted", 1.0)), raw=False)
-    old_schema["v"] -= 1  # written by the previous release
+    old_schema["v"] = OLDEST_READ_VERSION - 1  # written by a release too old to read
     lines = [
         {"program_id": "old", "report": msgpack.packb(old_schema, use_bin_type=True).hex()},
         {"program_id": "p", "report": encode(report("p", 0, -1, "accepted", 2.0)).hex()},
