@@ -25,7 +25,6 @@ import math
 import os
 import re
 import socket
-import statistics
 import threading
 import time
 from dataclasses import dataclass, field
@@ -41,6 +40,7 @@ from protocol import (
     ProtocolError,
     Recognitions,
     RobotState,
+    RoundTrips,
     Stop,
     alive_key,
     decode,
@@ -69,8 +69,6 @@ LEASE_BEAT_PERIOD_S = 1.0
 """While this operator holds the work site's control lease and runs nothing, it beats this
 often, so that the lease stays its own while its page is open (``work_site/lease.py``)."""
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
-ROUND_TRIP_SAMPLES = 5
-"""The round trip shown is the median of the last this many (one a second)."""
 
 
 _LINKS = itertools.count(1)
@@ -220,7 +218,7 @@ class WorkSiteLink:
         self._work_site_beat: tuple[float, float] | None = None
         """The work site's latest heartbeat: its stamp (its clock) and when we read it
         (monotonic s), echoed by ours."""
-        self._round_trips_s: collections.deque[float] = collections.deque(maxlen=ROUND_TRIP_SAMPLES)
+        self._round_trips = RoundTrips()
         self.status = LinkStatus()
         self.robot_state: RobotState | None = None
         self.camera_frame: CameraFrame | None = None
@@ -345,10 +343,9 @@ class WorkSiteLink:
             if beat is not None and beat.role == "work_site" and beat.site_id == self.site_id:
                 self.status.holder = beat.operator
                 self._work_site_beat = (beat.stamp_s, now)
-                round_trip_s = beat.round_trip_s(time.time())
-                if beat.operator == self.operator_id and round_trip_s is not None:
-                    self._round_trips_s.append(round_trip_s)
-                    self.status.round_trip_s = statistics.median(self._round_trips_s)
+                if beat.operator == self.operator_id:
+                    self._round_trips.add(beat.round_trip_s(time.time()), beat.echo_stamp_s)
+                    self.status.round_trip_s = self._round_trips.median_s()
         if self.status.work_site_alive:
             for pid, (payload, first_s, sent_s) in list(self._unanswered.items()):
                 if now - first_s > GIVE_UP_AFTER_S:

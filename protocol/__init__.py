@@ -34,6 +34,7 @@ from .messages import (
     Recognition,
     Recognitions,
     RobotState,
+    RoundTrips,
     Stop,
     TruthPoses,
 )
@@ -75,6 +76,7 @@ __all__ = [
     "Recognition",
     "Recognitions",
     "RobotState",
+    "RoundTrips",
     "Stop",
     "TruthPoses",
     "alive_key",

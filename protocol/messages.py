@@ -9,6 +9,8 @@ invalid field.
 
 from __future__ import annotations
 
+import collections
+import statistics
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Annotated, ClassVar, Literal, get_args
@@ -333,6 +335,36 @@ class Heartbeat(Message):
             return None
         round_trip_s = now_s - self.echo_stamp_s - self.echo_held_s
         return round_trip_s if 0.0 <= round_trip_s <= MAX_ROUND_TRIP_S else None
+
+
+ROUND_TRIP_SAMPLES = 5
+"""A round trip is the median of the last this many measurements, one per beat echoed (one a
+second): a beat held up by a resend does not move it."""
+
+
+class RoundTrips:
+    """One side's recent round trips to another, as the other's heartbeats echo this side's
+    (:meth:`Heartbeat.round_trip_s`). Only the first beat to echo one of ours counts: the next
+    ones echo the same beat again, and their figures grow with the wait for our next. Not
+    thread-safe."""
+
+    def __init__(self, samples: int = ROUND_TRIP_SAMPLES) -> None:
+        if samples < 1:
+            raise ValueError(f"samples = {samples}: must be at least 1")
+        self._samples_s: collections.deque[float] = collections.deque(maxlen=samples)
+        self._echoed_stamp_s: float | None = None
+
+    def add(self, round_trip_s: float | None, echo_stamp_s: float) -> None:
+        """Take the round trip (s) a beat measured (:meth:`Heartbeat.round_trip_s`; None:
+        none) by echoing our beat stamped ``echo_stamp_s``."""
+        if round_trip_s is None or echo_stamp_s == self._echoed_stamp_s:
+            return
+        self._echoed_stamp_s = echo_stamp_s
+        self._samples_s.append(round_trip_s)
+
+    def median_s(self) -> float | None:
+        """The median of the recent round trips (s; None before the first)."""
+        return statistics.median(self._samples_s) if self._samples_s else None
 
 
 @dataclass(frozen=True, eq=False)

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import pytest
 
-from work_site.lease import ROUND_TRIP_SAMPLES, ControlLease
+from protocol import RoundTrips
+from protocol.messages import ROUND_TRIP_SAMPLES
+from work_site.lease import ControlLease
 from work_site.options import DEADMAN_RANGE_S
 from work_site.server import DEADMAN_ROUND_TRIPS, deadman_timeout_s
 
@@ -45,3 +47,18 @@ def test_the_timeout_adds_round_trips_up_to_the_top_of_the_range() -> None:
     assert deadman_timeout_s(0.5, 0.5) == pytest.approx(0.5 + DEADMAN_ROUND_TRIPS * 0.5)
     assert deadman_timeout_s(0.5, 10.0) == DEADMAN_RANGE_S[1]  # a forged echo buys no more
     assert deadman_timeout_s(DEADMAN_RANGE_S[1], 1.0) == DEADMAN_RANGE_S[1]
+
+
+def test_round_trips_count_each_echoed_beat_once() -> None:
+    round_trips = RoundTrips(samples=3)
+    assert round_trips.median_s() is None
+    round_trips.add(None, 0.0)  # a beat that echoed nothing
+    assert round_trips.median_s() is None
+    for rtt in (0.2, 0.9, 1.6):  # one echo, read three times as the wait for our next grows
+        round_trips.add(rtt, 1000.0)
+    assert round_trips.median_s() == pytest.approx(0.2)
+    for k, rtt in enumerate((0.3, 0.4, 0.5)):  # the oldest ages out
+        round_trips.add(rtt, 1001.0 + k)
+    assert round_trips.median_s() == pytest.approx(0.4)
+    with pytest.raises(ValueError, match="samples = 0"):
+        RoundTrips(samples=0)

@@ -155,6 +155,16 @@ def test_two_work_sites_and_an_operator_through_a_router(spawn, links, single_li
     np.testing.assert_allclose(b.robot_state.q, q_b, atol=1e-4)
     assert np.linalg.norm(a.robot_state.q - q_b) > 0.05
 
+    # Holding site a's control, the operator measures its round trip through the router by the
+    # work site's heartbeats echoing its own; watching site b, it measures none.
+    def a_measured() -> bool:
+        a.poll(), b.poll()
+        return a.status.round_trip_s is not None
+
+    assert wait_until(a_measured, 10.0)
+    assert 0.0 <= a.status.round_trip_s < 1.0
+    assert b.status.round_trip_s is None
+
 
 # ------------------------------------------------------------ a secured router (mutual TLS, ACL)
 

@@ -122,3 +122,12 @@ def test_the_log_says_what_to_do_after_a_program_ends_badly() -> None:
     assert "*back off*" in log_markdown([ended["failed"]])
     assert "*go home*" in log_markdown([ended["stopped"]])
     assert "➜" not in log_markdown([refused, ended["done"]])
+
+
+def test_the_status_shows_the_round_trip_once_measured() -> None:
+    status = LinkStatus(work_site_alive=True, state_rate_hz=100.0, frame_rate_hz=5.0)
+    assert "round trip" not in status_markdown("site_1", status)
+    status.round_trip_s = 0.5123
+    assert "camera 5.0 Hz · round trip 512 ms" in status_markdown("site_1", status)
+    status.work_site_alive = False  # a stale figure is not shown for a site that went
+    assert "round trip" not in status_markdown("site_1", status)

@@ -12,17 +12,15 @@ defence against an admitted operator that lies about its name.
 from __future__ import annotations
 
 import collections
-import statistics
 import threading
+
+from protocol import RoundTrips
 
 LEASE_IDLE_S = 5.0
 """The lease lapses this long after its holder's last heartbeat or program (s): several of the
 operator's idle beats (one a second), short enough that a closed page frees the robot soon."""
 MAX_TRACKED_OPERATORS = 64
 """Operators whose last heartbeat is remembered; the oldest is forgotten first."""
-ROUND_TRIP_SAMPLES = 5
-"""An operator's round trip is the median of its last this many measurements, one per beat of
-ours it echoes (one a second): a beat held up by a resend does not move it."""
 
 
 class ControlLease:
@@ -34,9 +32,8 @@ class ControlLease:
         self.idle_s = idle_s
         self._holder = ""
         self._last_s: collections.OrderedDict[str, float] = collections.OrderedDict()
-        self._round_trips_s: dict[str, collections.deque[float]] = {}
+        self._round_trips: dict[str, RoundTrips] = {}
         self._stamps_s: dict[str, float] = {}
-        self._echoed_s: dict[str, float] = {}
         self._lock = threading.Lock()
 
     def heard(
@@ -49,8 +46,7 @@ class ControlLease:
     ) -> None:
         """Operator ``operator`` was heard from at ``now_s`` (monotonic s): a heartbeat stamped
         ``stamp_s`` (its clock), which echoed our beat stamped ``echo_stamp_s`` and measured
-        the round trip ``round_trip_s`` (s; None: it echoed nothing). Only the first beat to
-        echo one of ours counts for the round trip: the next ones echo the same."""
+        the round trip ``round_trip_s`` (s; None: it echoed nothing)."""
         if not operator:
             return
         with self._lock:
@@ -58,17 +54,12 @@ class ControlLease:
             self._last_s.move_to_end(operator)
             while len(self._last_s) > MAX_TRACKED_OPERATORS:
                 forgotten, _ = self._last_s.popitem(last=False)
-                self._round_trips_s.pop(forgotten, None)
+                self._round_trips.pop(forgotten, None)
                 self._stamps_s.pop(forgotten, None)
-                self._echoed_s.pop(forgotten, None)
             if stamp_s is not None:
                 self._stamps_s[operator] = stamp_s
-            if round_trip_s is not None and self._echoed_s.get(operator) != echo_stamp_s:
-                self._echoed_s[operator] = echo_stamp_s
-                samples = self._round_trips_s.setdefault(
-                    operator, collections.deque(maxlen=ROUND_TRIP_SAMPLES)
-                )
-                samples.append(round_trip_s)
+            if round_trip_s is not None:
+                self._round_trips.setdefault(operator, RoundTrips()).add(round_trip_s, echo_stamp_s)
 
     def echo(self, operator: str, now_s: float) -> tuple[float, float]:
         """What a heartbeat of ours echoes to ``operator``: its latest beat's stamp and how
@@ -82,8 +73,8 @@ class ControlLease:
     def round_trip_s(self, operator: str) -> float | None:
         """``operator``'s round trip as its heartbeats measured it lately (None: not known)."""
         with self._lock:
-            samples = self._round_trips_s.get(operator)
-            return statistics.median(samples) if samples else None
+            round_trips = self._round_trips.get(operator)
+            return None if round_trips is None else round_trips.median_s()
 
     def last_heard_s(self, operator: str) -> float | None:
         """When ``operator`` was last heard from (None: not lately)."""
