@@ -2,7 +2,7 @@
 # make-certs.sh: a test certificate authority and the certificates of a deployment, for zenoh's
 # TLS (tls/ endpoints) with mutual authentication (enable_mtls: true on both sides).
 #
-#   deploy/make-certs.sh OUT_DIR [SAN ...]
+#   deploy/make-certs.sh OUT_DIR [SAN ...] [CN:NAME ...]
 #
 # Writes into OUT_DIR (created, mode 700):
 #   ca.pem, ca.key                    the test CA (10 years; keep ca.key off the sites)
@@ -14,22 +14,39 @@
 #                                     10.77.0.1 and the extra SANs
 #   viewer.pem, viewer.key            CN=viewer: authenticated, but not allowed to command
 #   rogue-ca.pem, intruder.pem/.key   CN=operator signed by ANOTHER CA: must be refused
+#   NAME.pem, NAME.key                for each CN:NAME given: CN=NAME, e.g. one work site and
+#                                     one operator per cell of a fleet (deploy/fleet.py); SANs
+#                                     as work-site's
 # Access control matches the client certificate's common name (CN), so the CN is the role.
 # These are TEST certificates: for a real deployment use your organisation's CA and keep each
 # private key only on its own machine.
 set -euo pipefail
 
 if [[ $# -lt 1 || $1 == -h || $1 == --help ]]; then
-  sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'
+  sed -n '2,22p' "$0" | sed 's/^# \{0,1\}//'
   exit $(( $# < 1 ? 2 : 0 ))
 fi
 out=$1
 shift
 extra_sans=""
-for san in "$@"; do
-  case $san in
-    DNS:*|IP:*) extra_sans+=",${san}" ;;
-    *) echo "make-certs: SAN must look like DNS:name or IP:address, got '$san'" >&2; exit 2 ;;
+extra_names=()
+for arg in "$@"; do
+  case $arg in
+    DNS:*|IP:*) extra_sans+=",${arg}" ;;
+    CN:*)
+      name=${arg#CN:}
+      # A file name and a zenoh ACL common name: no path, no space, no shell surprises.
+      if [[ ! $name =~ ^[A-Za-z0-9][A-Za-z0-9._-]{0,62}$ ]]; then
+        echo "make-certs: CN:NAME takes letters, digits, '.', '_' and '-' (at most 63), got '$arg'" >&2
+        exit 2
+      fi
+      case $name in
+        ca|rogue-ca|work-site|operator|router|viewer|intruder)
+          echo "make-certs: CN:$name would overwrite a certificate this script always writes" >&2
+          exit 2 ;;
+      esac
+      extra_names+=("$name") ;;
+    *) echo "make-certs: expected DNS:name, IP:address or CN:name, got '$arg'" >&2; exit 2 ;;
   esac
 done
 
@@ -70,9 +87,15 @@ leaf operator operator "DNS:operator" ca
 leaf router router "DNS:router,DNS:localhost,IP:127.0.0.1,IP:10.77.0.1${extra_sans}" ca
 leaf viewer viewer "DNS:viewer" ca
 leaf intruder operator "DNS:operator" rogue-ca
+for name in "${extra_names[@]}"; do
+  leaf "$name" "$name" "DNS:$name,DNS:localhost,IP:127.0.0.1,IP:10.77.0.2${extra_sans}" ca
+done
 rm -f ./*.srl rogue-ca.key
 chmod 600 ca.key
-for name in work-site operator router viewer; do
+for name in work-site operator router viewer "${extra_names[@]}"; do
   openssl verify -CAfile ca.pem "$name.pem" >/dev/null
 done
 echo "make-certs: wrote $(pwd)/{ca,work-site,operator,router,viewer,intruder,rogue-ca}.pem and keys"
+if (( ${#extra_names[@]} )); then
+  echo "make-certs: and ${#extra_names[@]} more: ${extra_names[*]}"
+fi

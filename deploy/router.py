@@ -1,7 +1,7 @@
 """A zenoh router from the zenoh Python package (no zenohd needed), for several sites.
 
     python deploy/router.py deploy/zenoh/router.json5 [--listen ENDPOINT] [--single-link]
-        [--certs DIR [--cert-name router] --cell SITE=WORK_SITE_CN:OPERATOR_CN[,...] ...]
+        [--certs DIR [--cert-name router] --cell SITE=WORK_SITE_CN:OPERATORS[:VIEWERS] ...]
         [--insecure]
 
 Runs until SIGINT/SIGTERM. ``--listen`` replaces the config's listen endpoints. Like the sites
@@ -12,8 +12,9 @@ sites' default split links reach it; ``--single-link`` keeps the one port.
 Like a work site, the router refuses a listener reachable from the network unless it is a
 ``tls/`` endpoint with ``--certs`` (mutual TLS: only holders of the CA's certificates connect),
 or ``--insecure`` (an isolated lab). ``--cell`` turns on access control
-(``protocol.session.router_access_control``): per cell, only its work site's certificate may
-publish its telemetry and only its operators' certificates may send it programs and stops.
+(``protocol.session.router_access_control``, default deny): per cell, only its work site's
+certificate may publish its telemetry, only its operators' certificates (comma-separated common
+names) may send it programs and stops, and only they and its viewers may watch it.
 """
 
 from __future__ import annotations
@@ -74,8 +75,9 @@ def main(argv: list[str] | None = None) -> int:
         action="append",
         type=_cell,
         default=[],
-        metavar="SITE=WORK_SITE_CN:OPERATOR_CN[,...]",
-        help="access control for one cell (repeatable; needs --certs)",
+        metavar="SITE=WORK_SITE_CN:OPERATOR_CN[,...][:VIEWER_CN[,...]]",
+        help="access control for one cell: who publishes its telemetry, who commands it, who "
+        "may only watch it; nobody else sees it (repeatable; needs --certs)",
     )
     parser.add_argument(
         "--insecure",

@@ -132,82 +132,76 @@ TELEMETRY_TOPICS = ("camera", "recognitions", "robot_state", "report", "heartbea
 @dataclass(frozen=True)
 class Cell:
     """One work site behind a router: its ``site_id``, the common name of its certificate
-    (``work_site``), and those of the operators allowed to command it."""
+    (``work_site``), those of the operators allowed to command it, and those of viewers allowed
+    only to watch it. Nobody else sees anything of it."""
 
     site_id: str
     work_site: str
     operators: tuple[str, ...]
+    viewers: tuple[str, ...] = ()
 
     @classmethod
     def parse(cls, text: str) -> Cell:
-        """``SITE=WORK_SITE_CN:OPERATOR_CN[,OPERATOR_CN...]`` (the router's ``--cell``)."""
+        """``SITE=WORK_SITE_CN:OPERATOR_CN[,...][:VIEWER_CN[,...]]`` (the router's ``--cell``)."""
         site, eq, rest = text.partition("=")
-        work_site, colon, operators = rest.partition(":")
-        names = tuple(n for n in operators.split(",") if n)
-        if not (eq and colon and site and work_site and names):
+        parts = rest.split(":")
+        names = [tuple(n for n in part.split(",") if n) for part in parts[1:]]
+        if not (eq and site and len(parts) in (2, 3) and parts[0] and names[0]):
             raise ProtocolError(
-                f"cell: expected SITE=WORK_SITE_CN:OPERATOR_CN[,OPERATOR_CN...], got {text!r}"
+                "cell: expected SITE=WORK_SITE_CN:OPERATOR_CN[,...][:VIEWER_CN[,...]], "
+                f"got {text!r}"
             )
-        return cls(check_site_id(site), work_site, names)
+        return cls(check_site_id(site), parts[0], *names)
+
+    @property
+    def members(self) -> tuple[str, ...]:
+        """Every common name that may watch the cell."""
+        return tuple(dict.fromkeys((self.work_site, *self.operators, *self.viewers)))
+
+
+_OBSERVE_MESSAGES = (
+    "declare_subscriber",
+    "declare_liveliness_subscriber",
+    "liveliness_token",
+    "liveliness_query",
+)
 
 
 def router_access_control(cells: Sequence[Cell]) -> dict[str, Any]:
     """zenoh ``access_control`` for a router joining several cells, with mutual TLS.
 
-    Every authenticated peer may subscribe and receive (the router forwards all it admitted);
-    only a cell's work site (certificate CN ``work_site``) may put on that cell's
-    :data:`TELEMETRY_TOPICS`, and only its ``operators`` on its :data:`COMMAND_TOPICS`. Default
-    deny: any other put is dropped at the router. A work site behind the router sees routed
-    commands as the router's, so it admits the router's CN (``work-site serve --operators
+    Default deny, per cell: its members (:attr:`Cell.members`) may subscribe to its keys, see
+    its liveliness and receive what is put on them; only its work site (certificate CN
+    ``work_site``) may put on its :data:`TELEMETRY_TOPICS`, and only its ``operators`` on its
+    :data:`COMMAND_TOPICS`. Anyone else's puts are dropped at the router, and a certificate
+    that is in no cell sees nothing. A work site behind the router sees routed commands as
+    coming from the router, so it admits the router's CN (``work-site serve --operators
     router``) and leaves the per-operator check to this.
     """
     if not cells:
         raise ProtocolError("cells: expected at least one cell")
-    observe = [
-        "declare_subscriber",
-        "declare_liveliness_subscriber",
-        "liveliness_token",
-        "liveliness_query",
-    ]
-    rules: list[dict[str, Any]] = [
-        {
-            "id": "observe",
-            "permission": "allow",
-            "flows": ["ingress", "egress"],
-            "messages": observe,
-            "key_exprs": ["telerobot/**"],
-        },
-        {
-            "id": "forward",
-            "permission": "allow",
-            "flows": ["egress"],
-            "messages": ["put", "delete"],
-            "key_exprs": ["telerobot/**"],
-        },
-    ]
-    subjects: list[dict[str, Any]] = [{"id": "tls-peers", "link_protocols": ["tls"]}]
-    policies: list[dict[str, Any]] = [
-        {"id": "peers", "rules": ["observe", "forward"], "subjects": ["tls-peers"]}
-    ]
+    if len({cell.site_id for cell in cells}) != len(cells):
+        raise ProtocolError("cells: a site id is given twice")
+    rules: list[dict[str, Any]] = []
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+
+    def allow(name: str, flows: list[str], messages, key_exprs: list[str], names) -> None:
+        rules.append(
+            {"id": name, "permission": "allow", "flows": flows, "messages": list(messages),
+             "key_exprs": key_exprs}
+        )  # fmt: skip
+        subjects.append({"id": name, "cert_common_names": list(names)})
+        policies.append({"id": name, "rules": [name], "subjects": [name]})
+
     for i, cell in enumerate(cells):
         site = f"telerobot/{cell.site_id}"
-        for role, topics, names in (
-            ("telemetry", TELEMETRY_TOPICS, [cell.work_site]),
-            ("command", COMMAND_TOPICS, list(cell.operators)),
-        ):
-            rules.append(
-                {
-                    "id": f"{role}-{i}",
-                    "permission": "allow",
-                    "flows": ["ingress"],
-                    "messages": ["put"],
-                    "key_exprs": [f"{site}/{t}" for t in topics],
-                }
-            )
-            subjects.append({"id": f"{role}-{i}", "cert_common_names": names})
-            policies.append(
-                {"id": f"{role}-{i}", "rules": [f"{role}-{i}"], "subjects": [f"{role}-{i}"]}
-            )
+        allow(f"watch-{i}", ["ingress", "egress"], _OBSERVE_MESSAGES, [f"{site}/**"], cell.members)
+        allow(f"receive-{i}", ["egress"], ["put", "delete"], [f"{site}/**"], cell.members)
+        allow(f"telemetry-{i}", ["ingress"], ["put"], [f"{site}/{t}" for t in TELEMETRY_TOPICS],
+              [cell.work_site])  # fmt: skip
+        allow(f"command-{i}", ["ingress"], ["put"], [f"{site}/{t}" for t in COMMAND_TOPICS],
+              cell.operators)  # fmt: skip
     return {
         "enabled": True,
         "default_permission": "deny",

@@ -174,9 +174,10 @@ def _tls(certs: Path, name: str, ca: str = "ca.pem") -> TlsFiles:
 
 
 def test_a_secured_router_admits_each_cells_operator_only(spawn, links, certs: Path) -> None:
-    """Router with mutual TLS and --cell rules: cell-a is commanded by "operator", cell-b by
-    "viewer". The operator's program reaches cell-a only; the viewer cannot command cell-a nor
-    fake cell-a's robot state; a certificate of another CA gets no session."""
+    """Router with mutual TLS and --cell rules: cell-a is commanded by "operator" and watched
+    by "viewer", cell-b commanded by "viewer". The operator's program reaches cell-a only, and
+    it sees nothing of cell-b; the viewer cannot command cell-a nor fake cell-a's robot state;
+    a certificate of another CA gets no session."""
     router_ep = f"tls/localhost:{free_port_pair()}"
 
     def link(name: str, site: str, ca: str = "ca.pem") -> WorkSiteLink:
@@ -189,7 +190,7 @@ def test_a_secured_router_admits_each_cells_operator_only(spawn, links, certs: P
     router_log = spawn(
         "router",
         [*ROUTER, "--listen", router_ep, "--certs", str(certs),
-         "--cell", "cell-a=work-site:operator", "--cell", "cell-b=work-site:viewer"],
+         "--cell", "cell-a=work-site:operator:viewer", "--cell", "cell-b=work-site:viewer"],
     )  # fmt: skip
     for site in ("cell-a", "cell-b"):
         # The router has checked who sent a command: the work site admits the router's.
@@ -208,13 +209,20 @@ def test_a_secured_router_admits_each_cells_operator_only(spawn, links, certs: P
         link("viewer", "cell-a"),
     )
 
+    viewer_b = link("viewer", "cell-b")
+    # Whatever the operator's session declares, the router forwards it nothing of cell-b.
+    keys_heard: set[str] = set()
+    wide = op_a.session.declare_subscriber(
+        "telerobot/**", lambda s: keys_heard.add(str(s.key_expr))
+    )
+
     def all_see_state() -> bool:
-        for each in (op_a, op_b, viewer_a):
+        for each in (op_a, op_b, viewer_a, viewer_b):
             each.poll()
-        return all(each.robot_state is not None for each in (op_a, op_b, viewer_a))
+        return all(each.robot_state is not None for each in (op_a, viewer_a, viewer_b))
 
     assert wait_until(all_see_state, 60.0), spawn.texts()
-    q_a, q_b = op_a.robot_state.q.copy(), op_b.robot_state.q.copy()
+    q_a, q_b = op_a.robot_state.q.copy(), viewer_b.robot_state.q.copy()
     with pytest.raises(zenoh.ZError):  # another CA's certificate: no session at all
         link("intruder", "cell-a")
 
@@ -236,9 +244,15 @@ def test_a_secured_router_admits_each_cells_operator_only(spawn, links, certs: P
         op_a.poll(), op_b.poll()
         time.sleep(0.2)
     spy.undeclare()
+    wide.undeclare()
     assert seqs and max(seqs) < 10**9, "a forged robot state got through"
     assert op_a.status.reports == [] and op_b.status.reports == []
-    np.testing.assert_allclose(op_b.robot_state.q, q_b, atol=1e-4)
+    np.testing.assert_allclose(viewer_b.robot_state.q, q_b, atol=1e-4)
+    # Its own cell's traffic reached the operator; of cell-b, not even liveliness.
+    assert op_b.robot_state is None and op_b.camera_frame is None, spawn.texts()
+    assert op_b.status.label == "not connected" and viewer_b.status.label == "connected"
+    assert "telerobot/cell-a/robot_state" in keys_heard, keys_heard
+    assert not [k for k in keys_heard if not k.startswith("telerobot/cell-a/")], keys_heard
     np.testing.assert_allclose(op_a.robot_state.q, q_a, atol=1e-4)
 
     # The operator's program to its own cell runs.
