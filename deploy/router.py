@@ -1,13 +1,16 @@
 """A zenoh router from the zenoh Python package (no zenohd needed), for several sites.
 
-    python deploy/router.py deploy/zenoh/router.json5 [--listen ENDPOINT] [--single-link]
+    python deploy/router.py deploy/zenoh/router.json5 [--listen ENDPOINT] [--connect ENDPOINT]
+        [--single-link]
         [--certs DIR [--cert-name router] --cell SITE=WORK_SITE_CN:OPERATORS[:VIEWERS] ...]
         [--insecure]
 
 Runs until SIGINT/SIGTERM. ``--listen`` replaces the config's listen endpoints. Like the sites
 (protocol/session.py, ``link_endpoints``), one tcp/tls endpoint HOST:PORT becomes two listeners:
 priorities 0-5 (commands, reports, state) on PORT and 6-7 (camera frames) on PORT+1, so that the
-sites' default split links reach it; ``--single-link`` keeps the one port.
+sites' default split links reach it; ``--single-link`` keeps the one port. ``--connect`` meshes
+it with another router (split the same way): a site connected to either reaches the sites of
+both, and a site given both routers' endpoints goes on through one when the other fails.
 
 Like a work site, the router refuses a listener reachable from the network unless it is a
 ``tls/`` endpoint with ``--certs`` (mutual TLS: only holders of the CA's certificates connect),
@@ -57,6 +60,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("config", type=Path, help="zenoh JSON5 config (mode: router)")
     parser.add_argument("--listen", action="append", metavar="ENDPOINT", help="repeatable")
     parser.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="another router to mesh with (repeatable; one HOST:PORT is split like --listen)",
+    )
+    parser.add_argument(
         "--single-link",
         action="store_true",
         help="listen on one port for all priorities (sites must then use --single-link too)",
@@ -96,7 +106,9 @@ def main(argv: list[str] | None = None) -> int:
     given = args.listen or json.loads(conf.get_json("listen/endpoints"))
     listen, note = link_endpoints(given, args.single_link)
     conf.insert_json5("listen/endpoints", json.dumps(listen))
-    if (links := max_links_for(listen, ())) > 1:
+    connect, _ = link_endpoints(args.connect, args.single_link)
+    conf.insert_json5("connect/endpoints", json.dumps(connect))
+    if (links := max_links_for(listen, connect)) > 1:
         conf.insert_json5("transport/unicast/max_links", json.dumps(links))
     try:
         tls = None
@@ -108,7 +120,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.cell and tls is None:
             raise ProtocolError("--cell needs --certs (identities come from TLS certificates)")
         check_listeners(given, tls, args.insecure)
-        add_security(conf, tls, router_access_control(args.cell) if args.cell else None)
+        # Peers presenting this router's own certificate are the other routers of its mesh.
+        acl = router_access_control(args.cell, relays=[args.cert_name]) if args.cell else None
+        add_security(conf, tls, acl)
     except ProtocolError as e:
         print(f"router: {e}", file=sys.stderr)
         return 2
@@ -123,6 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     with session:
         print(
             f"router: up on {', '.join(listen)} ({note})"
+            + (f"; meshed with {', '.join(connect)}" if connect else "")
             + ("; mutual TLS" if tls else "")
             + (f"; cells {', '.join(c.site_id for c in args.cell)}" if args.cell else "")
             + ("; --insecure" if args.insecure else ""),

@@ -85,9 +85,12 @@ def build_parser() -> argparse.ArgumentParser:
         )
         p.add_argument(
             "--connect",
-            default=DEFAULT_WORK_SITE_ENDPOINT,
+            # serve: several routers of a mesh (it goes on through one when another fails)
+            action="append" if p is serve else "store",
+            default=None if p is serve else DEFAULT_WORK_SITE_ENDPOINT,
             metavar="ENDPOINT",
-            help="zenoh endpoint of the work site or a router (default: %(default)s). One tcp/ "
+            help=f"zenoh endpoint of the work site or a router (default: "
+            f"{DEFAULT_WORK_SITE_ENDPOINT}{'; repeatable' if p is serve else ''}). A tcp/ "
             "or tls/ endpoint HOST:PORT becomes two links, as `work-site serve --listen` makes "
             "them: commands and state (priorities 0-5) on PORT, camera frames (6-7) on PORT+1",
         )
@@ -106,6 +109,12 @@ def build_parser() -> argparse.ArgumentParser:
             "layout) (default: %(default)s)",
         )
         p.add_argument("-v", "--verbose", action="store_true", help="log more")
+    serve.add_argument(
+        "--client",
+        action="store_true",
+        help="connect as a zenoh client: everything through the --connect router, never "
+        "directly to a work site it introduces (so that the router's access control applies)",
+    )
     serve.add_argument(
         "--certs",
         type=Path,
@@ -316,16 +325,20 @@ def _page_token(args: argparse.Namespace) -> str | None:
 
 
 def _link_config(args: argparse.Namespace):
-    """The zenoh config and the endpoints' note for ``args``' --connect, --single-link and
-    --certs (ValueError, ProtocolError for what cannot be used)."""
-    connect, links_note = link_endpoints([args.connect], args.single_link)
+    """The zenoh config and the endpoints' note for ``args``' --connect, --single-link,
+    --client and --certs (ValueError, ProtocolError for what cannot be used)."""
+    given = args.connect or [DEFAULT_WORK_SITE_ENDPOINT]  # serve's is a list, the others' one
+    connect, links_note = link_endpoints(
+        given if isinstance(given, list) else [given], args.single_link
+    )
     certs = getattr(args, "certs", None)  # demo's work site is on loopback: no TLS
     tls = None
     if certs is not None:
         tls = TlsFiles(
             certs / "ca.pem", certs / f"{args.cert_name}.pem", certs / f"{args.cert_name}.key"
         )
-    return make_config(connect=connect, tls=tls), connect, links_note
+    mode = "client" if getattr(args, "client", False) else "peer"
+    return make_config(mode=mode, connect=connect, tls=tls), connect, links_note
 
 
 RECOVER_STATE_TIMEOUT_S = 15.0

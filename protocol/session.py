@@ -167,7 +167,7 @@ _OBSERVE_MESSAGES = (
 )
 
 
-def router_access_control(cells: Sequence[Cell]) -> dict[str, Any]:
+def router_access_control(cells: Sequence[Cell], relays: Sequence[str] = ()) -> dict[str, Any]:
     """zenoh ``access_control`` for a router joining several cells, with mutual TLS.
 
     Default deny, per cell: its members (:attr:`Cell.members`) may subscribe to its keys, see
@@ -176,7 +176,9 @@ def router_access_control(cells: Sequence[Cell]) -> dict[str, Any]:
     :data:`COMMAND_TOPICS`. Anyone else's puts are dropped at the router, and a certificate
     that is in no cell sees nothing. A work site behind the router sees routed commands as
     coming from the router, so it admits the router's CN (``work-site serve --operators
-    router``) and leaves the per-operator check to this.
+    router``) and leaves the per-operator check to this. ``relays``: the common names of other
+    routers meshed with this one, which pass everything on every cell both ways (each of them
+    checks its own sites).
     """
     if not cells:
         raise ProtocolError("cells: expected at least one cell")
@@ -194,6 +196,9 @@ def router_access_control(cells: Sequence[Cell]) -> dict[str, Any]:
         subjects.append({"id": name, "cert_common_names": list(names)})
         policies.append({"id": name, "rules": [name], "subjects": [name]})
 
+    if relays:
+        messages = [*_OBSERVE_MESSAGES, "put", "delete"]
+        allow("relay", ["ingress", "egress"], messages, ["telerobot/**"], relays)
     for i, cell in enumerate(cells):
         site = f"telerobot/{cell.site_id}"
         allow(f"watch-{i}", ["ingress", "egress"], _OBSERVE_MESSAGES, [f"{site}/**"], cell.members)
@@ -248,21 +253,28 @@ def derive_split(endpoint: str) -> list[str]:
 def link_endpoints(endpoints: Sequence[str], single_link: bool = False) -> tuple[list[str], str]:
     """The endpoints a site uses for the user's ``endpoints``, and a note saying what it did.
 
-    Exactly one ``tcp``/``tls`` endpoint without metadata becomes two links (:func:`derive_split`:
-    priorities 0-5 on its port, 6-7 on the next port). Several endpoints, or ``single_link``, are
-    used as given; so is one that cannot be split (the note says why). Both sites must split
-    alike to get two links; a site that does not still talks to one that does, over one link.
+    Each ``tcp``/``tls`` endpoint without metadata becomes two links (:func:`derive_split`:
+    priorities 0-5 on its port, 6-7 on the next port), e.g. each of two meshed routers'. With
+    ``single_link`` all are used as given; so is one that cannot be split (the note says why).
+    Both sides must split alike to get two links; a site that does not still talks to one that
+    does, over one link.
     """
     given = _endpoints("endpoints", endpoints)
     if single_link:
         return given, "one link for all priorities (--single-link)"
-    if len(given) != 1:
-        return given, "endpoints as given"
-    try:
-        split = derive_split(given[0])
-    except ProtocolError as e:
-        return given, f"one link for all priorities: {e}"
-    return split, "commands on priorities 0-5, camera frames on 6-7 (port + 1)"
+    used: list[str] = []
+    unsplit: list[str] = []
+    for endpoint in given:
+        try:
+            used += derive_split(endpoint)
+        except ProtocolError as e:
+            used.append(endpoint)
+            unsplit.append(str(e))
+    if not unsplit:
+        return used, "commands on priorities 0-5, camera frames on 6-7 (port + 1)"
+    if len(given) == 1:
+        return used, f"one link for all priorities: {unsplit[0]}"
+    return used, f"split where possible; one link for all priorities: {'; '.join(unsplit)}"
 
 
 def free_port_pair(host: str = "127.0.0.1", tries: int = 100) -> int:

@@ -82,9 +82,19 @@ def test_an_endpoint_that_cannot_be_split_is_used_as_given_and_the_note_says_why
     assert note.startswith("one link for all priorities") and why in note
 
 
-def test_several_endpoints_or_single_link_are_used_as_given() -> None:
-    two = ["tcp/127.0.0.1:7447", "tls/127.0.0.1:7449"]
-    assert link_endpoints(two) == (two, "endpoints as given")
+def test_several_endpoints_are_each_split_and_single_link_uses_them_as_given() -> None:
+    two = ["tcp/127.0.0.1:7447", "tls/127.0.0.1:7449"]  # e.g. two meshed routers
+    assert link_endpoints(two)[0] == [
+        "tcp/127.0.0.1:7447?prio=0-5", "tcp/127.0.0.1:7448?prio=6-7",
+        "tls/127.0.0.1:7449?prio=0-5", "tls/127.0.0.1:7450?prio=6-7",
+    ]  # fmt: skip
+    assert link_endpoints(two, single_link=True) == (
+        two, "one link for all priorities (--single-link)"
+    )  # fmt: skip
+    mixed, note = link_endpoints(["tcp/127.0.0.1:7447", "udp/127.0.0.1:7460"])
+    assert mixed == ["tcp/127.0.0.1:7447?prio=0-5", "tcp/127.0.0.1:7448?prio=6-7",
+                     "udp/127.0.0.1:7460"]  # fmt: skip
+    assert note.startswith("split where possible") and "udp/127.0.0.1:7460" in note
     assert link_endpoints(["tcp/127.0.0.1:7447"], single_link=True)[0] == ["tcp/127.0.0.1:7447"]
     with pytest.raises(ProtocolError, match="expected a sequence"):
         link_endpoints("tcp/127.0.0.1:7447")  # type: ignore[arg-type]

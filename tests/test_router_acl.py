@@ -66,3 +66,13 @@ def test_cells_must_be_given_and_distinct() -> None:
         router_access_control([])
     with pytest.raises(ProtocolError, match="given twice"):
         router_access_control([Cell.parse("a=ws:op"), Cell.parse("a=ws:op2")])
+
+
+def test_a_meshed_router_relays_every_cell_both_ways() -> None:
+    acl = router_access_control([Cell.parse("cell-a=ws-a:op-a")], relays=["router"])
+    for flow in ("ingress", "egress"):
+        for message in ("put", "declare_subscriber", "liveliness_token"):
+            assert _allowed(acl, "router", flow, message) == {"telerobot/**"}
+    assert _allowed(acl, "op-a", "ingress", "put") == {
+        f"telerobot/cell-a/{t}" for t in COMMAND_TOPICS
+    }

@@ -83,7 +83,7 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         help="zenoh endpoint to listen on; repeatable (default: "
         f"{DEFAULT_WORK_SITE_ENDPOINT}). One tcp/ or tls/ endpoint HOST:PORT becomes two links: "
         "commands, programs, reports and state (priorities 0-5) on PORT, camera frames (6-7) on "
-        "PORT+1, so that images never delay a command; several endpoints are used as given",
+        "PORT+1, so that images never delay a command; several are each split so",
     )
     parser.add_argument(
         "--single-link",
@@ -98,7 +98,7 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ENDPOINT",
         help="zenoh endpoint (router or peer) to connect to; repeatable. One tcp/ or tls/ "
         "HOST:PORT is split like --listen's (a router from deploy/router.py listens on both "
-        "ports); several are used as given",
+        "ports); several (e.g. two meshed routers) are each split so",
     )
     security = parser.add_argument_group(
         "security",
