@@ -40,6 +40,12 @@ def _latency(d: dict, rtt_ms: float, loss: float, key: str) -> tuple[Any, int]:
     return point[key], point["runs"]
 
 
+def _cells(d: dict, n: int) -> tuple[float, float, float]:
+    """The fleet point of ``n`` cells: command p99, slowest camera and robot-state rates."""
+    point = next(p for p in d["points"] if p["cells"] == n)
+    return point["command_ms_p99"], point["frame_hz_min"], point["state_hz_min"]
+
+
 @dataclass(frozen=True)
 class Figure:
     """One headline figure: where it comes from and what it must reach."""
@@ -189,6 +195,16 @@ FIGURES: tuple[Figure, ...] = (
     Figure("Network (8)", "1,000 ± 100 ms + 1 % link: corner task success", "latency.json",
            lambda d: _latency(d, 1000.0, 0.01, "successes"), "{0} of {1}", "≥ 19 of 20",
            lambda v: v[1] >= 20 and v[0] >= 19),
+    Figure("Fleet (25)", "router's added round trip at 1 cell, median / p99", "fleet.json",
+           lambda d: (d["router_hop"]["added_ms_median"], d["router_hop"]["added_ms_p99"]),
+           "{0:.2f} / {1:.2f} ms", "p99 ≤ 1 ms", lambda v: v[1] <= 1.0),
+    Figure("Fleet (25)", "same, beside a cell without camera, median / p99", "fleet.json",
+           lambda d: (d["router_hop_quiet"]["added_ms_median"],
+                      d["router_hop_quiet"]["added_ms_p99"]),
+           "{0:.2f} / {1:.2f} ms", "(reported)"),
+    Figure("Fleet (25)", "10 cells, 10 operators: command p99, slowest camera, robot state",
+           "fleet.json", lambda d: _cells(d, 10), "{0:.0f} ms, {1:.1f} Hz, {2:.0f} Hz",
+           "(reported: this machine's limit)"),
     Figure("Safety", "STOP → \"stopped\" report, median / p99", "safety.json",
            lambda d: (d["stop_ms_median"], d["stop_ms_p99"]), "{0:.1f} / {1:.1f} ms",
            "p99 ≤ 50 ms", lambda v: v[1] <= 50.0),
