@@ -1,21 +1,24 @@
 """A fleet on one machine: zenoh routers, N work sites and operator pages, all on loopback.
 
-    python deploy/fleet.py --sites 3 [--routers 2] [--pages 1] [--tls DIR] [--port 7600]
-        [--logs DIR]
+    python deploy/fleet.py --sites 3 [--routers 2] [--site-routers] [--pages 1] [--tls DIR]
+        [--port 7600] [--logs DIR]
 
 Starts ``deploy/router.py`` on ``--port`` (commands) and the next port (camera frames), and with
-``--routers 2`` a second router on the two ports after, meshed with the first; then N
-``work-site serve`` processes with site ids ``cell-01`` … ``cell-NN``, each listening on a loopback
-port of its own and connected to every router, and ``--pages`` operator pages (``operator-site
-serve``, ports 8080, 8081, …), page k for cell k, as zenoh clients of the routers (through the
-first, and the next if it fails): everything they send and receive goes through a router. Prints
-each site and page, then runs until Ctrl-C and stops everything. Each process logs to ``--logs``
-(default: a temporary directory, printed).
+``--routers 2`` a second router on the two ports after, meshed with the first (the shared
+routers: a cloud router and its stand-in); then N ``work-site serve`` processes with site ids
+``cell-01`` … ``cell-NN``, each listening on a loopback port of its own and connected to every
+shared router, and ``--pages`` operator pages (``operator-site serve``, ports 8080, 8081, …),
+page k for cell k, as zenoh clients of the shared routers (through the first, the next if it
+fails): everything they send and receive goes through a router. With ``--site-routers`` each
+work site is instead behind a router of its own (``router-cell-NN``, the next ports), meshed with
+the shared ones: a router per site and a cloud router, as cells in several buildings would run.
+Prints each router, site and page, then runs until Ctrl-C and stops everything. Each process
+logs to ``--logs`` (default: a temporary directory, printed).
 
 ``--tls DIR``: mutual TLS with per-cell identities and the router's access control: DIR holds
 ``deploy/make-certs.sh`` certificates (made if DIR has no ``ca.pem``) with, per cell, a work site
-``cell-NN-work-site`` and an operator ``cell-NN-operator``; the router is given one ``--cell`` per
-site, so an operator's certificate commands and sees its own cell only.
+``cell-NN-work-site`` and an operator ``cell-NN-operator``; each router is given one ``--cell``
+per site it serves, so an operator's certificate commands and sees its own cell only.
 
 From Python (``bench fleet``, the tests): ``with Fleet(FleetSpec(sites=3), log_dir) as fleet:``
 then ``fleet.operator_config(site_id)`` for a zenoh session that reaches a cell as its operator.
@@ -30,6 +33,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -74,6 +78,11 @@ class FleetSpec:
 
     sites: int
     routers: int = 1
+    """Shared routers, meshed (the operators' routers: a cloud router, and one to fail over
+    to)."""
+    site_routers: bool = False
+    """Each work site behind a router of its own (its site's), meshed with the shared routers:
+    the work site connects to its site router only, operators to the shared ones."""
     pages: int = 0
     """Operator pages, page k for cell k (at most one per site)."""
     tls: Path | None = None
@@ -96,7 +105,7 @@ class FleetSpec:
             raise ValueError(f"routers = {self.routers}: must be 1..{MAX_ROUTERS}")
         if not 0 <= self.pages <= self.sites:
             raise ValueError(f"pages = {self.pages}: must be 0..sites ({self.sites})")
-        top = 65536 - 2 * self.routers
+        top = 65536 - 2 * (self.routers + (self.sites if self.site_routers else 0))
         if self.port and not 1024 <= self.port <= top:
             raise ValueError(f"port = {self.port}: must be 1024..{top} (or 0: free pairs)")
 
@@ -113,7 +122,9 @@ class Fleet:
     spec: FleetSpec
     log_dir: Path
     router_endpoints: list[str] = field(default_factory=list)
-    """Each router's endpoint (its command port; camera frames on the next)."""
+    """Each shared router's endpoint (its command port; camera frames on the next)."""
+    site_router_endpoints: dict[str, str] = field(default_factory=dict)
+    """With ``site_routers``: each site id → its site router's endpoint."""
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
     pages: dict[str, str] = field(default_factory=dict)
     """Each page's site id → its address."""
@@ -169,11 +180,14 @@ class Fleet:
         if spec.tls is not None:
             make_certificates(spec.tls, spec.site_ids)
         scheme, host = ("tls", "localhost") if spec.tls is not None else ("tcp", "127.0.0.1")
-        for k in range(spec.routers):
-            port = spec.port + 2 * k if spec.port else free_port_pair()
-            self.router_endpoints.append(f"{scheme}/{host}:{port}")
-        for k in range(spec.routers):
-            self.start_router(k)
+        ports = iter(range(spec.port, 65536, 2)) if spec.port else _free_pairs()
+        for _ in range(spec.routers):
+            self.router_endpoints.append(f"{scheme}/{host}:{next(ports)}")
+        if spec.site_routers:
+            for site in spec.site_ids:
+                self.site_router_endpoints[site] = f"{scheme}/{host}:{next(ports)}"
+        for name in self.router_names:
+            self.start_router(name)
         camera = [] if spec.camera else ["--no-camera"]
         for site in spec.site_ids:
             # The router has checked who sent a command: a work site admits the router's.
@@ -182,7 +196,7 @@ class Fleet:
                 site,
                 [sys.executable, "-m", "work_site", "serve", "--site-id", site,
                  "--listen", f"tcp/127.0.0.1:{free_port_pair()}",
-                 *self._connect_all(), *self._certs(work_site_cn(site)), *admit,
+                 *self._connect(site), *self._certs(work_site_cn(site)), *admit,
                  "--journal", str(self.log_dir / f"{site}.jsonl"),
                  "--vision-rate", str(spec.vision_rate_hz), *camera, *spec.site_args],
             )  # fmt: skip
@@ -193,7 +207,7 @@ class Fleet:
             self._spawn(
                 f"page-{site}",
                 [sys.executable, "-m", "operator_site", "serve", "--site-id", site,
-                 *self._connect_all(), "--client", "--port", str(page_port),
+                 *self._connect(), "--client", "--port", str(page_port),
                  *self._certs(operator_cn(site))],
             )  # fmt: skip
             self.pages[site] = f"http://127.0.0.1:{page_port}"
@@ -203,34 +217,54 @@ class Fleet:
         """The first router's endpoint."""
         return self.router_endpoints[0]
 
-    @staticmethod
-    def router_name(k: int) -> str:
-        """Router ``k``'s process name (0-based): ``router``, ``router-2``."""
-        return "router" if k == 0 else f"router-{k + 1}"
+    @property
+    def router_names(self) -> list[str]:
+        """Every router's process name: ``router``, ``router-2``, then ``router-cell-01`` …"""
+        shared = [
+            "router" if k == 0 else f"router-{k + 1}" for k in range(len(self.router_endpoints))
+        ]
+        return shared + [f"router-{site}" for site in self.site_router_endpoints]
 
-    def _connect_all(self) -> list[str]:
-        return [arg for ep in self.router_endpoints for arg in ("--connect", ep)]
+    def router_endpoint_of(self, name: str) -> str:
+        """Router ``name``'s endpoint."""
+        return self._router(name)[0]
 
-    def start_router(self, k: int = 0) -> None:
-        """Start router ``k`` on its endpoint (again, after :meth:`kill_router`), meshed with
-        the first; return once it is up."""
+    def _router(self, name: str) -> tuple[str, list[str], list[str]]:
+        """Router ``name``'s endpoint, the routers it meshes with, the cells it admits."""
+        shared = self.router_names[: len(self.router_endpoints)]
+        if name in shared:
+            k = shared.index(name)
+            return self.router_endpoints[k], self.router_endpoints[:k], self.spec.site_ids
+        site = name.removeprefix("router-")
+        return self.site_router_endpoints[site], self.router_endpoints, [site]
+
+    def _connect(self, site: str | None = None) -> list[str]:
+        """``--connect`` options: a work site's to its site router (with site routers), anyone
+        else's to every shared router."""
+        endpoints = self.router_endpoints
+        if site is not None and site in self.site_router_endpoints:
+            endpoints = [self.site_router_endpoints[site]]
+        return [arg for ep in endpoints for arg in ("--connect", ep)]
+
+    def start_router(self, name: str = "router") -> None:
+        """Start router ``name`` (again, after :meth:`kill_router`), meshed with the shared
+        routers before it; return once it is up."""
+        endpoint, mesh, sites = self._router(name)
         cells = []
         if self.spec.tls is not None:
-            for site in self.spec.site_ids:
+            for site in sites:
                 cells += ["--cell", f"{site}={work_site_cn(site)}:{operator_cn(site)}"]
-        mesh = ["--connect", self.router_endpoints[0]] if k > 0 else []
-        name = self.router_name(k)
         self._spawn(
             name,
             [sys.executable, str(REPO / "deploy" / "router.py"),
-             str(REPO / "deploy" / "zenoh" / "router.json5"),
-             "--listen", self.router_endpoints[k], *mesh, *self._certs("router"), *cells],
+             str(REPO / "deploy" / "zenoh" / "router.json5"), "--listen", endpoint,
+             *(arg for ep in mesh for arg in ("--connect", ep)), *self._certs("router"), *cells],
         )  # fmt: skip
         self._wait_for(name, "router: up")
 
-    def kill_router(self, k: int = 0) -> None:
-        """SIGKILL router ``k`` (a crash: no goodbye to anyone)."""
-        proc = self.procs[self.router_name(k)]
+    def kill_router(self, name: str = "router") -> None:
+        """SIGKILL router ``name`` (a crash: no goodbye to anyone)."""
+        proc = self.procs[name]
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
 
@@ -262,6 +296,17 @@ class Fleet:
                 proc.wait()
 
 
+def _free_pairs(draws: int = 1000) -> Iterator[int]:
+    """Free port pairs (:func:`free_port_pair`), none overlapping another drawn here."""
+    taken: set[int] = set()
+    for _ in range(draws):
+        port = free_port_pair()
+        if not taken & {port - 1, port, port + 1}:
+            taken |= {port, port + 1}
+            yield port
+    raise RuntimeError(f"no more distinct free port pairs in {draws} draws")
+
+
 def make_certificates(out: Path, sites: list[str]) -> None:
     """Certificates for the fleet's cells in ``out`` (``deploy/make-certs.sh``), unless ``out``
     already has a CA and every cell's certificates."""
@@ -288,6 +333,10 @@ def main(argv: list[str] | None = None) -> int:
         "--routers", type=int, default=1, help="1, or 2 meshed routers (default: %(default)s)"
     )
     parser.add_argument(
+        "--site-routers", action="store_true",
+        help="each work site behind a router of its own, meshed with the shared routers",
+    )  # fmt: skip
+    parser.add_argument(
         "--pages", type=int, default=1, help="operator pages, one per cell (default: %(default)s)"
     )
     parser.add_argument(
@@ -306,7 +355,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         spec = FleetSpec(
-            sites=args.sites, routers=args.routers, pages=args.pages, tls=args.tls, port=args.port,
+            sites=args.sites, routers=args.routers, site_routers=args.site_routers,
+            pages=args.pages, tls=args.tls, port=args.port,
             page_port=args.page_port, camera=not args.no_camera,
         )  # fmt: skip
     except ValueError as e:
@@ -321,8 +371,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{log_dir}", flush=True)  # fmt: skip
     try:
         with Fleet(spec, log_dir) as fleet:
-            for k, endpoint in enumerate(fleet.router_endpoints):
-                print(f"fleet: {fleet.router_name(k)} on {endpoint} (and the next port)")
+            for name in fleet.router_names:
+                endpoint = fleet.router_endpoint_of(name)
+                print(f"fleet: {name} on {endpoint} (and the next port)")
             for site in spec.site_ids:
                 print(f"fleet: {site}: work site up; page {fleet.pages.get(site, 'none')}")
             print("fleet: up; Ctrl-C stops it all", flush=True)

@@ -47,9 +47,14 @@ def _seen(link: WorkSiteLink) -> bool:
     return link.robot_state is not None
 
 
-def test_each_operator_reaches_its_own_cell_only(tmp_path: Path, certs: Path) -> None:
+@pytest.mark.parametrize("site_routers", [False, True], ids=["one-router", "site-routers"])
+def test_each_operator_reaches_its_own_cell_only(
+    tmp_path: Path, certs: Path, site_routers: bool
+) -> None:
+    """Through one router, or through a cloud router and a router per site (each checking
+    certificates against its own cells' rules)."""
     del certs  # (needs openssl, as the fixture checks; the fleet makes its own certificates)
-    spec = FleetSpec(sites=2, tls=tmp_path / "certs", camera=False)
+    spec = FleetSpec(sites=2, tls=tmp_path / "certs", camera=False, site_routers=site_routers)
     links: list[WorkSiteLink] = []
     with Fleet(spec, tmp_path / "logs") as fleet:
         try:
@@ -158,7 +163,7 @@ def test_with_two_meshed_routers_a_program_goes_on_when_one_fails(tmp_path: Path
                            for r in link.status.reports)  # fmt: skip
 
             assert wait_until(started, PROGRAM_TIMEOUT_S), link.status.reports
-            fleet.kill_router(0)
+            fleet.kill_router("router")
 
             def ended() -> bool:
                 link.poll()
