@@ -43,10 +43,12 @@ from protocol import (
     RoundTrips,
     Stop,
     alive_key,
+    check_site_id,
     decode,
     encode,
     key,
 )
+from protocol.keys import KEY_PREFIX
 from protocol.messages import MAX_CANCELS
 from protocol.session import PeerWatch, renewal_config
 
@@ -69,6 +71,24 @@ LEASE_BEAT_PERIOD_S = 1.0
 """While this operator holds the work site's control lease and runs nothing, it beats this
 often, so that the lease stays its own while its page is open (``work_site/lease.py``)."""
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
+
+
+ALL_WORK_SITES = f"{KEY_PREFIX}/*/alive/work_site"
+"""Every work site's liveliness token."""
+MAX_LISTED_SITES = 256
+"""Work sites a link lists at most (the tokens' queue: more changes between two polls drop the
+oldest, and a new session's history lists the rest)."""
+
+
+def site_of_token(token_key: str) -> str | None:
+    """The site id in a work site's liveliness token key (None: not one)."""
+    parts = token_key.split("/")
+    if len(parts) != 4 or parts[0] != KEY_PREFIX or parts[2:] != ["alive", "work_site"]:
+        return None
+    try:
+        return check_site_id(parts[1])
+    except ProtocolError:
+        return None
 
 
 _LINKS = itertools.count(1)
@@ -128,6 +148,9 @@ class LinkStatus:
     rejected: int = 0
     holder: str = ""
     """The operator holding the work site's control lease, as its heartbeat says ("": none)."""
+    sites: list[str] = field(default_factory=list)
+    """Every work site this link can reach now, its own among them when alive (what the
+    routers' access control lets this operator see), sorted."""
     round_trip_s: float | None = None
     """The round trip to the work site, measured by its heartbeats echoing ours (the median of
     the last few; None: not measured, e.g. while this operator holds no control)."""
@@ -156,6 +179,7 @@ class _Wire:
     sub_recognitions: zenoh.Subscriber
     sub_heartbeat: zenoh.Subscriber
     sub_alive: zenoh.Subscriber
+    sub_sites: zenoh.Subscriber
     pub_program: zenoh.Publisher
     pub_stop: zenoh.Publisher
     pub_heartbeat: zenoh.Publisher
@@ -178,6 +202,9 @@ class _Wire:
             sub_heartbeat=session.declare_subscriber(key(site_id, "heartbeat"), ring(4)),
             sub_alive=session.liveliness().declare_subscriber(
                 alive_key(site_id, "work_site"), ring(16), history=True
+            ),
+            sub_sites=session.liveliness().declare_subscriber(
+                ALL_WORK_SITES, ring(MAX_LISTED_SITES), history=True
             ),
             pub_program=session.declare_publisher(
                 key(site_id, "program"), priority=zenoh.Priority.INTERACTIVE_HIGH
@@ -219,6 +246,8 @@ class WorkSiteLink:
         """The work site's latest heartbeat: its stamp (its clock) and when we read it
         (monotonic s), echoed by ours."""
         self._round_trips = RoundTrips()
+        self._sites: set[str] = set()
+        self._sites_wire: _Wire | None = None
         self.status = LinkStatus()
         self.robot_state: RobotState | None = None
         self.camera_frame: CameraFrame | None = None
@@ -322,6 +351,7 @@ class WorkSiteLink:
         if self._work_site.lost:
             self._work_site.lost = False
             self._renew()
+        self._poll_sites(wire)
         while (sample := wire.sub_state.try_recv()) is not None:
             if (msg := self._decode(sample, RobotState, "robot state")) is not None:
                 self.robot_state, new_state = msg, True
@@ -361,6 +391,31 @@ class WorkSiteLink:
         s.last_state_age_s = None if self._last_state_s is None else now - self._last_state_s
         s.last_frame_age_s = None if self._last_frame_s is None else now - self._last_frame_s
         return new_state, new_frame
+
+    def _poll_sites(self, wire: _Wire) -> None:
+        if wire is not self._sites_wire:  # a new session: its history lists who is alive now
+            self._sites_wire, self._sites = wire, set()
+        while (sample := wire.sub_sites.try_recv()) is not None:
+            site = site_of_token(str(sample.key_expr))
+            if site is None:
+                continue
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._sites.add(site)
+            else:
+                self._sites.discard(site)
+        self.status.sites = sorted(self._sites)
+
+    @property
+    def running_programs(self) -> list[str]:
+        """Programs this link sent that have not ended (a re-send may still be due)."""
+        return sorted({*self._unanswered, *self._unfinished})
+
+    def to_site(self, site_id: str) -> WorkSiteLink:
+        """A new link to work site ``site_id``, through the same zenoh config, as the same
+        operator (ProtocolError: not a site id)."""
+        check_site_id(site_id)
+        config = zenoh.Config.from_json5(self._renewal_config)
+        return WorkSiteLink(config, site_id, self.operator_id)
 
     def _on_report(self, msg: ExecutionReport) -> None:
         """Track the program's answer, and keep the report once (replays repeat them)."""

@@ -21,6 +21,7 @@ import time
 
 import numpy as np
 import viser
+import zenoh
 
 from models.robot import RobotModel, load_robot
 from models.scene import Scene
@@ -41,7 +42,9 @@ from operator_site.ui.program_panel import ProgramPanel
 from operator_site.ui.scene_view import VIEW_FOV_RAD, SceneView, initial_view_W
 from operator_site.ui.status import status_markdown, waiting_image
 from operator_site.ui.task_panel import TaskPanel
-from protocol import MotionProgram
+from operator_site.ui.text import plain
+from operator_site.ui.words import short_program_name
+from protocol import MotionProgram, ProtocolError
 
 log = logging.getLogger("operator-site")
 
@@ -96,10 +99,14 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
         self.server.initial_camera.position = tuple(eye_W)
         self.server.initial_camera.look_at = tuple(look_at_W)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        self._initial_model = initial_model
         self.op = OperatorSession(scene, link)
         if initial_model == "scene":
             self.op.use_scene_layout()
         self._lock = threading.Lock()
+        self._switch_to: str | None = None
+        """A work site the operator chose, to switch to at the next update."""
+        self._sites_listed: tuple[str, ...] = ()
         self.message = ""  # markdown: any outside text in it already went through plain()
         self.finger_meshes: list = []
         self.path_lines: list = []
@@ -135,6 +142,17 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
         )
         self.stop_button.on_click(lambda _: self.on_stop())
         self.status_md = gui.add_markdown(self._status_text())
+        self.site_dropdown = gui.add_dropdown(
+            "work site",
+            (self.link.site_id,),
+            initial_value=self.link.site_id,
+            hint="the work sites you can reach; choosing one switches this page to it",
+        )
+        # Only a person's choice acts: the page setting the dropdown itself calls this too.
+        self.site_dropdown.on_update(
+            lambda e: e.client is None or self.on_switch_site(self.site_dropdown.value)
+        )
+        self.site_md = gui.add_markdown("")
         cam = self.scene.camera
         self.camera_image = gui.add_image(
             # Half size: cheap to send, and never mistaken for a frame from the work site.
@@ -195,9 +213,67 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
             return frame.image
         return draw_wireframes(frame.image, camera, objects)[..., ::-1]
 
+    def on_switch_site(self, site_id: str) -> None:
+        """The operator chose work site ``site_id``: the page switches to it at its next
+        update; refused while a program of this page's runs at the current site (leaving
+        stops its heartbeats, and so the program)."""
+        with self._lock:
+            running = self.link.running_programs
+            if running and site_id != self.link.site_id:
+                self.site_md.content = (
+                    f"⚠ program {short_program_name(running[0])} has not ended at "
+                    f"{plain(self.link.site_id)}: wait for its end, or STOP it, before switching"
+                )
+                self.site_dropdown.value = self.link.site_id
+                return
+            self._switch_to = site_id
+
+    def _switch_if_asked(self) -> None:
+        """Switch to the work site the operator chose, if any: a new link, and the model,
+        task, program and log start afresh (the other cell's blocks are its own)."""
+        with self._lock:
+            site_id, self._switch_to = self._switch_to, None
+            if site_id is None or site_id == self.link.site_id:
+                return
+            try:
+                new = self.link.to_site(site_id)
+            except (ProtocolError, zenoh.ZError) as e:
+                self.site_md.content = f"⚠ cannot reach work site {plain(site_id)}: {plain(e)}"
+                self.site_dropdown.value = self.link.site_id
+                return
+            old, self.link = self.link, new
+            self.op = OperatorSession(self.scene, new)
+            if self._initial_model == "scene":
+                self.op.use_scene_layout()
+            self.pending_program = self.last_program = None
+            self._model_changed()
+            self._show_log([])
+            cam = self.scene.camera
+            self.camera_image.image = waiting_image(
+                cam.width // 2, cam.height // 2, "waiting for the work site's camera"
+            )
+            self.frames_shown = self.states_shown = 0
+            if self.site_dropdown.value != site_id:
+                self.site_dropdown.value = site_id
+            self.site_md.content = f"switched from {plain(old.site_id)}"
+            self.status_md.content = self._status_text()
+        log.info("page: from work site %s to %s", old.site_id, site_id)
+        old.close()  # outside the lock: it waits for its threads
+
+    def _list_sites(self) -> None:
+        """Offer every work site the link can reach (and the current one)."""
+        listed = tuple(sorted({*self.link.status.sites, self.link.site_id}))
+        if listed != self._sites_listed:
+            self._sites_listed = listed
+            self.site_dropdown.options = listed
+            if self.site_dropdown.value != self.link.site_id:
+                self.site_dropdown.value = self.link.site_id
+
     def update(self) -> None:
         """Poll the link once and show what changed."""
+        self._switch_if_asked()
         new_state, new_frame = self.link.poll()
+        self._list_sites()
         if new_state and self.link.robot_state is not None:
             s = self.link.robot_state
             self._show_robot(s.q, s.gripper_opening_m)
