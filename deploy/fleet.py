@@ -88,8 +88,8 @@ class FleetSpec:
     tls: Path | None = None
     """Certificates for mutual TLS and per-cell access control (None: plain loopback)."""
     port: int = 0
-    """The first router's command port (its camera port is the next, and a second router's are
-    the two after; 0: free pairs)."""
+    """The first router's command port (its camera port is the next); a second router, the
+    site routers and then the work sites' listeners take the pairs after (0: free pairs)."""
     page_port: int = 8080
     camera: bool = True
     vision_rate_hz: float = 0.0
@@ -105,7 +105,8 @@ class FleetSpec:
             raise ValueError(f"routers = {self.routers}: must be 1..{MAX_ROUTERS}")
         if not 0 <= self.pages <= self.sites:
             raise ValueError(f"pages = {self.pages}: must be 0..sites ({self.sites})")
-        top = 65536 - 2 * (self.routers + (self.sites if self.site_routers else 0))
+        pairs = self.routers + self.sites * (2 if self.site_routers else 1)
+        top = 65536 - 2 * pairs
         if self.port and not 1024 <= self.port <= top:
             raise ValueError(f"port = {self.port}: must be 1024..{top} (or 0: free pairs)")
 
@@ -189,13 +190,13 @@ class Fleet:
         for name in self.router_names:
             self.start_router(name)
         camera = [] if spec.camera else ["--no-camera"]
-        for site in spec.site_ids:
+        for site in spec.site_ids:  # each listening on loopback, on the next ports
             # The router has checked who sent a command: a work site admits the router's.
             admit = ["--operators", "router"] if spec.tls is not None else []
             self._spawn(
                 site,
                 [sys.executable, "-m", "work_site", "serve", "--site-id", site,
-                 "--listen", f"tcp/127.0.0.1:{free_port_pair()}",
+                 "--listen", f"tcp/127.0.0.1:{next(ports)}",
                  *self._connect(site), *self._certs(work_site_cn(site)), *admit,
                  "--journal", str(self.log_dir / f"{site}.jsonl"),
                  "--vision-rate", str(spec.vision_rate_hz), *camera, *spec.site_args],
@@ -346,8 +347,8 @@ def main(argv: list[str] | None = None) -> int:
         "--port",
         type=int,
         default=7600,
-        help="the first router's port and the next, a second router's the two after (default: "
-        "7600)",
+        help="the first router's port and the next; the other routers and the work sites take "
+        "the pairs after (default: 7600)",
     )
     parser.add_argument("--page-port", type=int, default=8080, help="the first page's port")
     parser.add_argument("--no-camera", action="store_true", help="work sites without cameras")

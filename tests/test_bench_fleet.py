@@ -43,3 +43,30 @@ def test_bad_options_are_refused_with_their_range() -> None:
         cwd=REPO, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert done.returncode == 2 and "1..40" in done.stderr
+
+
+def test_points_pool_each_cells_operators() -> None:
+    from argparse import Namespace
+
+    from bench.fleet import summarise
+
+    def row(cells: int, site: str, rtts: list[float], hz: float, lost: int = 0) -> dict:
+        return {"cells": cells, "site": site, "round_trips_ms": rtts, "lost": lost,
+                "frame_hz": hz, "frame_age_ms_median": 400.0, "state_hz": 100.0 - cells,
+                "machine_cpu": 0.5, "router_cpu": 0.01, "sites_cpu": 0.4, "operators_cpu": 0.02,
+                "hop": {"added_ms_p99": 0.5} if cells == 1 else None}  # fmt: skip
+
+    rows = [
+        row(1, "cell-01", [5.0, 7.0], 2.0),
+        row(2, "cell-01", [8.0], 1.0),
+        row(2, "cell-02", [10.0, 12.0], 1.5, lost=1),
+    ]
+    args = Namespace(seconds=5.0, command_period_s=0.5, tls=None, no_camera=False)
+    summary = summarise(rows, {"added_ms_p99": 0.2}, args)
+    one, two = summary["points"]
+    assert (one["cells"], one["operators"], one["commands"]) == (1, 1, 2)
+    assert (two["operators"], two["commands"], two["lost"]) == (2, 3, 1)
+    assert two["command_ms_median"] == 10.0 and two["frame_hz_min"] == 1.0
+    assert two["frame_hz_median"] == 1.25 and two["state_hz_min"] == 98.0
+    assert summary["router_hop"] == {"added_ms_p99": 0.5}
+    assert summary["router_hop_quiet"] == {"added_ms_p99": 0.2}

@@ -27,7 +27,14 @@ PROGRAM_TIMEOUT_S = 120.0
 DEADMAN_S = 0.5
 
 
+def _started(link: WorkSiteLink, pid: str) -> bool:
+    link.poll()
+    return any(r.program_id == pid and r.status == "started" for r in link.status.reports)
+
+
 def _final(link: WorkSiteLink, pid: str) -> list[str]:
+    """How program ``pid`` ended, as the link has heard so far (polled)."""
+    link.poll()
     return [
         r.status
         for r in link.status.reports
@@ -69,6 +76,9 @@ def test_each_operator_reaches_its_own_cell_only(
                 return own_1.robot_state is not None and own_2.robot_state is not None
 
             assert wait_until(own_see_state, 60.0), fleet.tail("router")
+            # Each operator's list of work sites holds its own cell only.
+            assert wait_until(lambda: (own_see_state(), own_1.status.sites == ["cell-01"])[1], 10)
+            assert own_2.status.sites == ["cell-02"] and other.status.sites == ["cell-01"]
             q_2 = own_2.robot_state.q.copy()
             other.send_program(one_move_program("one-to-two", speed_mps=0.1))
             own_1.send_program(one_move_program("one-to-one", speed_mps=0.1))
@@ -103,23 +113,19 @@ def test_a_router_crash_stops_the_program_and_a_restart_replays_it(tmp_path: Pat
             assert wait_until(lambda: _seen(link), 60.0), fleet.tail("cell-01")
             link.send_program(one_move_program("crossing", speed_mps=0.02))
 
-            def started() -> bool:
-                link.poll()
-                return any(r.program_id == "crossing" and r.status == "started"
-                           for r in link.status.reports)  # fmt: skip
-
-            assert wait_until(started, PROGRAM_TIMEOUT_S), link.status.reports
+            assert wait_until(lambda: _started(link, "crossing"), PROGRAM_TIMEOUT_S), (
+                link.status.reports
+            )
             fleet.kill_router()
             time.sleep(2.0)  # the operator's heartbeats cannot reach the work site
             fleet.start_router()
 
-            def ended() -> bool:
-                link.poll()
-                return bool(_final(link, "crossing"))
-
             # The link re-sends the unfinished program when the work site is back; the work
             # site replays its reports, the dead-man's stop among them.
-            assert wait_until(ended, 60.0), (link.status.reports, fleet.tail("cell-01"))
+            assert wait_until(lambda: _final(link, "crossing"), 60.0), (
+                link.status.reports,
+                fleet.tail("cell-01"),
+            )
             crossing = [r for r in link.status.reports if r.program_id == "crossing"]
             assert _final(link, "crossing") == ["stopped"]
             assert "no heartbeat from the operator" in crossing[-1].message
@@ -134,11 +140,7 @@ def test_a_router_crash_stops_the_program_and_a_restart_replays_it(tmp_path: Pat
             # And the cell is commanded again through the restarted router.
             link.send_program(one_move_program("after", p_WP=(0.42, -0.05, 0.16)))
 
-            def after_done() -> bool:
-                link.poll()
-                return bool(_final(link, "after"))
-
-            assert wait_until(after_done, PROGRAM_TIMEOUT_S), link.status.reports
+            assert wait_until(lambda: _final(link, "after"), PROGRAM_TIMEOUT_S), link.status.reports
             assert _final(link, "after") == ["done"]
         finally:
             link.close()
@@ -157,19 +159,12 @@ def test_with_two_meshed_routers_a_program_goes_on_when_one_fails(tmp_path: Path
             assert len(first_router) == 1 and not list(link.session.info.peers_zid())
             link.send_program(one_move_program("failover", speed_mps=0.02))
 
-            def started() -> bool:
-                link.poll()
-                return any(r.program_id == "failover" and r.status == "started"
-                           for r in link.status.reports)  # fmt: skip
-
-            assert wait_until(started, PROGRAM_TIMEOUT_S), link.status.reports
+            assert wait_until(lambda: _started(link, "failover"), PROGRAM_TIMEOUT_S), (
+                link.status.reports
+            )
             fleet.kill_router("router")
 
-            def ended() -> bool:
-                link.poll()
-                return bool(_final(link, "failover"))
-
-            assert wait_until(ended, PROGRAM_TIMEOUT_S), (
+            assert wait_until(lambda: _final(link, "failover"), PROGRAM_TIMEOUT_S), (
                 link.status.reports,
                 fleet.tail("cell-01"),
             )
