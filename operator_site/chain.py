@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import zenoh
 
 from models.scene import Scene, load_scene
 from operator_site.failures import RunError
@@ -137,9 +138,24 @@ ProgramMaker = Callable[[TaskSession, str], Generated]
 
 
 class _Truth:
+    """The work site's ground truth as the link hears it: subscribed on the link's session,
+    and again on the new one after the link renewed it (``WorkSiteLink.session``)."""
+
     def __init__(self, link: WorkSiteLink) -> None:
         self.latest: TruthPoses | None = None
-        self._sub = link.session.declare_subscriber(key(link.site_id, "truth"), self._on)
+        self._link = link
+        self._session: zenoh.Session | None = None
+        self._follow()
+
+    def _follow(self) -> None:
+        session = self._link.session
+        if session is self._session:
+            return
+        try:
+            self._sub = session.declare_subscriber(key(self._link.site_id, "truth"), self._on)
+        except zenoh.ZError:  # closed by a renewal just now: the next call takes the new one
+            return
+        self._session = session
 
     def _on(self, sample) -> None:
         self.latest = decode(sample.payload.to_bytes(), expected=TruthPoses)
@@ -148,6 +164,7 @@ class _Truth:
         """The first ground truth stamped at or after ``t_s`` (wall-clock s)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
+            self._follow()
             truth = self.latest
             if truth is not None and truth.stamp_s >= t_s:
                 return truth
