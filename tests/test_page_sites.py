@@ -7,9 +7,12 @@ declare their tokens (and never answer a program)."""
 from __future__ import annotations
 
 import html
+import os
 
+import pytest
 import zenoh
 
+from bench.ui import CHROMIUM, chromium_tab, run_page
 from models.scene import load_scene
 from operator_site.link import WorkSiteLink, site_of_token
 from operator_site.ui import OperatorPage
@@ -24,6 +27,7 @@ def test_a_token_key_names_its_site() -> None:
         assert site_of_token(key) is None
 
 
+@pytest.mark.integration  # the link's heartbeat process
 def test_the_page_lists_reachable_sites_and_switches_unless_a_program_runs() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with zenoh.open(make_config(listen=[endpoint])) as sites:
@@ -67,3 +71,36 @@ def test_the_page_lists_reachable_sites_and_switches_unless_a_program_runs() -> 
             page.link.close()
             link.close()
             page.close()
+
+
+@pytest.mark.browser
+@pytest.mark.integration
+def test_the_switch_in_chromium() -> None:
+    """A person opens the dropdown in Debian's headless Chromium and picks the other site."""
+    if not os.access(CHROMIUM, os.X_OK):
+        print(f"skipping: {CHROMIUM} is missing (`make test` installs Debian's chromium as root)")
+        pytest.skip(f"{CHROMIUM} is missing (`make test` installs Debian's chromium as root)")
+    playwright = pytest.importorskip("playwright.sync_api")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with zenoh.open(make_config(listen=[endpoint])) as sites:
+        tokens = [
+            sites.liveliness().declare_token(f"telerobot/{site}/alive/work_site")
+            for site in ("cell-a", "cell-b")
+        ]
+        link = WorkSiteLink(make_config(connect=[endpoint]), "cell-a")
+        page = OperatorPage(load_scene(), link, port=free_port(), initial_model="empty")
+        stop = run_page(page)
+        try:
+            assert wait_until(lambda: len(page.site_dropdown.options) == 2, 15.0)
+            with playwright.sync_playwright() as pw, chromium_tab(pw, page) as tab:
+                tab.get_by_role("combobox", name="work site").click()
+                tab.get_by_role("option", name="cell-b").click()
+                tab.get_by_text("switched from cell-a").wait_for(timeout=30_000)
+            assert page.link.site_id == "cell-b" and link.session.is_closed()
+        finally:
+            stop()
+            page.link.close()
+            link.close()
+            page.close()
+            for token in tokens:
+                token.undeclare()
