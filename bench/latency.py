@@ -190,10 +190,63 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the work site's simulated seconds per wall second (default 1: a faster "
         "simulation would shrink the motion against the delay)",
     )  # fmt: skip
+    parser.add_argument(
+        "--from-csv", type=Path, nargs="+", metavar="CSV",
+        help="run nothing: rebuild the outputs from runs recorded in these latency.csv files "
+        "(a later file's run of a round trip, loss and seed replaces an earlier one's)",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("docs/bench"))
 
 
+CSV_FIELDS = ["rtt_ms", "loss", "seed", "success", "task_s", "execute_s", "failure"]
+
+
+def read_rows(paths: list[Path]) -> list[dict[str, Any]]:
+    """The runs recorded in ``paths`` (``latency.csv`` files), a later file's run of the same
+    round trip, loss and seed replacing an earlier one's; ValueError naming a malformed row."""
+    runs: dict[tuple[float, float, int], dict[str, Any]] = {}
+    for path in paths:
+        with path.open(newline="") as f:
+            for line, raw in enumerate(csv.DictReader(f), start=2):
+                try:
+                    row = {
+                        "rtt_ms": float(raw["rtt_ms"]), "loss": float(raw["loss"]),
+                        "seed": int(raw["seed"]), "success": raw["success"] == "True",
+                        "task_s": float(raw["task_s"]) if raw["task_s"] else None,
+                        "execute_s": float(raw["execute_s"]) if raw["execute_s"] else None,
+                        "failure": json.loads(raw["failure"]) if raw["failure"] else None,
+                    }  # fmt: skip
+                except (KeyError, TypeError, ValueError) as e:
+                    raise ValueError(f"{path}:{line}: not a latency run ({e})") from None
+                runs[(row["rtt_ms"], row["loss"], row["seed"])] = row
+    return sorted(runs.values(), key=lambda r: (r["loss"], r["rtt_ms"], r["seed"]))
+
+
+def write_outputs(rows: list[dict[str, Any]], args: argparse.Namespace) -> list[dict[str, Any]]:
+    """``latency.csv``, ``.json`` and ``.png`` in ``args.out`` for ``rows``; the points."""
+    points = summarise(rows)
+    with (args.out / "latency.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
+        writer.writeheader()
+        for r in rows:
+            writer.writerow({**r, "failure": json.dumps(r["failure"]) if r["failure"] else ""})
+    summary = {"task": args.task.name, "jitter": args.jitter, "time_scale": args.time_scale,
+               "load_average": os.getloadavg(), "points": points}  # fmt: skip
+    (args.out / "latency.json").write_text(json.dumps(summary, indent=1) + "\n")
+    plot(points, args.out / "latency.png")
+    return points
+
+
 def main(args: argparse.Namespace) -> int:
+    if args.from_csv:
+        args.out.mkdir(parents=True, exist_ok=True)
+        try:
+            points = write_outputs(read_rows(args.from_csv), args)
+        except (OSError, ValueError) as e:
+            print(f"latency: {e}", file=sys.stderr)
+            return 2
+        print(json.dumps(points))
+        return 0
     reason = netns.unavailable_reason()
     if reason is not None:
         print(f"latency: network namespaces unavailable: {reason}", file=sys.stderr)
@@ -220,16 +273,6 @@ def main(args: argparse.Namespace) -> int:
                 print(f"point {n + 1}/{len(grid)} ({rtt_ms:g} ms, loss {loss:g}) seed {seed}: "
                       f"{how}{took} [{time.monotonic() - t0:.0f} s]", file=sys.stderr,
                       flush=True)  # fmt: skip
-    points = summarise(rows)
-    with (args.out / "latency.csv").open("w", newline="") as f:
-        fields = ["rtt_ms", "loss", "seed", "success", "task_s", "execute_s", "failure"]
-        writer = csv.DictWriter(f, fieldnames=fields)
-        writer.writeheader()
-        for r in rows:
-            writer.writerow({**r, "failure": json.dumps(r["failure"]) if r["failure"] else ""})
-    summary = {"task": args.task.name, "jitter": args.jitter, "time_scale": args.time_scale,
-               "load_average": os.getloadavg(), "points": points}  # fmt: skip
-    (args.out / "latency.json").write_text(json.dumps(summary, indent=1) + "\n")
-    plot(points, args.out / "latency.png")
+    points = write_outputs(rows, args)
     print(json.dumps(points))
     return 0

@@ -48,3 +48,25 @@ def test_the_grid_options_name_their_range(text: str, why: str) -> None:
     with pytest.raises(argparse.ArgumentTypeError, match=why):
         latency._floats(text, 0.0, 5000.0, "--rtt-ms")
     assert latency._floats("0, 250,1000", 0.0, 5000.0, "--rtt-ms") == [0.0, 250.0, 1000.0]
+
+
+def test_recorded_runs_are_read_back_and_a_later_run_replaces_an_earlier(tmp_path) -> None:
+    from pathlib import Path
+
+    first, second = tmp_path / "first", tmp_path / "second"
+    rows = [_row(0, 0.01, 0, True, 40.0), _row(0, 0.01, 1, False, None),
+            _row(500, 0.01, 0, True, 41.0)]  # fmt: skip
+    for out, written in ((first, rows), (second, [_row(0, 0.01, 1, True, 39.0)])):
+        out.mkdir()
+        args = argparse.Namespace(task=Path("cube-corner.json"), jitter=0.1, time_scale=1.0,
+                                  out=out)  # fmt: skip
+        latency.write_outputs(written, args)
+    assert latency.read_rows([first / "latency.csv"]) == rows
+    merged = latency.read_rows([first / "latency.csv", second / "latency.csv"])
+    assert [(r["rtt_ms"], r["seed"], r["success"]) for r in merged] == [
+        (0, 0, True), (0, 1, True), (500, 0, True)
+    ]  # fmt: skip
+    bad = tmp_path / "bad.csv"
+    bad.write_text("rtt_ms,loss,seed,success,task_s,execute_s,failure\nfast,0,0,True,1,1,\n")
+    with pytest.raises(ValueError, match=r"bad.csv:2: not a latency run"):
+        latency.read_rows([bad])
