@@ -188,7 +188,13 @@ def router_access_control(cells: Sequence[Cell], relays: Sequence[str] = ()) -> 
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
 
-    def allow(name: str, flows: list[str], messages, key_exprs: list[str], names) -> None:
+    def allow(
+        name: str,
+        flows: list[str],
+        messages: Sequence[str],
+        key_exprs: list[str],
+        names: Sequence[str],
+    ) -> None:
         rules.append(
             {"id": name, "permission": "allow", "flows": flows, "messages": list(messages),
              "key_exprs": key_exprs}

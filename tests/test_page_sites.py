@@ -46,6 +46,7 @@ def test_the_page_lists_reachable_sites_and_switches_unless_a_program_runs() -> 
             assert wait_until(lambda: listed(("cell-a", "cell-b", "cell-c")), 15.0)
             tokens.pop("cell-c").undeclare()  # a site gone is no longer offered
             assert wait_until(lambda: listed(("cell-a", "cell-b")), 15.0)
+            assert page.link.status.work_site_alive
 
             # A program of ours not answered yet at cell-a: the page stays.
             page.link.send_program(one_move_program("still-running"))
@@ -55,8 +56,10 @@ def test_the_page_lists_reachable_sites_and_switches_unless_a_program_runs() -> 
             said = html.unescape(page.site_md.content)  # markdown: outside text escaped
             assert "still-running has not ended at cell-a" in said and "STOP" in said
 
-            # Without one, it switches: a new link to cell-b, the old one closed.
-            link._unanswered.clear()
+            # Once cell-a is gone, nothing of it waits for our heartbeats: it switches, to a new
+            # link to cell-b, the old one closed.
+            tokens.pop("cell-a").undeclare()
+            assert wait_until(lambda: (page.update(), not link.status.work_site_alive)[1], 15.0)
             page.on_switch_site("cell-b")
             page.update()
             assert page.link is not link and page.link.site_id == "cell-b"

@@ -215,11 +215,11 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
 
     def on_switch_site(self, site_id: str) -> None:
         """The operator chose work site ``site_id``: the page switches to it at its next
-        update; refused while a program of this page's runs at the current site (leaving
-        stops its heartbeats, and so the program)."""
+        update; refused while a program of this page's runs at the current site, alive
+        (leaving stops its heartbeats, and so the program)."""
         with self._lock:
             running = self.link.running_programs
-            if running and site_id != self.link.site_id:
+            if running and self.link.status.work_site_alive and site_id != self.link.site_id:
                 self.site_md.content = (
                     f"⚠ program {short_program_name(running[0])} has not ended at "
                     f"{plain(self.link.site_id)}: wait for its end, or STOP it, before switching"
