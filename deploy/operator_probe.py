@@ -38,9 +38,7 @@ FINAL = ("done", "failed", "stopped")
 def _link(args: argparse.Namespace) -> WorkSiteLink:
     tls = None
     if args.certs is not None:
-        tls = TlsFiles(
-            args.certs / "ca.pem", args.certs / "operator.pem", args.certs / "operator.key"
-        )
+        tls = TlsFiles.in_dir(args.certs, "operator")
     connect, _ = link_endpoints([args.connect], args.single_link)
     return WorkSiteLink(make_config(connect=connect, tls=tls, lease_ms=args.lease_ms), args.site_id)
 

@@ -9,8 +9,9 @@ Runs until SIGINT/SIGTERM. ``--listen`` replaces the config's listen endpoints. 
 (protocol/session.py, ``link_endpoints``), one tcp/tls endpoint HOST:PORT becomes two listeners:
 priorities 0-5 (commands, reports, state) on PORT and 6-7 (camera frames) on PORT+1, so that the
 sites' default split links reach it; ``--single-link`` keeps the one port. ``--connect`` meshes
-it with another router (split the same way): a site connected to either reaches the sites of
-both, and a site given both routers' endpoints goes on through one when the other fails.
+it with another router, over one link (camera frames and commands share it between routers): a
+site connected to either reaches the sites of both, and a site given both routers' endpoints
+goes on through one when the other fails.
 
 Like a work site, the router refuses a listener reachable from the network unless it is a
 ``tls/`` endpoint with ``--certs`` (mutual TLS: only holders of the CA's certificates connect),
@@ -64,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         action="append",
         default=[],
         metavar="ENDPOINT",
-        help="another router to mesh with (repeatable; one HOST:PORT is split like --listen)",
+        help="another router to mesh with, over one link (repeatable)",
     )
     parser.add_argument(
         "--single-link",
@@ -106,17 +107,17 @@ def main(argv: list[str] | None = None) -> int:
     given = args.listen or json.loads(conf.get_json("listen/endpoints"))
     listen, note = link_endpoints(given, args.single_link)
     conf.insert_json5("listen/endpoints", json.dumps(listen))
-    connect, _ = link_endpoints(args.connect, args.single_link)
+    # Routers mesh over one link each: over two (split by priority, like the sites'), the
+    # routers' link-state messages were seen to lose their order under TLS ("unknown link
+    # mapping", "unknown routing context") and a meshed router never learnt a cell.
+    connect, _ = link_endpoints(args.connect, single_link=True)
     conf.insert_json5("connect/endpoints", json.dumps(connect))
     if (links := max_links_for(listen, connect)) > 1:
         conf.insert_json5("transport/unicast/max_links", json.dumps(links))
     try:
         tls = None
         if args.certs is not None:
-            name = args.cert_name
-            tls = TlsFiles(
-                args.certs / "ca.pem", args.certs / f"{name}.pem", args.certs / f"{name}.key"
-            )
+            tls = TlsFiles.in_dir(args.certs, args.cert_name)
         if args.cell and tls is None:
             raise ProtocolError("--cell needs --certs (identities come from TLS certificates)")
         check_listeners(given, tls, args.insecure)

@@ -334,9 +334,7 @@ def _link_config(args: argparse.Namespace):
     certs = getattr(args, "certs", None)  # demo's work site is on loopback: no TLS
     tls = None
     if certs is not None:
-        tls = TlsFiles(
-            certs / "ca.pem", certs / f"{args.cert_name}.pem", certs / f"{args.cert_name}.key"
-        )
+        tls = TlsFiles.in_dir(certs, args.cert_name)
     mode = "client" if getattr(args, "client", False) else "peer"
     return make_config(mode=mode, connect=connect, tls=tls), connect, links_note
 

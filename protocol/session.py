@@ -61,6 +61,13 @@ class TlsFiles:
     private_key: str | Path
     mutual: bool = True
 
+    @classmethod
+    def in_dir(cls, directory: str | Path, name: str, ca: str = "ca.pem") -> TlsFiles:
+        """``name``'s certificate and key in ``directory`` (``NAME.pem``, ``NAME.key``, as
+        ``deploy/make-certs.sh`` writes them), with the CA's certificate ``ca`` there."""
+        directory = Path(directory)
+        return cls(directory / ca, directory / f"{name}.pem", directory / f"{name}.key")
+
     def __post_init__(self) -> None:
         for name in ("root_ca_certificate", "certificate", "private_key"):
             path = Path(getattr(self, name))

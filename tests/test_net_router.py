@@ -170,7 +170,7 @@ def test_two_work_sites_and_an_operator_through_a_router(spawn, links, single_li
 
 
 def _tls(certs: Path, name: str, ca: str = "ca.pem") -> TlsFiles:
-    return TlsFiles(certs / ca, certs / f"{name}.pem", certs / f"{name}.key")
+    return TlsFiles.in_dir(certs, name, ca)
 
 
 def test_a_secured_router_admits_each_cells_operator_only(spawn, links, certs: Path) -> None:

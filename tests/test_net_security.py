@@ -86,7 +86,7 @@ def links() -> Iterator[Callable[..., WorkSiteLink]]:
 def tls_config(endpoint: str, certs: Path, name: str, ca: str = "ca.pem"):
     return make_config(
         connect=[endpoint],
-        tls=TlsFiles(certs / ca, certs / f"{name}.pem", certs / f"{name}.key"),
+        tls=TlsFiles.in_dir(certs, name, ca),
     )
 
 
@@ -215,7 +215,7 @@ def test_a_plain_listener_on_the_network_is_refused_unless_insecure(endpoint: st
 
 
 def test_a_tls_listener_with_certificates_is_accepted(certs: Path) -> None:
-    tls = TlsFiles(certs / "ca.pem", certs / "work-site.pem", certs / "work-site.key")
+    tls = TlsFiles.in_dir(certs, "work-site")
     check_listeners(["tls/0.0.0.0:7447?prio=0-5", "tls/0.0.0.0:7448?prio=6-7"], tls)
     with pytest.raises(ProtocolError, match=r"tcp/0\.0\.0\.0:7449 without TLS"):
         check_listeners(["tls/0.0.0.0:7447", "tcp/0.0.0.0:7449"], tls)  # certs, but plain TCP

@@ -325,11 +325,7 @@ def serve(args: argparse.Namespace) -> int:
         listen, links_note = link_endpoints(given, args.single_link)
         tls = None
         if args.certs is not None:
-            tls = TlsFiles(
-                args.certs / "ca.pem",
-                args.certs / f"{args.cert_name}.pem",
-                args.certs / f"{args.cert_name}.key",
-            )
+            tls = TlsFiles.in_dir(args.certs, args.cert_name)
         if args.operators and tls is None:
             raise ValueError("--operators needs --certs (identities come from TLS certificates)")
         check_listeners(given, tls, args.insecure)  # the derived ones share host and protocol
