@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import queue
 import select
 import signal
 import socket
@@ -272,9 +273,10 @@ class Observer:
         self.link = WorkSiteLink(
             make_config(connect=[ws.endpoint]), ws.site_id, heartbeat_process=False
         )
-        self._states_in = self.link.session.declare_subscriber(
-            key(ws.site_id, "robot_state"), zenoh.handlers.FifoChannel(100_000)
-        )
+        # Every state, on zenoh's thread, into a queue this thread drains (also after the link
+        # renewed its session).
+        self._states_in: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self.link.follow("robot_state", lambda s: self._states_in.put(s.payload.to_bytes()))
         self.states: list[RobotState] = []
         self.also_poll: list[WorkSiteLink] = []
         """Operator links polled with this one (their re-sends of unanswered programs)."""
@@ -287,9 +289,9 @@ class Observer:
         for link in self.also_poll:
             link.poll()
         self.link.poll()
-        while (sample := self._states_in.try_recv()) is not None:
+        while not self._states_in.empty():
             try:
-                self.states.append(decode(sample.payload.to_bytes(), expected=RobotState))
+                self.states.append(decode(self._states_in.get(), expected=RobotState))
             except ProtocolError:
                 pass
 

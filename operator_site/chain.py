@@ -23,7 +23,6 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-import zenoh
 
 from models.scene import Scene, load_scene
 from operator_site.failures import RunError
@@ -38,7 +37,7 @@ from operator_site.session import (
 )
 from operator_site.task import TaskSession
 from operator_site.taskfile import pose_error
-from protocol import Recognition, Recognitions, TruthPoses, decode, key, make_config
+from protocol import Recognition, Recognitions, TruthPoses, decode, make_config
 from protocol.messages import contact_directions
 from protocol.session import free_port_pair, link_endpoints
 
@@ -138,24 +137,12 @@ ProgramMaker = Callable[[TaskSession, str], Generated]
 
 
 class _Truth:
-    """The work site's ground truth as the link hears it: subscribed on the link's session,
-    and again on the new one after the link renewed it (``WorkSiteLink.session``)."""
+    """The work site's ground truth as the link hears it (``WorkSiteLink.follow``: also after
+    the link renewed its session)."""
 
     def __init__(self, link: WorkSiteLink) -> None:
         self.latest: TruthPoses | None = None
-        self._link = link
-        self._session: zenoh.Session | None = None
-        self._follow()
-
-    def _follow(self) -> None:
-        session = self._link.session
-        if session is self._session:
-            return
-        try:
-            self._sub = session.declare_subscriber(key(self._link.site_id, "truth"), self._on)
-        except zenoh.ZError:  # closed by a renewal just now: the next call takes the new one
-            return
-        self._session = session
+        link.follow("truth", self._on)
 
     def _on(self, sample) -> None:
         self.latest = decode(sample.payload.to_bytes(), expected=TruthPoses)
@@ -164,7 +151,6 @@ class _Truth:
         """The first ground truth stamped at or after ``t_s`` (wall-clock s)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            self._follow()
             truth = self.latest
             if truth is not None and truth.stamp_s >= t_s:
                 return truth

@@ -27,6 +27,7 @@ import re
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import zenoh
@@ -183,6 +184,8 @@ class _Wire:
     pub_program: zenoh.Publisher
     pub_stop: zenoh.Publisher
     pub_heartbeat: zenoh.Publisher
+    followed: list[zenoh.Subscriber] = field(default_factory=list)
+    """The subscribers of :meth:`WorkSiteLink.follow`, declared on this session."""
 
     @classmethod
     def open(cls, zenoh_config: zenoh.Config, site_id: str) -> _Wire:
@@ -248,6 +251,7 @@ class WorkSiteLink:
         self._round_trips = RoundTrips()
         self._sites: set[str] = set()
         self._sites_wire: _Wire | None = None
+        self._followers: list[tuple[str, Callable[[zenoh.Sample], None]]] = []
         self.status = LinkStatus()
         self.robot_state: RobotState | None = None
         self.camera_frame: CameraFrame | None = None
@@ -393,7 +397,8 @@ class WorkSiteLink:
         return new_state, new_frame
 
     def _poll_sites(self, wire: _Wire) -> None:
-        if wire is not self._sites_wire:  # a new session: its history lists who is alive now
+        changed = wire is not self._sites_wire
+        if changed:  # a new session: its history lists who is alive now
             self._sites_wire, self._sites = wire, set()
         while (sample := wire.sub_sites.try_recv()) is not None:
             site = site_of_token(str(sample.key_expr))
@@ -403,7 +408,9 @@ class WorkSiteLink:
                 self._sites.add(site)
             else:
                 self._sites.discard(site)
-        self.status.sites = sorted(self._sites)
+            changed = True
+        if changed:
+            self.status.sites = sorted(self._sites)
 
     @property
     def running_programs(self) -> list[str]:
@@ -486,6 +493,17 @@ class WorkSiteLink:
             if not self._wire.session.is_closed():
                 self._wire.session.close()
 
+    def follow(self, topic: str, callback: Callable[[zenoh.Sample], None]) -> None:
+        """Call ``callback`` (on zenoh's thread) with every sample on this work site's
+        ``topic``: subscribed on the link's session now, and again on each new one after the
+        work site was lost (see :meth:`session`)."""
+        with self._wire_lock:
+            self._followers.append((topic, callback))
+            wire = self._wire
+            wire.followed.append(
+                wire.session.declare_subscriber(key(self.site_id, topic), callback)
+            )
+
     @property
     def session(self) -> zenoh.Session:
         """The link's zenoh session now: a new one after the work site was lost, so that what a
@@ -522,6 +540,10 @@ class WorkSiteLink:
             if self._closing.is_set():
                 old = wire
             else:
+                for topic, callback in self._followers:
+                    wire.followed.append(
+                        wire.session.declare_subscriber(key(self.site_id, topic), callback)
+                    )
                 old, self._wire = self._wire, wire
         old.session.close()
         log.info("work site %s lost: a new session (%s) waits for it", self.site_id,
