@@ -17,7 +17,8 @@ small machine the simulated cells themselves (physics and camera rendering) fill
 the router) is timed ``--hop-samples`` times through the router (a client session) and directly
 (a peer session connected to the echo's listener only), taking turns: the router's added round
 trip is the difference of the two at the median and at p99. Once beside one cell without camera
-(``router_hop_quiet``), once beside the one-cell point's cell, its camera on (``router_hop``).
+(``router_hop_quiet``), once beside the one-cell point's cell, its camera on (``router_hop``; not
+under ``--tls``), each over plain TCP: the echo is no cell's member.
 
 Prints progress on stderr and a JSON summary as the last line of stdout; writes ``fleet.json``,
 ``fleet.csv`` (one row per operator and N) and ``fleet.png`` into ``--out``.
@@ -42,12 +43,11 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from bench.net import refused_program
 from deploy.fleet import Fleet, FleetSpec
 from protocol import (
     CameraFrame,
     ExecutionReport,
-    MotionCommand,
-    MotionProgram,
     ProtocolError,
     decode,
     encode,
@@ -66,14 +66,6 @@ HOP_KEY = "telerobot/fleet-echo"
 
 
 # ----------------------------------------------------------------------------- the probes
-
-
-def _refused_program(program_id: str) -> bytes:
-    # Unsafe (the gripper would go to the robot's base): refused by the check, never run.
-    command = MotionCommand(
-        kind="move", X_WP=np.eye(4), speed_mps=0.05, force_limit_n=10.0, contacts=()
-    )
-    return encode(MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=(command,)))
 
 
 def probe_operator(
@@ -116,7 +108,7 @@ def probe_operator(
             program_id = f"fleet-{os.getpid()}-{k}"
             k += 1
             sent = time.perf_counter()
-            publisher.put(_refused_program(program_id))
+            publisher.put(encode(refused_program(program_id)))
             answered = False
             while (waited := time.perf_counter() - sent) < REPLY_TIMEOUT_S:
                 try:
@@ -224,6 +216,8 @@ def measure_hop(router: str, samples: int) -> dict[str, Any]:
         except subprocess.TimeoutExpired:
             echo.kill()
             echo.wait()
+        if echo.stdout:
+            echo.stdout.close()
     stats = {}
     for way, values in out.items():
         stats[f"{way}_ms_median"] = float(np.median(values))
@@ -308,8 +302,11 @@ def measure_cells(n: int, args: argparse.Namespace, log_dir: Path) -> list[dict[
             if proc.returncode != 0:
                 raise RuntimeError(f"an operator probe failed (exit {proc.returncode})")
             rows.append(json.loads(out.strip().splitlines()[-1]))
-        # The router's hop beside the running cell (its camera on), its operator done.
-        hop = measure_hop(fleet.router_endpoint, args.hop_samples) if n == 1 else None
+        # The router's hop beside the running cell (its camera on), its operator done; the
+        # echo is no cell's member, so not under --tls.
+        hop = None
+        if n == 1 and args.tls is None:
+            hop = measure_hop(fleet.router_endpoint, args.hop_samples)
     machine_busy = (busy1 - busy0) / (total1 - total0)
     for row in rows:
         row.update(cells=n, machine_cpu=machine_busy, hop=hop, **cpu)
@@ -317,8 +314,9 @@ def measure_cells(n: int, args: argparse.Namespace, log_dir: Path) -> list[dict[
 
 
 def measure_quiet_hop(args: argparse.Namespace, log_dir: Path) -> dict[str, Any]:
-    """The router's hop beside one cell without a camera (a machine otherwise idle)."""
-    with Fleet(FleetSpec(sites=1, tls=args.tls, camera=False), log_dir / "quiet") as fleet:
+    """The router's hop beside one cell without a camera (a machine otherwise idle), plain TCP
+    also under ``--tls``: the echo is no cell's member."""
+    with Fleet(FleetSpec(sites=1, camera=False), log_dir / "quiet") as fleet:
         return measure_hop(fleet.router_endpoint, args.hop_samples)
 
 
@@ -417,7 +415,7 @@ def _cells(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"expected numbers like 1,2,5,10, got {text!r}") from None
     if not cells or any(not 1 <= n <= 40 for n in cells):
         raise argparse.ArgumentTypeError(f"each number of cells must be 1..40, got {text!r}")
-    return cells
+    return list(dict.fromkeys(cells))  # each point once
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -462,12 +460,13 @@ def main(args: argparse.Namespace) -> int:
         for n in args.cells:
             print(f"fleet: {n} cells ...", file=sys.stderr, flush=True)
             rows += measure_cells(n, args, Path(tmp))
-            at = [r for r in rows if r["cells"] == n]
-            rtts = np.concatenate([r["round_trips_ms"] for r in at])
-            slowest_hz = min(r["frame_hz"] for r in at)
-            print(f"fleet: {n} cells: command p99 {np.percentile(rtts, 99):.1f} ms, camera "
-                  f"{slowest_hz:.1f} Hz at the slowest operator, machine CPU "
-                  f"{100 * at[0]['machine_cpu']:.0f} %", file=sys.stderr, flush=True)  # fmt: skip
+            points = summarise(rows, quiet_hop, args)["points"]
+            point = next(p for p in points if p["cells"] == n)
+            p99 = point["command_ms_p99"]
+            said = "no command answered" if p99 is None else f"command p99 {p99:.1f} ms"
+            print(f"fleet: {n} cells: {said}, camera {point['frame_hz_min']:.1f} Hz at the "
+                  f"slowest operator, machine CPU {100 * point['machine_cpu']:.0f} %",
+                  file=sys.stderr, flush=True)  # fmt: skip
     summary = summarise(rows, quiet_hop, args)
     with (args.out / "fleet.csv").open("w", newline="") as f:
         fields = ["cells", "site", "commands", "lost", "command_ms_median", "command_ms_p99",

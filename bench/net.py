@@ -432,6 +432,15 @@ def measure_pair(
         _stop(echo)
 
 
+def refused_program(program_id: str) -> MotionProgram:
+    """A well-formed program that a work site's check refuses (its move would take the gripper
+    into the robot's base): its "refused" report times a command's round trip, nothing moves."""
+    command = MotionCommand(
+        kind="move", X_WP=np.eye(4), speed_mps=0.05, force_limit_n=10.0, contacts=()
+    )
+    return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=(command,))
+
+
 def measure_work_site(
     seconds: float, program_samples: int, encoding: str | None = None
 ) -> dict[str, Any]:
@@ -477,15 +486,10 @@ def measure_work_site(
                 latencies.append((time.time() - frame.stamp_s) * 1000.0)
             fps = len(latencies) / (time.monotonic() - t0)
             last_image = frame.image
-            # Unsafe (the gripper would go to the robot's base): refused, never run.
-            command = MotionCommand(
-                kind="move", X_WP=np.eye(4), speed_mps=0.05, force_limit_n=10.0, contacts=()
-            )
             replies: list[float] = []
             for i in range(program_samples):
                 pid = f"bench-{os.getpid()}-{i}"
-                program = MotionProgram(program_id=pid, X_GP=np.eye(4), commands=(command,))
-                payload = encode(program)
+                payload = encode(refused_program(pid))
                 t = time.perf_counter()
                 pub.put(payload)
                 while decode(reports.handler.recv().payload.to_bytes(), ExecutionReport) \

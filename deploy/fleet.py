@@ -115,6 +115,17 @@ class FleetSpec:
         return [site_id(k) for k in range(self.sites)]
 
 
+@dataclass(frozen=True)
+class RouterPlan:
+    """One router of a fleet: where it listens, the routers it meshes with (their endpoints),
+    the cells it admits, and the site it is the router of (None: a shared router)."""
+
+    endpoint: str
+    mesh: tuple[str, ...]
+    sites: tuple[str, ...]
+    site: str | None = None
+
+
 @dataclass
 class Fleet:
     """The routers, work sites and pages of ``spec``, each a process logging into ``log_dir``;
@@ -122,10 +133,8 @@ class Fleet:
 
     spec: FleetSpec
     log_dir: Path
-    router_endpoints: list[str] = field(default_factory=list)
-    """Each shared router's endpoint (its command port; camera frames on the next)."""
-    site_router_endpoints: dict[str, str] = field(default_factory=dict)
-    """With ``site_routers``: each site id → its site router's endpoint."""
+    routers: dict[str, RouterPlan] = field(default_factory=dict)
+    """Each router by process name: ``router``, ``router-2`` (shared), ``router-cell-01`` …"""
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
     pages: dict[str, str] = field(default_factory=dict)
     """Each page's site id → its address."""
@@ -182,12 +191,18 @@ class Fleet:
             make_certificates(spec.tls, spec.site_ids)
         scheme, host = ("tls", "localhost") if spec.tls is not None else ("tcp", "127.0.0.1")
         ports = iter(range(spec.port, 65536, 2)) if spec.port else _free_pairs()
-        for _ in range(spec.routers):
-            self.router_endpoints.append(f"{scheme}/{host}:{next(ports)}")
+        shared: list[str] = []
+        for k in range(spec.routers):
+            endpoint = f"{scheme}/{host}:{next(ports)}"
+            # Each shared router meshes with those before it and admits every cell.
+            name = "router" if k == 0 else f"router-{k + 1}"
+            self.routers[name] = RouterPlan(endpoint, tuple(shared), tuple(spec.site_ids))
+            shared.append(endpoint)
         if spec.site_routers:
             for site in spec.site_ids:
-                self.site_router_endpoints[site] = f"{scheme}/{host}:{next(ports)}"
-        for name in self.router_names:
+                endpoint = f"{scheme}/{host}:{next(ports)}"
+                self.routers[f"router-{site}"] = RouterPlan(endpoint, tuple(shared), (site,), site)
+        for name in self.routers:
             self.start_router(name)
         camera = [] if spec.camera else ["--no-camera"]
         for site in spec.site_ids:  # each listening on loopback, on the next ports
@@ -214,52 +229,35 @@ class Fleet:
             self.pages[site] = f"http://127.0.0.1:{page_port}"
 
     @property
+    def router_endpoints(self) -> list[str]:
+        """The shared routers' endpoints (their command ports; camera frames on the next)."""
+        return [r.endpoint for r in self.routers.values() if r.site is None]
+
+    @property
     def router_endpoint(self) -> str:
         """The first router's endpoint."""
         return self.router_endpoints[0]
 
-    @property
-    def router_names(self) -> list[str]:
-        """Every router's process name: ``router``, ``router-2``, then ``router-cell-01`` …"""
-        shared = [
-            "router" if k == 0 else f"router-{k + 1}" for k in range(len(self.router_endpoints))
-        ]
-        return shared + [f"router-{site}" for site in self.site_router_endpoints]
-
-    def router_endpoint_of(self, name: str) -> str:
-        """Router ``name``'s endpoint."""
-        return self._router(name)[0]
-
-    def _router(self, name: str) -> tuple[str, list[str], list[str]]:
-        """Router ``name``'s endpoint, the routers it meshes with, the cells it admits."""
-        shared = self.router_names[: len(self.router_endpoints)]
-        if name in shared:
-            k = shared.index(name)
-            return self.router_endpoints[k], self.router_endpoints[:k], self.spec.site_ids
-        site = name.removeprefix("router-")
-        return self.site_router_endpoints[site], self.router_endpoints, [site]
-
     def _connect(self, site: str | None = None) -> list[str]:
         """``--connect`` options: a work site's to its site router (with site routers), anyone
         else's to every shared router."""
-        endpoints = self.router_endpoints
-        if site is not None and site in self.site_router_endpoints:
-            endpoints = [self.site_router_endpoints[site]]
-        return [arg for ep in endpoints for arg in ("--connect", ep)]
+        own = [r.endpoint for r in self.routers.values() if site is not None and r.site == site]
+        return [arg for ep in own or self.router_endpoints for arg in ("--connect", ep)]
 
     def start_router(self, name: str = "router") -> None:
         """Start router ``name`` (again, after :meth:`kill_router`), meshed with the shared
         routers before it; return once it is up."""
-        endpoint, mesh, sites = self._router(name)
+        plan = self.routers[name]
         cells = []
         if self.spec.tls is not None:
-            for site in sites:
+            for site in plan.sites:
                 cells += ["--cell", f"{site}={work_site_cn(site)}:{operator_cn(site)}"]
         self._spawn(
             name,
             [sys.executable, str(REPO / "deploy" / "router.py"),
-             str(REPO / "deploy" / "zenoh" / "router.json5"), "--listen", endpoint,
-             *(arg for ep in mesh for arg in ("--connect", ep)), *self._certs("router"), *cells],
+             str(REPO / "deploy" / "zenoh" / "router.json5"), "--listen", plan.endpoint,
+             *(arg for ep in plan.mesh for arg in ("--connect", ep)), *self._certs("router"),
+             *cells],
         )  # fmt: skip
         self._wait_for(name, "router: up")
 
@@ -269,19 +267,12 @@ class Fleet:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
 
-    def operator_config(self, site: str, mode: str = "client") -> zenoh.Config:
+    def operator_config(self, site: str) -> zenoh.Config:
         """A zenoh config that reaches the routers as ``site``'s operator (its certificate when
         the fleet has TLS), as a client: everything goes through a router (the first reachable
         of the fleet's)."""
-        tls = None
-        if self.spec.tls is not None:
-            name = operator_cn(site)
-            tls = TlsFiles(
-                self.spec.tls / "ca.pem",
-                self.spec.tls / f"{name}.pem",
-                self.spec.tls / f"{name}.key",
-            )
-        return make_config(mode=mode, connect=link_endpoints(self.router_endpoints)[0], tls=tls)
+        tls = None if self.spec.tls is None else TlsFiles.in_dir(self.spec.tls, operator_cn(site))
+        return make_config(mode="client", connect=link_endpoints(self.router_endpoints)[0], tls=tls)
 
     def stop(self) -> None:
         """SIGTERM every process (pages and sites before the routers), then wait; kill the
@@ -372,9 +363,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{log_dir}", flush=True)  # fmt: skip
     try:
         with Fleet(spec, log_dir) as fleet:
-            for name in fleet.router_names:
-                endpoint = fleet.router_endpoint_of(name)
-                print(f"fleet: {name} on {endpoint} (and the next port)")
+            for name, plan in fleet.routers.items():
+                print(f"fleet: {name} on {plan.endpoint} (and the next port)")
             for site in spec.site_ids:
                 print(f"fleet: {site}: work site up; page {fleet.pages.get(site, 'none')}")
             print("fleet: up; Ctrl-C stops it all", flush=True)

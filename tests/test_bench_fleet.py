@@ -4,6 +4,8 @@ operator probe, the router's hop; the JSON summary, CSV and plot it writes. (The
 
 from __future__ import annotations
 
+import argparse
+import importlib.util
 import json
 import subprocess
 import sys
@@ -16,14 +18,21 @@ pytestmark = pytest.mark.integration
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_one_cell_is_measured_and_written_down(tmp_path: Path) -> None:
-    done = subprocess.run(
-        [sys.executable, "-m", "bench", "fleet", "--cells", "1", "--seconds", "5",
-         "--hop-samples", "100", "--out", str(tmp_path)],
-        cwd=REPO, capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
-    summary = json.loads(done.stdout.strip().splitlines()[-1])
+def test_one_cell_is_measured_and_written_down(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+) -> None:
+    from bench import fleet
+
+    parser = argparse.ArgumentParser()
+    fleet.add_arguments(parser)
+    args = parser.parse_args(["--cells", "1", "--seconds", "5", "--hop-samples", "100",
+                              "--out", str(tmp_path)])  # fmt: skip
+    drawn = importlib.util.find_spec("matplotlib") is not None  # only the [bench] extra has it
+    if not drawn:
+        print("matplotlib not installed: fleet.png not drawn, not checked")
+        monkeypatch.setattr(fleet, "plot", lambda _summary, _path: None)
+    assert fleet.main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     (point,) = summary["points"]
     assert point["cells"] == point["operators"] == 1
     # Every refused program answered, through the router; the cell's state heard.
@@ -33,7 +42,8 @@ def test_one_cell_is_measured_and_written_down(tmp_path: Path) -> None:
     for hop in (summary["router_hop"], summary["router_hop_quiet"]):
         assert hop["samples"] == 100 and 0 < hop["direct_ms_median"] and 0 < hop["routed_ms_median"]
     assert json.loads((tmp_path / "fleet.json").read_text()) == summary
-    assert (tmp_path / "fleet.png").stat().st_size > 0
+    if drawn:
+        assert (tmp_path / "fleet.png").stat().st_size > 0
     assert len((tmp_path / "fleet.csv").read_text().splitlines()) == 2
 
 
