@@ -10,14 +10,18 @@ program, and waits for its end.
 
 Per run: success (the work site's ground truth, as ``operator-site run`` judges it), the failure
 if any, ``task_s`` (from the work site seen to the program's end: vision, the operator's
-demonstration, the program, its execution), ``execute_s`` (program sent to its last report).
+demonstration, the program, its execution), ``execute_s`` (program sent to its last report),
+and the operator's waits while it runs: ``first_report_s`` (program sent to its first report
+heard), ``frame_age_s`` (median age of a camera frame as it arrives, from the moment the work
+site took it) and ``frame_rate_hz`` (median camera rate at the operator).
 Per point: ``runs``, ``successes``, ``task_s_median`` and ``overhead_s_median``: the median over
 seeds of a run's task time less the same seed's at the 0 ms point of the same loss (or of loss
-0), both successful; each seed lays the blocks out alike at every point.
+0), both successful; each seed lays the blocks out alike at every point; and the median of each
+wait over the point's runs (``first_report_s_median``, ...).
 
 Needs root (network namespaces). Prints progress on stderr and, as the last line of stdout, a
 JSON list of the points; writes ``latency.json``, ``latency.csv`` (one row per run) and
-``latency.png`` into ``--out``.
+``latency.png`` into ``--out``; ``--logs DIR`` keeps each run's work-site log and journal.
 """
 
 from __future__ import annotations
@@ -46,6 +50,10 @@ RUN_TIMEOUT_S = 900.0
 """One run (work site start, vision, the task, its execution) is given up after this long."""
 TASK_STAGES = ("vision_wait", "operator", "program", "execute")
 """``operator-site run``'s stages that make the task's time (not "connect": the start-up)."""
+WAITS = ("first_report_s", "frame_age_s", "frame_rate_hz")
+"""What the operator waits for while the program runs, as ``operator-site run`` reports it."""
+MEASURES = ("task_s", "execute_s", *WAITS)
+"""A run's figures (None: not measured), each summarised by its median at a point."""
 
 
 def _floats(text: str, low: float, high: float, name: str) -> list[float]:
@@ -66,7 +74,7 @@ def run_once(task: Path, rtt_ms: float, loss: float, seed: int, args: argparse.N
     params = {"delay_ms": one_way_ms, "jitter_ms": args.jitter * one_way_ms, "loss": loss,
               "seed": seed + 1}  # fmt: skip
     row: dict[str, Any] = {"rtt_ms": rtt_ms, "loss": loss, "seed": seed, "success": False,
-                           "failure": None, "task_s": None, "execute_s": None}  # fmt: skip
+                           "failure": None, **dict.fromkeys(MEASURES)}  # fmt: skip
     site_log = log_dir / f"work_site_{rtt_ms:g}_{loss:g}_{seed}.log"
     with netns.emulated_link(prefix=f"lt{uuid.uuid4().hex[:6]}", **params) as link:
         with site_log.open("w") as out:
@@ -105,6 +113,8 @@ def run_once(task: Path, rtt_ms: float, loss: float, seed: int, args: argparse.N
     if all(k in stages for k in TASK_STAGES):
         row["task_s"] = sum(stages[k] for k in TASK_STAGES)
     row["execute_s"] = stages.get("execute")
+    for name in WAITS:
+        row[name] = result.get(name)
     return row
 
 
@@ -120,6 +130,9 @@ def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             "task_s_median": statistics.median(times) if times else None,
             "failures": sorted({r["failure"]["kind"] for r in mine if r["failure"]}),
         })  # fmt: skip
+        for name in WAITS:  # every run's, successful or not: the waits are the link's
+            measured = [r[name] for r in mine if r.get(name) is not None]
+            points[-1][f"{name}_median"] = statistics.median(measured) if measured else None
     timed = {
         (r["rtt_ms"], r["loss"], r["seed"]): r["task_s"]
         for r in rows
@@ -196,9 +209,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(a later file's run of a round trip, loss and seed replaces an earlier one's)",
     )  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("docs/bench"))
+    parser.add_argument(
+        "--logs", type=Path,
+        help="keep each run's work-site log and program journal in this directory (default: "
+        "a temporary one, removed at the end)",
+    )  # fmt: skip
 
 
-CSV_FIELDS = ["rtt_ms", "loss", "seed", "success", "task_s", "execute_s", "failure"]
+CSV_FIELDS = ["rtt_ms", "loss", "seed", "success", *MEASURES, "failure"]
 
 
 def read_rows(paths: list[Path]) -> list[dict[str, Any]]:
@@ -212,10 +230,11 @@ def read_rows(paths: list[Path]) -> list[dict[str, Any]]:
                     row = {
                         "rtt_ms": float(raw["rtt_ms"]), "loss": float(raw["loss"]),
                         "seed": int(raw["seed"]), "success": raw["success"] == "True",
-                        "task_s": float(raw["task_s"]) if raw["task_s"] else None,
-                        "execute_s": float(raw["execute_s"]) if raw["execute_s"] else None,
                         "failure": json.loads(raw["failure"]) if raw["failure"] else None,
                     }  # fmt: skip
+                    # A file recorded before a figure was measured lacks its column.
+                    for name in MEASURES:
+                        row[name] = float(raw[name]) if raw.get(name) else None
                 except (KeyError, TypeError, ValueError) as e:
                     raise ValueError(f"{path}:{line}: not a latency run ({e})") from None
                 runs[(row["rtt_ms"], row["loss"], row["seed"])] = row
@@ -264,9 +283,11 @@ def main(args: argparse.Namespace) -> int:
     rows: list[dict[str, Any]] = []
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="latency-") as tmp:
+        log_dir = args.logs or Path(tmp)
+        log_dir.mkdir(parents=True, exist_ok=True)
         for n, (rtt_ms, loss) in enumerate(grid):
             for seed in range(args.first_seed, args.first_seed + args.runs):
-                row = run_once(args.task, rtt_ms, loss, seed, args, Path(tmp))
+                row = run_once(args.task, rtt_ms, loss, seed, args, log_dir)
                 rows.append(row)
                 how = "success" if row["success"] else (row["failure"] or {}).get("kind", "?")
                 took = "" if row["task_s"] is None else f", task {row['task_s']:.1f} s"

@@ -14,6 +14,7 @@ import math
 import os
 import re
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -159,6 +160,41 @@ class _Truth:
             "no ground truth from the work site (a simulated work site publishes it with "
             "--publish-truth; a real one has none to judge the task by)"
         )
+
+
+class _ExecutionWatch:
+    """What the operator waits for while its program runs: its first report, and the camera
+    (how old each frame is as it arrives, how often they come)."""
+
+    def __init__(self, link: WorkSiteLink, program_id: str, sent_s: float) -> None:
+        self._link, self._program_id, self._sent_s = link, program_id, sent_s
+        self._first_report_s: float | None = None
+        self._frame_seq = -1 if link.camera_frame is None else link.camera_frame.seq
+        self._ages_s: list[float] = []
+        self._rates_hz: list[float] = []
+
+    def look(self) -> None:
+        """Take in what the link holds now."""
+        status = self._link.status
+        if self._first_report_s is None and any(
+            r.program_id == self._program_id for r in status.reports
+        ):
+            self._first_report_s = time.monotonic() - self._sent_s
+        frame = self._link.camera_frame
+        if frame is not None and frame.seq != self._frame_seq:
+            self._frame_seq = frame.seq
+            self._rates_hz.append(status.frame_rate_hz)
+            if status.frame_age_s is not None:
+                self._ages_s.append(status.frame_age_s)
+
+    def summary(self) -> dict:
+        """``first_report_s`` (program sent to its first report heard, s), and the median
+        ``frame_age_s`` and ``frame_rate_hz`` over the frames that arrived (None: none)."""
+        return {
+            "first_report_s": self._first_report_s,
+            "frame_age_s": statistics.median(self._ages_s) if self._ages_s else None,
+            "frame_rate_hz": statistics.median(self._rates_hz) if self._rates_hz else None,
+        }
 
 
 def _wait(predicate: Callable[[], bool], link: WorkSiteLink, timeout_s: float) -> bool:
@@ -344,11 +380,16 @@ def run_chain(
         kind = "execution_failed"
         state0 = link.robot_state
         program = operator.send(program)
-        finished = lambda: operator.outcome(program.program_id) is not None  # noqa: E731
+        watch = _ExecutionWatch(link, program.program_id, t0)
+
+        def finished() -> bool:
+            watch.look()
+            return operator.outcome(program.program_id) is not None
 
         if not _wait(finished, link, EXECUTE_TIMEOUT_S):
             raise RuntimeError(f"the program did not finish within {EXECUTE_TIMEOUT_S:.0f} s")
         stage_s["execute"] = time.monotonic() - t0
+        out |= watch.summary()
         if proc is not None and state0 is not None and link.robot_state is not None:
             simulated_s = (link.robot_state.seq - state0.seq) / STATE_RATE_HZ
             out["time_scale"] = time_scale

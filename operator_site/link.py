@@ -146,6 +146,11 @@ class LinkStatus:
     frame_rate_hz: float = 0.0
     last_state_age_s: float | None = None
     last_frame_age_s: float | None = None
+    """How long ago the latest camera frame arrived (s)."""
+    frame_age_s: float | None = None
+    """How old the latest camera frame was when it arrived, from the moment the work site took
+    it (s, its clock brought to ours by the heartbeats' echoes; None: not measured, like
+    ``round_trip_s``)."""
     rejected: int = 0
     holder: str = ""
     """The operator holding the work site's control lease, as its heartbeat says ("": none)."""
@@ -366,6 +371,10 @@ class WorkSiteLink:
                 self.camera_frame, new_frame = msg, True
                 self._frame_rate.tick(now, msg.seq)
                 self._last_frame_s = now
+                offset_s = self._round_trips.clock_offset_s()
+                self.status.frame_age_s = (
+                    None if offset_s is None else time.time() + offset_s - msg.stamp_s
+                )
         while (sample := wire.sub_report.try_recv()) is not None:
             if (msg := self._decode(sample, ExecutionReport, "execution report")) is not None:
                 self._on_report(msg)
@@ -378,7 +387,7 @@ class WorkSiteLink:
                 self.status.holder = beat.operator
                 self._work_site_beat = (beat.stamp_s, now)
                 if beat.operator == self.operator_id:
-                    self._round_trips.add(beat.round_trip_s(time.time()), beat.echo_stamp_s)
+                    self._round_trips.add_beat(beat, time.time())
                     self.status.round_trip_s = self._round_trips.median_s()
         if self.status.work_site_alive:
             for pid, (payload, first_s, sent_s) in list(self._unanswered.items()):

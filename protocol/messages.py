@@ -336,6 +336,16 @@ class Heartbeat(Message):
         round_trip_s = now_s - self.echo_stamp_s - self.echo_held_s
         return round_trip_s if 0.0 <= round_trip_s <= MAX_ROUND_TRIP_S else None
 
+    def clock_offset_s(self, now_s: float) -> float | None:
+        """How far the sender's clock is ahead of the echoed side's, ``now_s`` being the
+        echoed side's ``time.time()`` as it reads the beat: NTP's estimate, the mean of the
+        two one-way differences, wrong by at most half the round trip when the two ways take
+        unequal times; None where :meth:`round_trip_s` is."""
+        if self.round_trip_s(now_s) is None:
+            return None
+        heard_s = self.stamp_s - self.echo_held_s  # when our echoed beat arrived, its clock
+        return ((heard_s - self.echo_stamp_s) + (self.stamp_s - now_s)) / 2.0
+
 
 ROUND_TRIP_SAMPLES = 5
 """A round trip is the median of the last this many measurements, one per beat echoed (one a
@@ -352,19 +362,34 @@ class RoundTrips:
         if samples < 1:
             raise ValueError(f"samples = {samples}: must be at least 1")
         self._samples_s: collections.deque[float] = collections.deque(maxlen=samples)
+        self._offsets_s: collections.deque[float] = collections.deque(maxlen=samples)
         self._echoed_stamp_s: float | None = None
 
-    def add(self, round_trip_s: float | None, echo_stamp_s: float) -> None:
+    def add(
+        self, round_trip_s: float | None, echo_stamp_s: float, clock_offset_s: float | None = None
+    ) -> None:
         """Take the round trip (s) a beat measured (:meth:`Heartbeat.round_trip_s`; None:
-        none) by echoing our beat stamped ``echo_stamp_s``."""
+        none) by echoing our beat stamped ``echo_stamp_s``, and the other side's clock offset
+        it measured (:meth:`Heartbeat.clock_offset_s`; None: not kept)."""
         if round_trip_s is None or echo_stamp_s == self._echoed_stamp_s:
             return
         self._echoed_stamp_s = echo_stamp_s
         self._samples_s.append(round_trip_s)
+        if clock_offset_s is not None:
+            self._offsets_s.append(clock_offset_s)
+
+    def add_beat(self, beat: Heartbeat, now_s: float) -> None:
+        """Take what ``beat`` measured, read at our ``time.time()`` ``now_s``."""
+        self.add(beat.round_trip_s(now_s), beat.echo_stamp_s, beat.clock_offset_s(now_s))
 
     def median_s(self) -> float | None:
         """The median of the recent round trips (s; None before the first)."""
         return statistics.median(self._samples_s) if self._samples_s else None
+
+    def clock_offset_s(self) -> float | None:
+        """The median of the recent measures of how far the other side's clock is ahead of
+        ours (s; None before the first)."""
+        return statistics.median(self._offsets_s) if self._offsets_s else None
 
 
 @dataclass(frozen=True, eq=False)

@@ -12,8 +12,11 @@ from bench import latency
 
 def _row(rtt_ms: float, loss: float, seed: int, success: bool, task_s: float | None) -> dict:
     failure = None if success else {"kind": "execution_failed", "message": "stopped"}
+    first_report_s = None if task_s is None else 0.2 + rtt_ms / 1e3
     return {"rtt_ms": rtt_ms, "loss": loss, "seed": seed, "success": success,
-            "failure": failure, "task_s": task_s, "execute_s": task_s}  # fmt: skip
+            "failure": failure, "task_s": task_s, "execute_s": task_s,
+            "first_report_s": first_report_s, "frame_age_s": None,
+            "frame_rate_hz": 2.5}  # fmt: skip
 
 
 def test_points_count_successes_and_time_successful_runs_against_the_same_seed_at_0_ms() -> None:
@@ -31,6 +34,10 @@ def test_points_count_successes_and_time_successful_runs_against_the_same_seed_a
     assert slow["task_s_median"] == pytest.approx(43.0)  # the failed run's time is not a task's
     assert slow["overhead_s_median"] == pytest.approx(3.0)  # seed 0's 40 s, not the median
     assert points[(500, 0.01)]["overhead_s_median"] == pytest.approx(5.0)
+    # The waits are the link's: a failed run's count too, a run that measured none does not.
+    assert slow["first_report_s_median"] == pytest.approx(0.7)
+    assert slow["frame_rate_hz_median"] == pytest.approx(2.5)
+    assert slow["frame_age_s_median"] is None
 
 
 def test_a_point_without_successes_or_a_baseline_has_no_time() -> None:
@@ -71,6 +78,10 @@ def test_recorded_runs_are_read_back_and_a_later_run_replaces_an_earlier(
     assert [(r["rtt_ms"], r["seed"], r["success"]) for r in merged] == [
         (0, 0, True), (0, 1, True), (500, 0, True)
     ]  # fmt: skip
+    older = tmp_path / "older.csv"  # recorded before the waits were measured
+    older.write_text("rtt_ms,loss,seed,success,task_s,execute_s,failure\n0,0,0,True,1,1,\n")
+    (row,) = latency.read_rows([older])
+    assert row["task_s"] == 1.0 and row["first_report_s"] is None
     bad = tmp_path / "bad.csv"
     bad.write_text("rtt_ms,loss,seed,success,task_s,execute_s,failure\nfast,0,0,True,1,1,\n")
     with pytest.raises(ValueError, match=r"bad.csv:2: not a latency run"):

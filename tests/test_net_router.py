@@ -156,14 +156,17 @@ def test_two_work_sites_and_an_operator_through_a_router(spawn, links, single_li
     assert np.linalg.norm(a.robot_state.q - q_b) > 0.05
 
     # Holding site a's control, the operator measures its round trip through the router by the
-    # work site's heartbeats echoing its own; watching site b, it measures none.
+    # work site's heartbeats echoing its own, and with it how old a camera frame is when it
+    # arrives (rendering, encoding, the wire: one clock here, so never negative); watching
+    # site b, it measures neither.
     def a_measured() -> bool:
         a.poll(), b.poll()
-        return a.status.round_trip_s is not None
+        return a.status.round_trip_s is not None and a.status.frame_age_s is not None
 
     assert wait_until(a_measured, 10.0)
     assert 0.0 <= a.status.round_trip_s < 1.0
-    assert b.status.round_trip_s is None
+    assert 0.0 <= a.status.frame_age_s < 5.0
+    assert b.status.round_trip_s is None and b.status.frame_age_s is None
 
 
 # ------------------------------------------------------------ a secured router (mutual TLS, ACL)

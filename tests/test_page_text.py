@@ -131,3 +131,11 @@ def test_the_status_shows_the_round_trip_once_measured() -> None:
     assert "camera 5.0 Hz · round trip 512 ms" in status_markdown("site_1", status)
     status.work_site_alive = False  # a stale figure is not shown for a site that went
     assert "round trip" not in status_markdown("site_1", status)
+
+
+def test_the_status_shows_how_old_the_camera_image_is_once_measured() -> None:
+    status = LinkStatus(work_site_alive=True, last_frame_age_s=0.25)
+    assert "last camera frame 0.2 s ago" in status_markdown("site_1", status)
+    assert "taken" not in status_markdown("site_1", status)
+    status.frame_age_s = 0.5  # it was that old when it arrived: now older by the wait since
+    assert "last camera frame 0.2 s ago, taken 0.8 s ago" in status_markdown("site_1", status)

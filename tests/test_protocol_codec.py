@@ -648,6 +648,26 @@ def test_a_heartbeat_echo_measures_the_round_trip_on_the_echoed_clock() -> None:
     assert dataclasses.replace(beat, echo_stamp_s=0.0).round_trip_s(1000.75) is None
 
 
+@given(
+    st.floats(-1e4, 1e4),  # how far the sender's clock is ahead of ours (s)
+    st.floats(1e-3, 5.0),  # our beat's way to the sender (s)
+    st.floats(1e-3, 5.0),  # its beat's way back (s)
+    st.floats(0.0, 2.0),  # how long it held our beat before its own (s)
+)
+def test_a_heartbeat_echo_measures_the_clock_offset_to_half_the_round_trip(
+    ahead_s: float, there_s: float, back_s: float, held_s: float
+) -> None:
+    sent_s = 1e6  # our clock
+    stamp_s = sent_s + there_s + held_s + ahead_s  # its clock
+    read_s = sent_s + there_s + held_s + back_s  # ours
+    beat = Heartbeat(site_id="s", role="work_site", seq=0, stamp_s=stamp_s,
+                     echo_stamp_s=sent_s, echo_held_s=held_s)  # fmt: skip
+    offset_s = beat.clock_offset_s(read_s)
+    assert offset_s == pytest.approx(ahead_s + (there_s - back_s) / 2.0, abs=1e-6)
+    assert abs(offset_s - ahead_s) <= beat.round_trip_s(read_s) / 2.0 + 1e-6
+    assert dataclasses.replace(beat, echo_stamp_s=0.0).clock_offset_s(read_s) is None
+
+
 @MANY
 @given(
     small_messages,

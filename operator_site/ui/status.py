@@ -57,7 +57,11 @@ def status_markdown(site_id: str, status: LinkStatus, operator_id: str = "") -> 
             rates += f" · round trip {status.round_trip_s * 1e3:.0f} ms"
         lines.append(rates)
     if status.last_frame_age_s is not None:
-        lines.append(f"last camera frame {status.last_frame_age_s:.1f} s ago")
+        # What the operator sees is this old: taken this long before it arrived, plus since.
+        seen = f"last camera frame {status.last_frame_age_s:.1f} s ago"
+        if status.frame_age_s is not None:
+            seen += f", taken {status.frame_age_s + status.last_frame_age_s:.1f} s ago"
+        lines.append(seen)
     if status.rejected:
         lines.append(f"⚠ {status.rejected} invalid messages rejected")
     if status.reports:
