@@ -27,8 +27,8 @@ kinds interleaved sample by sample, taking turns to go first, so they share the 
   site on loopback, and over the emulated link (also rate-limited, ``--net-frame-rates-mbit``)
   fps, latency and the command delay while a real work-site frame streams in that encoding.
 - Every zenoh session here uses two links as the sites do (``protocol.session.link_endpoints``:
-  priorities 0-5 on one port, camera frames' 6-7 on the next); ``link_single_*`` repeats the
-  link measurements over one link for all priorities, for comparison.
+  priorities 0-3 on one port, robot state's and camera frames' 4-7 on the next);
+  ``link_single_*`` repeats the link measurements over one link for all priorities, for comparison.
 
 zenoh's shared memory is off (``make_config``'s default), as between two machines.
 """

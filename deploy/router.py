@@ -7,11 +7,11 @@
 
 Runs until SIGINT/SIGTERM. ``--listen`` replaces the config's listen endpoints. Like the sites
 (protocol/session.py, ``link_endpoints``), one tcp/tls endpoint HOST:PORT becomes two listeners:
-priorities 0-5 (commands, reports, state) on PORT and 6-7 (camera frames) on PORT+1, so that the
-sites' default split links reach it; ``--single-link`` keeps the one port. ``--connect`` meshes
-it with another router, over one link (camera frames and commands share it between routers): a
-site connected to either reaches the sites of both, and a site given both routers' endpoints
-goes on through one when the other fails.
+priorities 0-3 (commands, reports) on PORT and 4-7 (robot state, camera frames) on PORT+1, so
+that the sites' default split links reach it; ``--single-link`` keeps the one port.
+``--connect`` meshes it with another router, over one link (everything shares it between
+routers): a site connected to either reaches the sites of both, and a site given both routers'
+endpoints goes on through one when the other fails.
 
 Like a work site, the router refuses a listener reachable from the network unless it is a
 ``tls/`` endpoint with ``--certs`` (mutual TLS: only holders of the CA's certificates connect),

@@ -92,7 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
             help=f"zenoh endpoint of the work site or a router (default: "
             f"{DEFAULT_WORK_SITE_ENDPOINT}{'; repeatable' if p is serve else ''}). A tcp/ "
             "or tls/ endpoint HOST:PORT becomes two links, as `work-site serve --listen` makes "
-            "them: commands and state (priorities 0-5) on PORT, camera frames (6-7) on PORT+1",
+            "them: commands and reports (priorities 0-3) on PORT, robot state and camera frames "
+            "(4-7) on PORT+1",
         )
         p.add_argument(
             "--single-link",

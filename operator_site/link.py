@@ -60,7 +60,8 @@ RATE_WINDOW_S = 2.0
 STALE_AFTER_S = 1.0
 """A link whose work site is alive but has sent no robot state for this long is 'stale'."""
 RESEND_AFTER_S = 1.0
-"""A program the work site has not answered is sent again (same id) this often."""
+"""A program the work site has not answered is sent again (same id) this often, and a round
+trip more once one is measured: its answer takes the round trip and the work site's check."""
 GIVE_UP_AFTER_S = 30.0
 """A program still unanswered this long after it was first sent is given up (and logged)."""
 REMEMBERED_REPORTS = 10_000
@@ -395,7 +396,7 @@ class WorkSiteLink:
                     log.warning("program %s: no answer from the work site in %.0f s; given up",
                                 pid, GIVE_UP_AFTER_S)  # fmt: skip
                     self._unanswered.pop(pid, None)  # (a stop may have taken it meanwhile)
-                elif now - sent_s >= RESEND_AFTER_S:
+                elif now - sent_s >= RESEND_AFTER_S + (self.status.round_trip_s or 0.0):
                     self._put("pub_program", payload)
                     self._unanswered[pid] = (payload, first_s, now)
         s = self.status
@@ -463,9 +464,9 @@ class WorkSiteLink:
 
     def send_program(self, program: MotionProgram) -> None:
         """Publish a motion program to the work site, as this operator (its ``operator``
-        unless the program names one); sent again (same id) every
-        :data:`RESEND_AFTER_S` until the work site answers, and again whenever it comes back
-        before the program has finished. The work site runs each id at most once."""
+        unless the program names one); sent again (same id) every :data:`RESEND_AFTER_S` (and a
+        round trip) until the work site answers, and again whenever it comes back before the
+        program has finished. The work site runs each id at most once."""
         if not program.operator:  # sent as this operator: the lease goes by it
             program = dataclasses.replace(program, operator=self.operator_id)
         payload = encode(program)

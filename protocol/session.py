@@ -2,11 +2,12 @@
 
 Loopback demo: the work site listens on :data:`DEFAULT_WORK_SITE_ENDPOINT` and the operator site
 connects to it; multicast scouting is off. Each site pair uses two links (see
-:func:`link_endpoints`): priorities 0-5 (commands, programs, stops, reports, robot state) on the
-given port, 6-7 (camera frames) on the next one, so that image bytes queued in one TCP connection
-never hold a command back. Behaviour worth knowing (zenoh 1.10): with multicast off,
-gossip scouting still runs over established links; a peer whose ``connect`` endpoint is down keeps
-retrying in the background rather than failing ``zenoh.open``; always ``close()`` sessions.
+:func:`link_endpoints`): priorities 0-3 (stops, heartbeats, programs, reports, recognitions) on
+the given port, 4-7 (robot state, camera frames) on the next one, so that neither image bytes
+queued in one TCP connection nor a lost robot state's resend holds a command or a report back.
+Behaviour worth knowing (zenoh 1.10): with multicast off, gossip scouting still runs over
+established links; a peer whose ``connect`` endpoint is down keeps retrying in the background
+rather than failing ``zenoh.open``; always ``close()`` sessions.
 """
 
 from __future__ import annotations
@@ -26,11 +27,17 @@ from .keys import check_site_id
 
 DEFAULT_WORK_SITE_ENDPOINT = "tcp/127.0.0.1:7447"
 MODES = ("peer", "client", "router")
-PRIORITY_RANGES = ("0-5", "6-7")
-"""zenoh priorities carried by each link of a split: 0-5 (real_time … data_high, data: stops,
-programs, reports, robot state, recognitions, heartbeats, liveliness) and 6-7 (data_low,
-background: camera frames). zenoh sends a priority that no link of a transport covers on the
-nearest one, so a peer with a single link still gets everything."""
+PRIORITY_RANGES = ("0-3", "4-7")
+"""zenoh priorities carried by each link of a split: 0-3 (control, real_time, interactive_high
+and _low: liveliness, stops, heartbeats, programs, reports, recognitions) and 4-7 (data_high …
+background: robot state, ground truth, camera frames). TCP delivers in order, so over a lossy
+link each lost packet holds up all that follows it on its connection for about a round trip:
+robot states (a hundred a second) lose one often enough to hold most reports up, and a camera
+frame holds back what follows it by its size. The streams go on a link of their own; zenoh's
+queues still send a robot state before a camera frame waiting beside it. (A third link, state
+apart from camera frames, was tried: zenoh 1.10 then noticed a cut link after 10 s more than
+its lease.) zenoh sends a priority that no link of a transport covers on the nearest one, so a
+peer with a single link still gets everything."""
 SPLIT_PROTOCOLS = ("tcp", "tls")
 """Link protocols whose endpoint can be split into two ports."""
 
@@ -232,7 +239,7 @@ def router_access_control(cells: Sequence[Cell], relays: Sequence[str] = ()) -> 
 def split_endpoints(
     host: str, ports: tuple[int, int], split: bool = True, protocol: str = "tcp"
 ) -> list[str]:
-    """One endpoint, or two: priorities 0-5 on ``ports[0]`` and 6-7 on ``ports[1]`` (see
+    """One endpoint, or two: priorities 0-3 on ``ports[0]`` and 4-7 on ``ports[1]`` (see
     :data:`PRIORITY_RANGES`)."""
     if not split:
         return [f"{protocol}/{host}:{ports[0]}"]
@@ -243,7 +250,7 @@ def split_endpoints(
 
 
 def derive_split(endpoint: str) -> list[str]:
-    """``proto/host:port`` → ``[proto/host:port?prio=0-5, proto/host:port+1?prio=6-7]``.
+    """``proto/host:port`` → ``[proto/host:port?prio=0-3, proto/host:port+1?prio=4-7]``.
 
     Raises :class:`ProtocolError` saying why when it cannot: a protocol other than tcp/tls, an
     endpoint that already carries metadata or config (``?``/``#``), or port 0 (the second port
@@ -259,7 +266,9 @@ def derive_split(endpoint: str) -> list[str]:
         raise ProtocolError(f"{endpoint}: expected {protocol}/host:port")
     port = int(port_text)
     if not 1 <= port <= 65534:
-        raise ProtocolError(f"{endpoint}: port {port} has no next port to put camera frames on")
+        raise ProtocolError(
+            f"{endpoint}: port {port} has no next port to put robot state and camera frames on"
+        )
     return split_endpoints(host, (port, port + 1), protocol=protocol)
 
 
@@ -267,7 +276,7 @@ def link_endpoints(endpoints: Sequence[str], single_link: bool = False) -> tuple
     """The endpoints a site uses for the user's ``endpoints``, and a note saying what it did.
 
     Each ``tcp``/``tls`` endpoint without metadata becomes two links (:func:`derive_split`:
-    priorities 0-5 on its port, 6-7 on the next port), e.g. each of two meshed routers'. With
+    priorities 0-3 on its port, 4-7 on the next port), e.g. each of two meshed routers'. With
     ``single_link`` all are used as given; so is one that cannot be split (the note says why).
     Both sides must split alike to get two links; a site that does not still talks to one that
     does, over one link.
@@ -284,7 +293,10 @@ def link_endpoints(endpoints: Sequence[str], single_link: bool = False) -> tuple
             used.append(endpoint)
             unsplit.append(str(e))
     if not unsplit:
-        return used, "commands on priorities 0-5, camera frames on 6-7 (port + 1)"
+        return used, (
+            "commands and reports on priorities 0-3, robot state and camera frames on 4-7 "
+            "(port + 1)"
+        )
     if len(given) == 1:
         return used, f"one link for all priorities: {unsplit[0]}"
     return used, f"split where possible; one link for all priorities: {'; '.join(unsplit)}"

@@ -37,6 +37,7 @@ COMMAND_PRIORITIES = (
     zenoh.Priority.INTERACTIVE_HIGH,
     zenoh.Priority.INTERACTIVE_LOW,
 )
+STATE_PRIORITIES = (zenoh.Priority.DATA_HIGH, zenoh.Priority.DATA)
 IMAGE_PRIORITIES = (zenoh.Priority.DATA_LOW, zenoh.Priority.BACKGROUND)
 
 
@@ -49,15 +50,15 @@ def _ranges(session: zenoh.Session) -> list[tuple[int, int] | None]:
 
 def test_one_tcp_or_tls_endpoint_becomes_two_links_on_port_and_port_plus_one() -> None:
     assert link_endpoints(["tcp/127.0.0.1:7447"])[0] == [
-        "tcp/127.0.0.1:7447?prio=0-5",
-        "tcp/127.0.0.1:7448?prio=6-7",
+        "tcp/127.0.0.1:7447?prio=0-3",
+        "tcp/127.0.0.1:7448?prio=4-7",
     ]
     assert link_endpoints(["tls/robot.example.org:9000"])[0] == [
-        "tls/robot.example.org:9000?prio=0-5",
-        "tls/robot.example.org:9001?prio=6-7",
+        "tls/robot.example.org:9000?prio=0-3",
+        "tls/robot.example.org:9001?prio=4-7",
     ]
-    assert derive_split("tcp/[::1]:7447") == ["tcp/[::1]:7447?prio=0-5", "tcp/[::1]:7448?prio=6-7"]
-    assert split_endpoints("h", (1, 5)) == ["tcp/h:1?prio=0-5", "tcp/h:5?prio=6-7"]
+    assert derive_split("tcp/[::1]:7447") == ["tcp/[::1]:7447?prio=0-3", "tcp/[::1]:7448?prio=4-7"]
+    assert split_endpoints("h", (1, 5)) == ["tcp/h:1?prio=0-3", "tcp/h:5?prio=4-7"]
     assert split_endpoints("h", (1, 5), split=False) == ["tcp/h:1"]
 
 
@@ -85,14 +86,14 @@ def test_an_endpoint_that_cannot_be_split_is_used_as_given_and_the_note_says_why
 def test_several_endpoints_are_each_split_and_single_link_uses_them_as_given() -> None:
     two = ["tcp/127.0.0.1:7447", "tls/127.0.0.1:7449"]  # e.g. two meshed routers
     assert link_endpoints(two)[0] == [
-        "tcp/127.0.0.1:7447?prio=0-5", "tcp/127.0.0.1:7448?prio=6-7",
-        "tls/127.0.0.1:7449?prio=0-5", "tls/127.0.0.1:7450?prio=6-7",
+        "tcp/127.0.0.1:7447?prio=0-3", "tcp/127.0.0.1:7448?prio=4-7",
+        "tls/127.0.0.1:7449?prio=0-3", "tls/127.0.0.1:7450?prio=4-7",
     ]  # fmt: skip
     assert link_endpoints(two, single_link=True) == (
         two, "one link for all priorities (--single-link)"
     )  # fmt: skip
     mixed, note = link_endpoints(["tcp/127.0.0.1:7447", "udp/127.0.0.1:7460"])
-    assert mixed == ["tcp/127.0.0.1:7447?prio=0-5", "tcp/127.0.0.1:7448?prio=6-7",
+    assert mixed == ["tcp/127.0.0.1:7447?prio=0-3", "tcp/127.0.0.1:7448?prio=4-7",
                      "udp/127.0.0.1:7460"]  # fmt: skip
     assert note.startswith("split where possible") and "udp/127.0.0.1:7460" in note
     assert link_endpoints(["tcp/127.0.0.1:7447"], single_link=True)[0] == ["tcp/127.0.0.1:7447"]
@@ -107,8 +108,8 @@ def test_max_links_is_raised_only_for_prio_endpoints() -> None:
     assert json.loads(plain.get_json("transport/unicast/max_links")) == 1  # zenoh's default
     demo = operator_site_config()
     assert json.loads(demo.get_json("connect/endpoints")) == [
-        "tcp/127.0.0.1:7447?prio=0-5",
-        "tcp/127.0.0.1:7448?prio=6-7",
+        "tcp/127.0.0.1:7447?prio=0-3",
+        "tcp/127.0.0.1:7448?prio=4-7",
     ]
     assert json.loads(demo.get_json("transport/unicast/max_links")) == 2
 
@@ -142,7 +143,7 @@ def test_operator_commands_travel_at_command_priorities_on_the_first_link() -> N
         link = WorkSiteLink(operator_site_config(endpoint), "links")
         try:
             assert wait_until(lambda: len(_ranges(link.session)) == 2, 10.0)
-            assert _ranges(link.session) == [(0, 5), (6, 7)]
+            assert _ranges(link.session) == [(0, 3), (4, 7)]
             command = MotionCommand(
                 kind="move", X_WP=np.eye(4), speed_mps=0.05, force_limit_n=10.0, contacts=()
             )
@@ -172,8 +173,9 @@ def _drain(q: queue.Queue) -> list:
 
 
 @pytest.mark.integration
-def test_real_work_site_listens_on_two_links_with_frames_on_the_low_one(work_site) -> None:
-    ws = work_site()  # `work-site serve --listen tcp/127.0.0.1:PORT`: PORT and PORT+1
+def test_real_work_site_listens_on_two_links_with_the_streams_on_the_low_one(work_site) -> None:
+    # `work-site serve --listen tcp/127.0.0.1:PORT`: PORT and PORT+1; vision on, for recognitions.
+    ws = work_site(vision=True)
     link = WorkSiteLink(make_config(connect=link_endpoints([ws.endpoint])[0]), ws.site_id)
     try:
         seen: queue.Queue[tuple[str, zenoh.Priority]] = queue.Queue()
@@ -186,7 +188,7 @@ def test_real_work_site_listens_on_two_links_with_frames_on_the_low_one(work_sit
                 return
             seen.put_nowait((topic, s.priority))
 
-        for topic in ("camera", "robot_state", "report", "heartbeat"):
+        for topic in ("camera", "robot_state", "report", "heartbeat", "recognitions"):
             link.session.declare_subscriber(key(ws.site_id, topic), on_sample)
 
         def connected() -> bool:
@@ -194,7 +196,7 @@ def test_real_work_site_listens_on_two_links_with_frames_on_the_low_one(work_sit
             return link.status.label == "connected"
 
         assert wait_until(connected, 30.0), ws.log()
-        assert _ranges(link.session) == [(0, 5), (6, 7)], ws.log()
+        assert _ranges(link.session) == [(0, 3), (4, 7)], ws.log()
         port = int(ws.endpoint.rsplit(":", 1)[1])
         dst_ports = sorted(int(str(lk.dst).split("?")[0].rsplit(":", 1)[1])
                            for lk in link.session.info.links())  # fmt: skip
@@ -210,14 +212,18 @@ def test_real_work_site_listens_on_two_links_with_frames_on_the_low_one(work_sit
             link.poll()
             for topic, priority in _drain(seen):
                 priorities.setdefault(topic, set()).add(int(priority))
-            return {"camera", "robot_state", "report", "heartbeat"} <= set(priorities)
+            return {"camera", "robot_state", "report", "heartbeat", "recognitions"} <= set(
+                priorities
+            )
 
-        assert wait_until(all_kinds, 30.0), (priorities, ws.log())
+        assert wait_until(all_kinds, 60.0), (priorities, ws.log())
+        # Reports, heartbeats (whose echo measures the commands' round trip) and recognitions
+        # on the commands' link; robot states and camera frames, the streams, on the other.
+        for topic in ("report", "heartbeat", "recognitions"):
+            assert priorities[topic] <= {int(p) for p in COMMAND_PRIORITIES}, topic
+        assert priorities["robot_state"] <= {int(p) for p in STATE_PRIORITIES}
         assert priorities["camera"] <= {int(p) for p in IMAGE_PRIORITIES}
-        assert priorities["report"] <= {int(p) for p in COMMAND_PRIORITIES}
-        for topic in ("robot_state", "heartbeat"):  # on the commands' link, below the commands
-            assert priorities[topic] <= set(range(int(zenoh.Priority.INTERACTIVE_LOW), 6)), topic
-        assert "camera frames on 6-7 (port + 1)" in ws.log()
+        assert "robot state and camera frames on 4-7 (port + 1)" in ws.log()
     finally:
         link.close()
 

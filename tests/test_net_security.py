@@ -183,7 +183,7 @@ def test_only_the_operator_may_command(secure_work_site: str, certs: Path, links
     "endpoint",
     [
         "tcp/127.0.0.1:7447",
-        "tcp/127.3.2.1:7447?prio=0-5",
+        "tcp/127.3.2.1:7447?prio=0-3",
         "tcp/[::1]:7447",
         "tcp/localhost:7447",
         "udp/127.0.0.1:7447",
@@ -201,7 +201,7 @@ def test_loopback_listeners_stay_unauthenticated(endpoint: str) -> None:
         "tcp/0.0.0.0:7447",
         "tcp/[::]:7447",
         "tcp/10.77.0.2:7447",
-        "tcp/robot.example.org:7447?prio=6-7",
+        "tcp/robot.example.org:7447?prio=4-7",
         "udp/0.0.0.0:7447",
         "tls/0.0.0.0:7447",  # TLS without certificates is refused too
     ],
@@ -216,7 +216,7 @@ def test_a_plain_listener_on_the_network_is_refused_unless_insecure(endpoint: st
 
 def test_a_tls_listener_with_certificates_is_accepted(certs: Path) -> None:
     tls = TlsFiles.in_dir(certs, "work-site")
-    check_listeners(["tls/0.0.0.0:7447?prio=0-5", "tls/0.0.0.0:7448?prio=6-7"], tls)
+    check_listeners(["tls/0.0.0.0:7447?prio=0-3", "tls/0.0.0.0:7448?prio=4-7"], tls)
     with pytest.raises(ProtocolError, match=r"tcp/0\.0\.0\.0:7449 without TLS"):
         check_listeners(["tls/0.0.0.0:7447", "tcp/0.0.0.0:7449"], tls)  # certs, but plain TCP
 

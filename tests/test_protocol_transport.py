@@ -100,8 +100,9 @@ def test_default_configs_are_the_loopback_demo() -> None:
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
     assert json.loads(conf.get_json("transport/shared_memory/enabled")) is False
     assert DEFAULT_WORK_SITE_ENDPOINT == "tcp/127.0.0.1:7447"
-    # Two links: priorities 0-5 on the default port, camera frames' 6-7 on the next one.
-    split = ["tcp/127.0.0.1:7447?prio=0-5", "tcp/127.0.0.1:7448?prio=6-7"]
+    # Two links: priorities 0-3 on the default port, robot state's and camera frames' 4-7 on
+    # the next one.
+    split = ["tcp/127.0.0.1:7447?prio=0-3", "tcp/127.0.0.1:7448?prio=4-7"]
     work = work_site_config()
     assert json.loads(work.get_json("listen/endpoints")) == split
     operator = operator_site_config()

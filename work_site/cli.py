@@ -82,8 +82,9 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ENDPOINT",
         help="zenoh endpoint to listen on; repeatable (default: "
         f"{DEFAULT_WORK_SITE_ENDPOINT}). One tcp/ or tls/ endpoint HOST:PORT becomes two links: "
-        "commands, programs, reports and state (priorities 0-5) on PORT, camera frames (6-7) on "
-        "PORT+1, so that images never delay a command; several are each split so",
+        "commands, programs, reports, heartbeats, recognitions (priorities 0-3) on PORT, robot "
+        "state and camera frames (4-7) on PORT+1, so that neither images nor a lost state's "
+        "resend delay a command or a report; several are each split so",
     )
     parser.add_argument(
         "--single-link",
@@ -357,7 +358,7 @@ def serve(args: argparse.Namespace) -> int:
     try:
         WorkSiteServer(scene, config, options).run(stop)
     except zenoh.ZError as e:  # zenoh.open: e.g. a port in use
-        hint = " (the camera link takes PORT+1: choose another port, or --single-link)"
+        hint = " (the state and camera link takes PORT+1: choose another port, or --single-link)"
         print(f"work-site: zenoh: {e}".strip() + (hint if len(listen) > 1 else ""), file=sys.stderr)
         return 1
     return 0

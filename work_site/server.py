@@ -292,9 +292,13 @@ class WorkSiteServer(ProgramIntake):
         self._pub_camera = session.declare_publisher(
             key(site, "camera"), congestion_control=drop, priority=zenoh.Priority.DATA_LOW
         )
-        self._pub_heartbeat = session.declare_publisher(key(site, "heartbeat"))
+        # Heartbeats and recognitions go with the commands (protocol.session.PRIORITY_RANGES):
+        # the round trip the beats measure is the commands', and the operator waits on both.
+        self._pub_heartbeat = session.declare_publisher(
+            key(site, "heartbeat"), priority=zenoh.Priority.REAL_TIME
+        )
         self._pub_recognitions = session.declare_publisher(
-            key(site, "recognitions"), priority=zenoh.Priority.DATA
+            key(site, "recognitions"), priority=zenoh.Priority.INTERACTIVE_LOW
         )
         self._pub_truth = (
             session.declare_publisher(key(site, "truth"), congestion_control=drop)
