@@ -300,8 +300,12 @@ class WorkSiteServer(ProgramIntake):
         self._pub_recognitions = session.declare_publisher(
             key(site, "recognitions"), priority=zenoh.Priority.INTERACTIVE_LOW
         )
+        # The judge's ground truth goes with the commands too: on a link too slow for the
+        # camera, the streams' link queues frames and would starve it.
         self._pub_truth = (
-            session.declare_publisher(key(site, "truth"), congestion_control=drop)
+            session.declare_publisher(
+                key(site, "truth"), congestion_control=drop, priority=zenoh.Priority.INTERACTIVE_LOW
+            )
             if self.options.publish_truth
             else None
         )
