@@ -3,7 +3,7 @@
     python deploy/fleet.py --sites 3 [--routers 2] [--site-routers] [--pages 1] [--tls DIR]
         [--port 7600] [--logs DIR]
 
-Starts ``deploy/router.py`` on ``--port`` (commands) and the next port (camera frames), and with
+Starts ``deploy/router.py`` on ``--port`` (commands) and the next port (state, camera), and with
 ``--routers 2`` a second router on the two ports after, meshed with the first (the shared
 routers: a cloud router and its stand-in); then N ``work-site serve`` processes with site ids
 ``cell-01`` … ``cell-NN``, each listening on a loopback port of its own and connected to every
@@ -88,7 +88,7 @@ class FleetSpec:
     tls: Path | None = None
     """Certificates for mutual TLS and per-cell access control (None: plain loopback)."""
     port: int = 0
-    """The first router's command port (its camera port is the next); a second router, the
+    """The first router's command port (its state and camera port is the next); a second router, the
     site routers and then the work sites' listeners take the pairs after (0: free pairs)."""
     page_port: int = 8080
     camera: bool = True
@@ -230,7 +230,7 @@ class Fleet:
 
     @property
     def router_endpoints(self) -> list[str]:
-        """The shared routers' endpoints (their command ports; camera frames on the next)."""
+        """The shared routers' endpoints (their command ports; state and camera on the next)."""
         return [r.endpoint for r in self.routers.values() if r.site is None]
 
     @property

@@ -32,12 +32,12 @@ PRIORITY_RANGES = ("0-3", "4-7")
 and _low: liveliness, stops, heartbeats, programs, reports, recognitions) and 4-7 (data_high …
 background: robot state, ground truth, camera frames). TCP delivers in order, so over a lossy
 link each lost packet holds up all that follows it on its connection for about a round trip:
-robot states (a hundred a second) lose one often enough to hold most reports up, and a camera
+robot states (a hundred a second) lose one often enough to hold many reports up, and a camera
 frame holds back what follows it by its size. The streams go on a link of their own; zenoh's
 queues still send a robot state before a camera frame waiting beside it. (A third link, state
-apart from camera frames, was tried: zenoh 1.10 then noticed a cut link after 10 s more than
-its lease.) zenoh sends a priority that no link of a transport covers on the nearest one, so a
-peer with a single link still gets everything."""
+apart from camera frames, was tried: zenoh 1.10 then noticed a cut link long after its lease;
+deploy/README.md.) zenoh sends a priority that no link of a transport covers on the nearest
+one, so a peer with a single link still gets everything."""
 SPLIT_PROTOCOLS = ("tcp", "tls")
 """Link protocols whose endpoint can be split into two ports."""
 

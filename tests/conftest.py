@@ -36,7 +36,7 @@ def examples(n: int) -> int:
 
 def free_port() -> int:
     """A TCP port on 127.0.0.1 that nothing listens on right now, nor on the next one (a work
-    site listens on both: commands on the port, camera frames on the next)."""
+    site listens on both: commands on the port, robot state and camera frames on the next)."""
     return free_port_pair()
 
 
