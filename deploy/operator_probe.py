@@ -8,6 +8,10 @@
 it with the same id until the work site acknowledges it (the work site refuses a second copy of
 an id, so it runs at most once), waits for the end and prints one JSON line: the reports in
 arrival order, the acknowledgement's round trip, and where the gripper ended.
+``streams`` watches the camera and the arm's states for ``--seconds`` and prints one JSON line:
+how old the frames were on arrival after ``--settle`` seconds (median, 90th percentile; on this
+machine's clock unless it holds the lease) and the rates received at the end; with ``--series``
+every frame's time since the start and age.
 ``watch`` prints one JSON line per change of the work site's liveliness (``{"alive": bool,
 "t": unix time}``) until killed. ``--certs DIR`` uses mutual TLS with DIR/operator.{pem,key}.
 """
@@ -104,6 +108,41 @@ def run_program(args: argparse.Namespace) -> dict:
         link.close()
 
 
+def streams(args: argparse.Namespace) -> dict:
+    """Watch the streams; returns what they were like (see the module docstring)."""
+    link = _link(args)
+    ages_s: list[float] = []
+    series: list[tuple[float, float]] = []
+    try:
+        if not _wait(link, lambda: link.status.label == "connected", args.connect_timeout):
+            return {"error": "work site not connected", "label": link.status.label}
+        t0 = time.monotonic()
+        while (elapsed_s := time.monotonic() - t0) < args.seconds:
+            _, new_frame = link.poll()
+            if new_frame:
+                # The link knows the work site's clock only while it holds the lease (the
+                # work site echoes its holder's beats): a watcher reads the age on its own.
+                age_s = link.status.frame_age_s
+                age_s = time.time() - link.camera_frame.stamp_s if age_s is None else age_s
+                series.append((round(elapsed_s, 3), round(age_s, 4)))
+                if elapsed_s >= args.settle:
+                    ages_s.append(age_s)
+            time.sleep(0.05)  # a page's poll
+        if not ages_s:
+            return {"error": "no camera frame after the settling time"}
+        ages_s.sort()
+        return {
+            "frames": len(ages_s),
+            "frame_age_s_median": ages_s[len(ages_s) // 2],
+            "frame_age_s_p90": ages_s[int(0.9 * (len(ages_s) - 1))],
+            "frame_rate_hz": link.status.frame_rate_hz,
+            "state_rate_hz": link.status.state_rate_hz,
+            **({"series": series} if args.series else {}),
+        }
+    finally:
+        link.close()
+
+
 def watch(args: argparse.Namespace) -> None:
     """Print liveliness changes of the work site until killed."""
     link = _link(args)
@@ -123,8 +162,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="operator_probe", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_prog = sub.add_parser("program", help="run a pick-and-place and print its reports")
+    p_streams = sub.add_parser("streams", help="measure how old camera frames arrive")
     p_watch = sub.add_parser("watch", help="print the work site's liveliness changes")
-    for p in (p_prog, p_watch):
+    for p in (p_prog, p_streams, p_watch):
         p.add_argument("--connect", required=True, metavar="ENDPOINT")
         p.add_argument("--site-id", default="site1")
         p.add_argument("--certs", type=Path, help="mutual TLS with DIR/operator.{pem,key}")
@@ -142,11 +182,19 @@ def main(argv: list[str] | None = None) -> int:
     p_prog.add_argument("--ack-timeout", type=float, default=5.0, help="re-send after (s)")
     p_prog.add_argument("--max-sends", type=int, default=5)
     p_prog.add_argument("--timeout", type=float, default=120.0, help="for the whole program (s)")
+    p_streams.add_argument("--connect-timeout", type=float, default=30.0)
+    p_streams.add_argument("--seconds", type=float, default=30.0, help="watch this long (s)")
+    p_streams.add_argument(
+        "--settle", type=float, default=10.0, help="count frames from this long on (s)"
+    )
+    p_streams.add_argument(
+        "--series", action="store_true", help="also print every frame's [time, age] (s)"
+    )
     args = parser.parse_args(argv)
     if args.command == "watch":
         watch(args)
         return 0
-    result = run_program(args)
+    result = run_program(args) if args.command == "program" else streams(args)
     print(json.dumps(result), flush=True)
     return 0 if "error" not in result else 1
 

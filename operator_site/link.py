@@ -72,6 +72,14 @@ default): the heartbeat process's beats covered the gap, unless the stall outlas
 LEASE_BEAT_PERIOD_S = 1.0
 """While this operator holds the work site's control lease and runs nothing, it beats this
 often, so that the lease stays its own while its page is open (``work_site/lease.py``)."""
+STREAM_ECHO_PERIOD_S = 0.25
+"""While it receives the work site's streams and runs nothing, it beats this often, so that
+the work site hears soon how late they arrive (``work_site/pacing.py``)."""
+STATE_ARRIVALS = 64
+"""Robot states kept between two polls, with when each arrived: every one is counted, the newest
+is read (0.64 s of a 100 Hz arm: a page's poll comes sooner)."""
+FRAME_ARRIVALS = 8
+"""The same for camera frames (1.6 s of a 5 Hz camera)."""
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
 
 
@@ -109,33 +117,45 @@ def default_operator_id() -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "-", words).strip("-.")[:128] or "operator"
 
 
-MAX_SEQ_STEP = 10_000
-"""A sequence number further on than this from the last one seen is a restarted sender: it
-counts as one message."""
+class ArrivalRing:
+    """A zenoh subscriber's handler that keeps the newest samples with when each arrived
+    (monotonic s), so that what the heartbeats echo does not include the reader's poll period
+    or a stall of its thread."""
+
+    def __init__(self, capacity: int) -> None:
+        self._ring: collections.deque[tuple[float, zenoh.Sample]] = collections.deque(
+            maxlen=capacity
+        )
+
+    def __call__(self, sample: zenoh.Sample) -> None:  # zenoh's thread
+        self._ring.append((time.monotonic(), sample))
+
+    def drain(self) -> list[tuple[float, zenoh.Sample]]:
+        """What arrived since the last drain, oldest first."""
+        out = []
+        while True:
+            try:
+                out.append(self._ring.popleft())
+            except IndexError:
+                return out
 
 
 class RateMeter:
-    """Messages a sender sent per second over the last :data:`RATE_WINDOW_S` seconds, counted by
-    their sequence numbers: a reader that keeps only the newest few (a ring it drains now and
-    then) still measures the rate they were sent at."""
+    """Messages that arrived per second over the last :data:`RATE_WINDOW_S` seconds: what the
+    link delivered (the work site sends fewer than it makes while the link is slow), counted
+    as they arrive (:class:`ArrivalRing`), not as a reader happens to keep them."""
 
     def __init__(self) -> None:
-        self._stamps: collections.deque[tuple[float, int]] = collections.deque()
-        self._last_seq: int | None = None
+        self._stamps: collections.deque[float] = collections.deque()
 
-    def tick(self, now_s: float, seq: int | None = None) -> None:
-        """A message arrived at ``now_s`` with sequence number ``seq`` (None: count one)."""
-        step = 1
-        if seq is not None and self._last_seq is not None:
-            step = seq - self._last_seq if 0 < seq - self._last_seq <= MAX_SEQ_STEP else 1
-        if seq is not None:
-            self._last_seq = seq
-        self._stamps.append((now_s, step))
+    def tick(self, arrived_s: float) -> None:
+        """A message arrived at ``arrived_s`` (monotonic s)."""
+        self._stamps.append(arrived_s)
 
     def rate_hz(self, now_s: float) -> float:
-        while self._stamps and self._stamps[0][0] < now_s - RATE_WINDOW_S:
+        while self._stamps and self._stamps[0] < now_s - RATE_WINDOW_S:
             self._stamps.popleft()
-        return sum(n for _, n in self._stamps) / RATE_WINDOW_S
+        return len(self._stamps) / RATE_WINDOW_S
 
 
 @dataclass
@@ -181,6 +201,8 @@ class _Wire:
 
     session: zenoh.Session
     sub_state: zenoh.Subscriber
+    state_arrivals: ArrivalRing
+    frame_arrivals: ArrivalRing
     sub_camera: zenoh.Subscriber
     sub_report: zenoh.Subscriber
     sub_recognitions: zenoh.Subscriber
@@ -202,10 +224,13 @@ class _Wire:
         # and never batched: they wait for room instead, on the caller's thread (the page's
         # for a stop, the beating thread's own for a beat), and go at once.
         block = zenoh.CongestionControl.BLOCK
+        state_arrivals, frame_arrivals = ArrivalRing(STATE_ARRIVALS), ArrivalRing(FRAME_ARRIVALS)
         return cls(
             session=session,
-            sub_state=session.declare_subscriber(key(site_id, "robot_state"), ring(4)),
-            sub_camera=session.declare_subscriber(key(site_id, "camera"), ring(1)),
+            sub_state=session.declare_subscriber(key(site_id, "robot_state"), state_arrivals),
+            state_arrivals=state_arrivals,
+            sub_camera=session.declare_subscriber(key(site_id, "camera"), frame_arrivals),
+            frame_arrivals=frame_arrivals,
             sub_report=session.declare_subscriber(key(site_id, "report"), ring(256)),
             sub_recognitions=session.declare_subscriber(key(site_id, "recognitions"), ring(1)),
             sub_heartbeat=session.declare_subscriber(key(site_id, "heartbeat"), ring(4)),
@@ -265,6 +290,9 @@ class WorkSiteLink:
         """The latest recognitions the work site published (with its frame's ``seq``)."""
         self._state_rate, self._frame_rate = RateMeter(), RateMeter()
         self._last_state_s: float | None = None
+        self._newest_state: tuple[float, float] | None = None
+        """The newest robot state's stamp (the work site's clock) and when it arrived
+        (monotonic s), echoed by our beats."""
         self._last_frame_s: float | None = None
         self._warned: set[str] = set()
         self._unanswered: dict[str, tuple[bytes, float, float]] = {}
@@ -295,7 +323,13 @@ class WorkSiteLink:
                 log.warning("heartbeat thread woke %.3f s late", late_s)
             idle_s += HEARTBEAT_PERIOD_S
             running = bool(self._unanswered or self._unfinished)
-            if running or (self.holds_control and idle_s >= LEASE_BEAT_PERIOD_S):
+            last_state_s = self._last_state_s
+            receiving = last_state_s is not None and now - last_state_s < LEASE_BEAT_PERIOD_S
+            if (
+                running
+                or (self.holds_control and idle_s >= LEASE_BEAT_PERIOD_S)
+                or (receiving and idle_s >= STREAM_ECHO_PERIOD_S)
+            ):
                 self._send_heartbeat()
                 idle_s = 0.0
             if running:
@@ -319,6 +353,10 @@ class WorkSiteLink:
         if (work_site_beat := self._work_site_beat) is not None:
             echo_stamp_s = work_site_beat[0]
             echo_held_s = max(0.0, time.monotonic() - work_site_beat[1])
+        state_echo_s = state_held_s = 0.0
+        if (newest_state := self._newest_state) is not None:
+            state_echo_s = newest_state[0]
+            state_held_s = max(0.0, time.monotonic() - newest_state[1])
         beat = Heartbeat(
             site_id=self.site_id,
             role="operator_site",
@@ -327,6 +365,8 @@ class WorkSiteLink:
             operator=self.operator_id,
             echo_stamp_s=echo_stamp_s,
             echo_held_s=echo_held_s,
+            state_echo_s=state_echo_s,
+            state_echo_held_s=state_held_s,
         )
         self._heartbeat_seq += 1
         t0 = time.monotonic()
@@ -362,20 +402,28 @@ class WorkSiteLink:
             self._work_site.lost = False
             self._renew()
         self._poll_sites(wire)
-        while (sample := wire.sub_state.try_recv()) is not None:
+        arrivals = wire.state_arrivals.drain()
+        for arrived_s, _ in arrivals:  # every state counts; only the newest is read
+            self._state_rate.tick(arrived_s)
+        for arrived_s, sample in reversed(arrivals):
             if (msg := self._decode(sample, RobotState, "robot state")) is not None:
                 self.robot_state, new_state = msg, True
-                self._state_rate.tick(now, msg.seq)
+                self._newest_state = (msg.stamp_s, arrived_s)
                 self._last_state_s = now
-        while (sample := wire.sub_camera.try_recv()) is not None:
+                break
+        arrivals = wire.frame_arrivals.drain()
+        for arrived_s, _ in arrivals:
+            self._frame_rate.tick(arrived_s)
+        for arrived_s, sample in reversed(arrivals):
             if (msg := self._decode(sample, CameraFrame, "camera frame")) is not None:
                 self.camera_frame, new_frame = msg, True
-                self._frame_rate.tick(now, msg.seq)
                 self._last_frame_s = now
                 offset_s = self._round_trips.clock_offset_s()
+                arrived_unix_s = time.time() - (now - arrived_s)
                 self.status.frame_age_s = (
-                    None if offset_s is None else time.time() + offset_s - msg.stamp_s
+                    None if offset_s is None else arrived_unix_s + offset_s - msg.stamp_s
                 )
+                break
         while (sample := wire.sub_report.try_recv()) is not None:
             if (msg := self._decode(sample, ExecutionReport, "execution report")) is not None:
                 self._on_report(msg)

@@ -31,7 +31,7 @@ from ._schema import (
 )
 from .images import DEFAULT_JPEG_QUALITY, ImageEncoding
 
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 """Version of the wire schema; bump on any incompatible change to a message.
 2: ``CameraFrame`` carries its image's ``encoding`` and ``quality``.
 3: ``ExecutionReport`` carries its number within its program (``seq``).
@@ -41,7 +41,7 @@ SCHEMA_VERSION = 7
 OLDEST_READ_VERSION = 6
 """The oldest schema version read, for a message type whose body has not changed since (a
 program saved by the version before stays loadable)."""
-BODY_CHANGED_IN: dict[str, int] = {"heartbeat": 7}
+BODY_CHANGED_IN: dict[str, int] = {"heartbeat": 8}
 """The version in which a type's body last changed, where that is after
 :data:`OLDEST_READ_VERSION`: older envelopes of that type are refused."""
 
@@ -326,15 +326,22 @@ class Heartbeat(Message):
     the other side measures the round trip on its own clock."""
     echo_held_s: NonNegative = 0.0
     """How long before this beat was sent that echoed one was heard (s)."""
+    state_echo_s: NonNegative = 0.0
+    """An operator site's: the ``stamp_s`` of the newest robot state it received (0: none), so
+    that the work site measures how long its streams take to arrive (``work_site.pacing``)."""
+    state_echo_held_s: NonNegative = 0.0
+    """How long before this beat was sent that state arrived (s)."""
 
     def round_trip_s(self, now_s: float) -> float | None:
         """The round trip this beat's echo measures, ``now_s`` being the echoed side's
         ``time.time()`` as it reads the beat; None without an echo, or when the figure is
         negative or over :data:`MAX_ROUND_TRIP_S` (a clock stepped, an echo not ours)."""
-        if self.echo_stamp_s <= 0.0:
-            return None
-        round_trip_s = now_s - self.echo_stamp_s - self.echo_held_s
-        return round_trip_s if 0.0 <= round_trip_s <= MAX_ROUND_TRIP_S else None
+        return _round_trip_s(now_s, self.echo_stamp_s, self.echo_held_s)
+
+    def state_round_trip_s(self, now_s: float) -> float | None:
+        """The same for the echoed robot state: out with the work site's streams, back with
+        this beat."""
+        return _round_trip_s(now_s, self.state_echo_s, self.state_echo_held_s)
 
     def clock_offset_s(self, now_s: float) -> float | None:
         """How far the sender's clock is ahead of the echoed side's, ``now_s`` being the
@@ -345,6 +352,13 @@ class Heartbeat(Message):
             return None
         heard_s = self.stamp_s - self.echo_held_s  # when our echoed beat arrived, its clock
         return ((heard_s - self.echo_stamp_s) + (self.stamp_s - now_s)) / 2.0
+
+
+def _round_trip_s(now_s: float, echo_stamp_s: float, echo_held_s: float) -> float | None:
+    if echo_stamp_s <= 0.0:
+        return None
+    round_trip_s = now_s - echo_stamp_s - echo_held_s
+    return round_trip_s if 0.0 <= round_trip_s <= MAX_ROUND_TRIP_S else None
 
 
 ROUND_TRIP_SAMPLES = 5

@@ -146,6 +146,12 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         "--no-camera", action="store_true", help="do not render or publish camera frames"
     )
     parser.add_argument(
+        "--no-stream-pacing",
+        action="store_true",
+        help="send robot states and camera frames at their full rates even when the operator's "
+        "link queues them (default: fewer, until the queue is gone)",
+    )
+    parser.add_argument(
         "--camera-supersample",
         type=int,
         default=2,
@@ -310,6 +316,7 @@ def serve(args: argparse.Namespace) -> int:
             deadman_s=args.deadman_s,
             publish_truth=args.publish_truth,
             camera=not args.no_camera,
+            stream_pacing=not args.no_stream_pacing,
             camera_supersample=args.camera_supersample,
             camera_sensor=dataclasses.replace(
                 DEFAULT_CAMERA_SENSOR, read_noise_grey=args.camera_noise

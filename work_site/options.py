@@ -76,6 +76,9 @@ class ServerOptions:
     publish_truth: bool = False
     """Publish every object's true pose with each camera frame (``TruthPoses``), for
     end-to-end evaluation; a real cell has no such thing to publish."""
+    stream_pacing: bool = True
+    """Send robot states and camera frames less often while the operator's link queues them
+    (``work_site/pacing.py``); off, they go at their full rates whatever the link."""
     deadman_s: float = 0.5
     """A running program is stopped when the operator's heartbeats have not come for this
     long (s; :data:`DEADMAN_RANGE_S`): its process died, or the link to it was cut."""

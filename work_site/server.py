@@ -56,6 +56,7 @@ from work_site.journal import JournalWriter, journal_line, load_journal
 from work_site.lease import ControlLease
 from work_site.options import DEADMAN_RANGE_S, ServerOptions
 from work_site.outbox import Outbox
+from work_site.pacing import StreamPacer
 from work_site.recognition import VisionProcess
 from work_site.world import World
 
@@ -125,8 +126,12 @@ class WorkSiteServer(ProgramIntake):
         """Guards what the checking thread and the control loop share: the reports, the
         program being checked or run (``_busy``) and the programs ready to start."""
         self._busy: str | None = None
-        self._lease = ControlLease()
         """The id of the program being checked, waiting to start or running."""
+        self._lease = ControlLease()
+        self._pacer = StreamPacer()
+        self._state_credit = self._frame_credit = 0.0
+        """Robot states and camera frames owed at the pacer's scale: one is sent each time
+        its credit reaches one."""
         self._stops_seen = 0
         """Stops acted on so far: a program whose check began before the latest one is cancelled."""
         self._ready: collections.deque[tuple[MotionProgram, int, dict]] = collections.deque()
@@ -336,19 +341,38 @@ class WorkSiteServer(ProgramIntake):
                     self._busy = None
 
     def _publish_robot_state(self, world: World) -> None:
+        """Send the arm's state, or skip it while the link asks for fewer (its ``seq`` counts
+        every state all the same: the states' clock)."""
         state = self._robot_state(world, self._seq_state)
         self._wrench_S = state.wrench_S
-        self._pub_state.put(encode(state))
         self._seq_state += 1
-        self.stats["states"] += 1
+        self._state_credit, due = self._paced(self._state_credit)
+        if due:
+            self._pub_state.put(encode(state))
+            self.stats["states"] += 1
+
+    def _paced(self, credit: float) -> tuple[float, bool]:
+        """One more message of a stream is ready: the stream's new credit, and whether this
+        one goes."""
+        credit = min(1.0, credit + self._stream_scale())
+        return (credit - 1.0, True) if credit >= 1.0 else (credit, False)
+
+    def _stream_scale(self) -> float:
+        """The fraction of their nominal rates the streams go at (``work_site.pacing``)."""
+        if not self.options.stream_pacing:
+            return 1.0
+        return self._pacer.scale(time.time(), self._lease.holder(time.monotonic()))
 
     def _publish_camera(self, camera: CameraProcess, elapsed_s: float) -> None:
         """Publish the frame the camera finished, if any, and hand it to vision."""
         done = camera.poll()
         if done is None:
             return
-        self._pub_camera.put(done.payload)
-        self.stats["frames"] += 1
+        # Paced on the wire only: vision sees every frame, whatever the operator's link.
+        self._frame_credit, due = self._paced(self._frame_credit)
+        if due:
+            self._pub_camera.put(done.payload)
+            self.stats["frames"] += 1
         # Vision gets the renderer's pixels, never the wire's (possibly JPEG).
         self._recognize(done, elapsed_s)
 
@@ -549,11 +573,16 @@ class WorkSiteServer(ProgramIntake):
 
     def _heard(self, beat: Heartbeat) -> None:
         """An operator's heartbeat came (zenoh's thread): the lease hears it, with the round
-        trip it measured when it echoes one of ours."""
-        round_trip_s = beat.round_trip_s(time.time())
-        self._lease.heard(
-            beat.operator, time.monotonic(), round_trip_s, beat.stamp_s, beat.echo_stamp_s
-        )
+        trip it measured when it echoes one of ours, and the pacer how late our streams
+        arrive when it echoes a robot state."""
+        now_s, now_mono_s = time.time(), time.monotonic()
+        round_trip_s = beat.round_trip_s(now_s)
+        self._lease.heard(beat.operator, now_mono_s, round_trip_s, beat.stamp_s, beat.echo_stamp_s)
+        if (state_round_trip_s := beat.state_round_trip_s(now_s)) is not None:
+            arrived_s = beat.stamp_s - beat.state_echo_held_s  # the operator's clock
+            self._pacer.heard(
+                beat.operator, now_s, state_round_trip_s, beat.state_echo_s, arrived_s
+            )
 
     def _check_deadman(self, inbox_heartbeat) -> None:
         """Stop the running program when the operator's heartbeats stopped coming: the newest
