@@ -81,6 +81,7 @@ bench: $(BENCH_STAMP)
 	$(PY) -m bench safety --out docs/bench
 	$(PY) -m bench linkcut --out docs/bench
 	$(PY) -m bench fleet --out docs/bench
+	$(PY) -m bench pacing --out docs/bench
 	$(PY) -m bench latency --rtt-ms 0,500,1000 --loss 0.01 --runs $(LATENCY_RUNS) --out docs/bench
 	$(PY) -m bench ui --out docs/bench
 	$(PY) -m bench lcp > docs/bench/lcp.json

@@ -19,6 +19,7 @@ BENCHMARKS: dict[str, str] = {
     "latency": "a shipped task across an emulated long link: success and time against delay",
     "linkcut": "a link cut and restored: the work site seen gone, then alive again",
     "fleet": "many cells through one router: command round trips and camera rates against N",
+    "pacing": "camera frames' age on links too slow for the streams, paced and unpaced",
     "safety": "STOP latency (also through a flood), the dead-man, state rate during a check",
     "e2e": "the scripted tasks end to end, each seed against its own work site",
     "trade": "each user knob's effect on a scripted task end to end",

@@ -46,6 +46,14 @@ def _cells(d: dict, n: int) -> tuple[float, float, float]:
     return point["command_ms_p99"], point["frame_hz_min"], point["state_hz_min"]
 
 
+def _paced(d: dict, profile: str, mode: str) -> float:
+    """The median frame age of a pacing point (StopIteration or KeyError: not measured)."""
+    point = next(p for p in d["points"] if p["profile"] == profile and p["mode"] == mode)
+    if point["frame_age_s_median"] is None:
+        raise KeyError(profile)
+    return point["frame_age_s_median"]
+
+
 @dataclass(frozen=True)
 class Figure:
     """One headline figure: where it comes from and what it must reach."""
@@ -195,6 +203,12 @@ FIGURES: tuple[Figure, ...] = (
     Figure("Network (8)", "1,000 ± 100 ms + 1 % link: corner task success", "latency.json",
            lambda d: _latency(d, 1000.0, 0.01, "successes"), "{0} of {1}", "≥ 19 of 20",
            lambda v: v[1] >= 20 and v[0] >= 19),
+    Figure("Network (8)", "0.3 Mbit/s, 1 s queue: frame age at arrival, paced / unpaced",
+           "pacing.json", lambda d: (_paced(d, "thin", "paced"), _paced(d, "thin", "unpaced")),
+           "{0:.2f} / {1:.1f} s", "(reported)"),
+    Figure("Network (8)", "500 ms + 1 % each way: frame age, paced / unpaced", "pacing.json",
+           lambda d: (_paced(d, "far-lossy", "paced"), _paced(d, "far-lossy", "unpaced")),
+           "{0:.2f} / {1:.2f} s", "(reported)"),
     Figure("Fleet (25)", "router's added round trip at 1 cell, median / p99", "fleet.json",
            lambda d: (d["router_hop"]["added_ms_median"], d["router_hop"]["added_ms_p99"]),
            "{0:.2f} / {1:.2f} ms", "p99 ≤ 1 ms", lambda v: v[1] <= 1.0),
