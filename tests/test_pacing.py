@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from protocol.messages import Heartbeat
+from work_site import pacing
 from work_site.pacing import (
     DRAIN_GAIN,
     FEEDBACK_STALE_S,
@@ -184,3 +185,16 @@ def test_stalls_of_a_lossy_link_that_carries_everything_do_not_thin_the_streams(
                 pacer.heard("a", now_s, now_s - s - (sent_s - a), sent_s=s, arrived_s=a)
             scales.append(pacer.scale(sent_s, "a"))
     assert min(scales[100:]) >= 0.5, min(scales[100:])
+
+
+def test_frames_get_smaller_as_the_streams_thin_never_better_than_asked() -> None:
+    scales = np.linspace(pacing.MIN_SCALE, 1.0, 40)
+    qualities = [pacing.jpeg_quality(s, 80) for s in scales]
+    assert qualities[-1] == 80 and qualities[0] == pacing.PACED_JPEG_QUALITY
+    assert all(a <= b for a, b in itertools.pairwise(qualities))  # monotonic
+    assert pacing.jpeg_quality(pacing.QUALITY_FLOOR_SCALE, 80) == pacing.PACED_JPEG_QUALITY
+    assert pacing.jpeg_quality(0.75, 80) == 65
+    assert pacing.jpeg_quality(0.1, 30) == 30  # the user's lower quality stands
+    for bad in (0.0, -0.5, 1.5, math.nan):
+        with pytest.raises(ValueError, match=r"outside \(0, 1\]"):
+            pacing.jpeg_quality(bad, 80)

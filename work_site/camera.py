@@ -255,6 +255,8 @@ class RenderRequest:
     X_WO: dict[str, np.ndarray]
     q: np.ndarray
     fingers_m: np.ndarray
+    quality: int | None = None
+    """This frame's JPEG quality (None: the wire's :class:`FrameEncoding`)."""
 
 
 def _render_worker(
@@ -294,7 +296,7 @@ def _render_worker(
                     dist=calibrated.dist,
                     image=image,
                     encoding=wire.encoding,
-                    quality=wire.quality,
+                    quality=wire.quality if request.quality is None else request.quality,
                 )
             )
             opening = float(np.sum(request.fingers_m))

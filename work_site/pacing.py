@@ -79,6 +79,25 @@ FEEDBACK_STALE_S = 5.0
 """An operator not heard with an echo for this long no longer paces the streams (s); the
 operator site echoes at least once a second while it receives them."""
 MAX_OPERATORS = 64
+PACED_JPEG_QUALITY = 50
+"""The JPEG quality frames fall to as the streams thin: a noisy sensor's frame shrinks steeply
+from the default 80 down to here and little below, while the blocks' edges stay plain to see."""
+QUALITY_FLOOR_SCALE = 0.5
+"""The scale at and below which frames go at :data:`PACED_JPEG_QUALITY`."""
+
+
+def jpeg_quality(scale: float, full_quality: int) -> int:
+    """The JPEG quality of frames sent at ``scale`` of the streams' full rates: ``full_quality``
+    at full rate, falling linearly to :data:`PACED_JPEG_QUALITY` at :data:`QUALITY_FLOOR_SCALE`
+    (never above ``full_quality``), so that a slow link gets smaller frames as well as fewer.
+    The bytes a second fall monotonically with the scale: the pacing's loop sees a steeper link,
+    not a different one."""
+    if not 0.0 < scale <= 1.0:
+        raise ValueError(f"stream scale {scale} outside (0, 1]")
+    if full_quality <= PACED_JPEG_QUALITY:
+        return full_quality
+    fraction = max(0.0, (scale - QUALITY_FLOOR_SCALE) / (1.0 - QUALITY_FLOOR_SCALE))
+    return round(PACED_JPEG_QUALITY + fraction * (full_quality - PACED_JPEG_QUALITY))
 
 
 @dataclass

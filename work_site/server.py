@@ -56,7 +56,7 @@ from work_site.journal import JournalWriter, journal_line, load_journal
 from work_site.lease import ControlLease
 from work_site.options import DEADMAN_RANGE_S, ServerOptions
 from work_site.outbox import Outbox
-from work_site.pacing import StreamPacer
+from work_site.pacing import StreamPacer, jpeg_quality
 from work_site.recognition import VisionProcess
 from work_site.world import World
 
@@ -383,7 +383,10 @@ class WorkSiteServer(ProgramIntake):
             return
         q, fingers = world.robot_joint_positions()
         poses = world.object_poses()
-        camera.request(RenderRequest(self._seq_frame, time.time(), poses, q, fingers))
+        quality = None
+        if self.options.camera_encoding == "jpeg" and self.options.stream_pacing:
+            quality = jpeg_quality(self._stream_scale(), self.options.camera_quality)
+        camera.request(RenderRequest(self._seq_frame, time.time(), poses, q, fingers, quality))
         self._publish_truth(self._seq_frame, poses)
         self._seq_frame += 1
         period_s = 1.0 / self.scene.camera.frame_rate_hz
