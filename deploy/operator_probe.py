@@ -9,9 +9,8 @@ it with the same id until the work site acknowledges it (the work site refuses a
 an id, so it runs at most once), waits for the end and prints one JSON line: the reports in
 arrival order, the acknowledgement's round trip, and where the gripper ended.
 ``streams`` watches the camera and the arm's states for ``--seconds`` and prints one JSON line:
-how old the frames were on arrival after ``--settle`` seconds (median, 90th percentile; on this
-machine's clock unless it holds the lease) and the rates received at the end; with ``--series``
-every frame's time since the start and age.
+how old the frames were on arrival after ``--settle`` seconds (median, 90th percentile) and the
+rates received at the end; with ``--series`` every frame's time since the start and age.
 ``watch`` prints one JSON line per change of the work site's liveliness (``{"alive": bool,
 "t": unix time}``) until killed. ``--certs DIR`` uses mutual TLS with DIR/operator.{pem,key}.
 """
@@ -120,8 +119,8 @@ def streams(args: argparse.Namespace) -> dict:
         while (elapsed_s := time.monotonic() - t0) < args.seconds:
             _, new_frame = link.poll()
             if new_frame:
-                # The link knows the work site's clock only while it holds the lease (the
-                # work site echoes its holder's beats): a watcher reads the age on its own.
+                # Until the work site has echoed its beats the link does not know the work
+                # site's clock: the age is then read on this machine's.
                 age_s = link.status.frame_age_s
                 age_s = time.time() - link.camera_frame.stamp_s if age_s is None else age_s
                 series.append((round(elapsed_s, 3), round(age_s, 4)))

@@ -435,7 +435,7 @@ class WorkSiteLink:
             if beat is not None and beat.role == "work_site" and beat.site_id == self.site_id:
                 self.status.holder = beat.operator
                 self._work_site_beat = (beat.stamp_s, now)
-                if beat.operator == self.operator_id:
+                if beat.echo_operator == self.operator_id:
                     self._round_trips.add_beat(beat, time.time())
                     self.status.round_trip_s = self._round_trips.median_s()
         if self.status.work_site_alive:

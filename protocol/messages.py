@@ -326,6 +326,9 @@ class Heartbeat(Message):
     the other side measures the round trip on its own clock."""
     echo_held_s: NonNegative = 0.0
     """How long before this beat was sent that echoed one was heard (s)."""
+    echo_operator: NameOrNone = ""
+    """A work site's: whose beat it echoes (the operators it heard lately take turns, so that
+    each can measure its round trip and clock offset, watchers too); "" for an operator site's."""
     state_echo_s: NonNegative = 0.0
     """An operator site's: the ``stamp_s`` of the newest robot state it received (0: none), so
     that the work site measures how long its streams take to arrive (``work_site.pacing``)."""

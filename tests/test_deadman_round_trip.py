@@ -35,10 +35,24 @@ def test_the_round_trip_is_the_median_of_the_last_few_each_operators_own() -> No
 
 def test_the_echo_is_the_operators_latest_stamp_and_how_long_ago_it_was_heard() -> None:
     lease = ControlLease()
-    assert lease.echo("a", 10.0) == (0.0, 0.0)
+    assert lease.echo(10.0) == ("", 0.0, 0.0)
     lease.heard("a", 10.0, stamp_s=1234.5)
-    assert lease.echo("a", 10.25) == (1234.5, pytest.approx(0.25))
-    assert lease.echo("", 10.25) == (0.0, 0.0)
+    assert lease.echo(10.25) == ("a", 1234.5, pytest.approx(0.25))
+    lease.heard("", 10.5, stamp_s=99.0)  # anonymous: never echoed
+    assert lease.echo(10.75) == ("a", 1234.5, pytest.approx(0.75))
+
+
+def test_the_operators_heard_lately_take_turns_in_the_echo() -> None:
+    lease = ControlLease(idle_s=5.0)
+    for name, stamp_s in (("carol", 3.0), ("alice", 1.0), ("bob", 2.0)):
+        lease.heard(name, 10.0, stamp_s=stamp_s)
+    lease.take("carol", 10.0)  # the holder gets its turn like the watchers
+    echoed = [lease.echo(10.5 + 0.01 * k)[:2] for k in range(6)]
+    assert echoed == [("alice", 1.0), ("bob", 2.0), ("carol", 3.0)] * 2
+    lease.heard("alice", 14.0, stamp_s=5.0)
+    lease.heard("dave", 14.0)  # no stamp: nothing to echo
+    assert [lease.echo(15.5)[0] for _ in range(3)] == ["alice"] * 3  # bob, carol gone quiet
+    assert lease.echo(30.0) == ("", 0.0, 0.0)
 
 
 def test_the_timeout_adds_round_trips_up_to_the_top_of_the_range() -> None:

@@ -111,6 +111,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, ...]]] = {
         "operator": NAME_OR_NONE,
         "echo_stamp_s": NON_NEGATIVE,
         "echo_held_s": NON_NEGATIVE,
+        "echo_operator": NAME_OR_NONE,
         "state_echo_s": NON_NEGATIVE,
         "state_echo_held_s": NON_NEGATIVE,
     },

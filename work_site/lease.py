@@ -34,6 +34,8 @@ class ControlLease:
         self._last_s: collections.OrderedDict[str, float] = collections.OrderedDict()
         self._round_trips: dict[str, RoundTrips] = {}
         self._stamps_s: dict[str, float] = {}
+        self._echoed = ""
+        """The operator whose beat our last heartbeat echoed."""
         self._lock = threading.Lock()
 
     def heard(
@@ -61,14 +63,22 @@ class ControlLease:
             if round_trip_s is not None:
                 self._round_trips.setdefault(operator, RoundTrips()).add(round_trip_s, echo_stamp_s)
 
-    def echo(self, operator: str, now_s: float) -> tuple[float, float]:
-        """What a heartbeat of ours echoes to ``operator``: its latest beat's stamp and how
-        long ago (s) it was heard, (0, 0) when none was."""
+    def echo(self, now_s: float) -> tuple[str, float, float]:
+        """What our next heartbeat echoes: whose beat, its stamp and how long ago (s) it was
+        heard; ("", 0, 0) when no operator's beat was heard within :attr:`idle_s`. The
+        operators heard within it take turns, in the order of their names: one echo is all a
+        beat carries, and every operator (a watcher too) needs some to know its round trip."""
         with self._lock:
-            stamp_s, heard_s = self._stamps_s.get(operator), self._last_s.get(operator)
-        if stamp_s is None or heard_s is None:
-            return 0.0, 0.0
-        return stamp_s, max(0.0, now_s - heard_s)
+            recent = sorted(
+                name
+                for name, heard_s in self._last_s.items()
+                if name in self._stamps_s and now_s - heard_s <= self.idle_s
+            )
+            if not recent:
+                return "", 0.0, 0.0
+            later = [name for name in recent if name > self._echoed]
+            self._echoed = operator = later[0] if later else recent[0]
+            return operator, self._stamps_s[operator], max(0.0, now_s - self._last_s[operator])
 
     def round_trip_s(self, operator: str) -> float | None:
         """``operator``'s round trip as its heartbeats measured it lately (None: not known)."""

@@ -404,7 +404,7 @@ class WorkSiteServer(ProgramIntake):
             return
         now_s = time.monotonic()
         holder = self._lease.holder(now_s)
-        echo_stamp_s, echo_held_s = self._lease.echo(holder, now_s)
+        echo_operator, echo_stamp_s, echo_held_s = self._lease.echo(now_s)
         beat = Heartbeat(
             site_id=self.options.site_id,
             role="work_site",
@@ -413,6 +413,7 @@ class WorkSiteServer(ProgramIntake):
             operator=holder,
             echo_stamp_s=echo_stamp_s,
             echo_held_s=echo_held_s,
+            echo_operator=echo_operator,
         )
         self._pub_heartbeat.put(encode(beat))
         self._seq_heartbeat += 1
