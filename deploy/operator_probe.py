@@ -9,8 +9,9 @@ it with the same id until the work site acknowledges it (the work site refuses a
 an id, so it runs at most once), waits for the end and prints one JSON line: the reports in
 arrival order, the acknowledgement's round trip, and where the gripper ended.
 ``streams`` watches the camera and the arm's states for ``--seconds`` and prints one JSON line:
-how old the frames were on arrival after ``--settle`` seconds (median, 90th percentile) and the
-rates received at the end; with ``--series`` every frame's time since the start and age.
+how old the frames were on arrival after ``--settle`` seconds (median, 90th percentile), the
+rates received at the end and the share of the frames taken that arrived; with ``--series``
+every frame's time since the start and age.
 ``watch`` prints one JSON line per change of the work site's liveliness (``{"alive": bool,
 "t": unix time}``) until killed. ``--certs DIR`` uses mutual TLS with DIR/operator.{pem,key}.
 """
@@ -136,6 +137,7 @@ def streams(args: argparse.Namespace) -> dict:
             "frame_age_s_p90": ages_s[int(0.9 * (len(ages_s) - 1))],
             "frame_rate_hz": link.status.frame_rate_hz,
             "state_rate_hz": link.status.state_rate_hz,
+            "frame_share": link.status.frame_share,
             **({"series": series} if args.series else {}),
         }
     finally:

@@ -57,6 +57,9 @@ log = logging.getLogger("operator-site")
 
 RATE_WINDOW_S = 2.0
 """Messages are counted over this trailing window to report rates (Hz)."""
+SHARE_WINDOW_S = 10.0
+"""The share of the streams that arrives is measured over this long (s): long enough to span
+several frames of a camera thinned to one every few seconds."""
 STALE_AFTER_S = 1.0
 """A link whose work site is alive but has sent no robot state for this long is 'stale'."""
 RESEND_AFTER_S = 1.0
@@ -147,15 +150,38 @@ class RateMeter:
 
     def __init__(self) -> None:
         self._stamps: collections.deque[float] = collections.deque()
+        self._arrived = 0
+        self._marks: collections.deque[tuple[float, int, int]] = collections.deque()
+        """For each message read: when it arrived, its ``seq`` and the arrivals counted then."""
 
     def tick(self, arrived_s: float) -> None:
         """A message arrived at ``arrived_s`` (monotonic s)."""
         self._stamps.append(arrived_s)
+        self._arrived += 1
+
+    def read(self, arrived_s: float, seq: int) -> None:
+        """The newest message that arrived so far (already counted by :meth:`tick`) is the
+        sender's number ``seq``: its numbers count every message it made, sent or not."""
+        if self._marks and seq <= self._marks[-1][1]:  # the sender restarted
+            self._marks.clear()
+        self._marks.append((arrived_s, seq, self._arrived))
 
     def rate_hz(self, now_s: float) -> float:
         while self._stamps and self._stamps[0] < now_s - RATE_WINDOW_S:
             self._stamps.popleft()
         return len(self._stamps) / RATE_WINDOW_S
+
+    def share(self, now_s: float) -> float | None:
+        """The share of the messages the sender made over the last :data:`SHARE_WINDOW_S`
+        seconds that arrived (None: fewer than two read to say): under 1 when it sends fewer
+        than it makes (the work site does while the link queues its streams) or they are
+        lost."""
+        while self._marks and self._marks[0][0] < now_s - SHARE_WINDOW_S:
+            self._marks.popleft()
+        if len(self._marks) < 2:
+            return None
+        (_, seq0, arrived0), (_, seq1, arrived1) = self._marks[0], self._marks[-1]
+        return (arrived1 - arrived0) / (seq1 - seq0)
 
 
 @dataclass
@@ -165,6 +191,9 @@ class LinkStatus:
     work_site_alive: bool = False
     state_rate_hz: float = 0.0
     frame_rate_hz: float = 0.0
+    frame_share: float | None = None
+    """The share of the camera frames the work site took lately that arrived (None: not
+    known): under 1 while it sends fewer to fit this link."""
     last_state_age_s: float | None = None
     last_frame_age_s: float | None = None
     """How long ago the latest camera frame arrived (s)."""
@@ -417,6 +446,7 @@ class WorkSiteLink:
         for arrived_s, sample in reversed(arrivals):
             if (msg := self._decode(sample, CameraFrame, "camera frame")) is not None:
                 self.camera_frame, new_frame = msg, True
+                self._frame_rate.read(arrived_s, msg.seq)
                 self._last_frame_s = now
                 offset_s = self._round_trips.clock_offset_s()
                 arrived_unix_s = time.time() - (now - arrived_s)
@@ -450,6 +480,7 @@ class WorkSiteLink:
         s = self.status
         s.state_rate_hz = self._state_rate.rate_hz(now)
         s.frame_rate_hz = self._frame_rate.rate_hz(now)
+        s.frame_share = self._frame_rate.share(now)
         s.last_state_age_s = None if self._last_state_s is None else now - self._last_state_s
         s.last_frame_age_s = None if self._last_frame_s is None else now - self._last_frame_s
         return new_state, new_frame

@@ -133,6 +133,15 @@ def test_the_status_shows_the_round_trip_once_measured() -> None:
     assert "round trip" not in status_markdown("site_1", status)
 
 
+def test_the_status_says_when_the_link_gets_fewer_frames_than_the_camera_takes() -> None:
+    status = LinkStatus(work_site_alive=True, state_rate_hz=40.0, frame_rate_hz=1.5)
+    assert "slower than the camera" not in status_markdown("site_1", status)  # not known yet
+    status.frame_share = 0.95  # a frame lost now and then: not worth a line
+    assert "slower than the camera" not in status_markdown("site_1", status)
+    status.frame_share = 0.3
+    assert "1 frame in 3 reaches you" in status_markdown("site_1", status)
+
+
 def test_the_status_shows_how_old_the_camera_image_is_once_measured() -> None:
     status = LinkStatus(work_site_alive=True, last_frame_age_s=0.25)
     assert "last camera frame 0.2 s ago" in status_markdown("site_1", status)

@@ -14,6 +14,9 @@ from operator_site.ui.words import in_words, short_program_name
 
 LOG_LINES = 40
 """Reports the log shows: a whole run of a long program."""
+THINNED_SHARE = 0.9
+"""Below this share of the camera's frames arriving, the status says the link thins them (a
+frame lost now and then is not worth a line)."""
 
 
 def waiting_image(width: int, height: int, text: str) -> np.ndarray:
@@ -56,6 +59,12 @@ def status_markdown(site_id: str, status: LinkStatus, operator_id: str = "") -> 
         if status.round_trip_s is not None:
             rates += f" · round trip {status.round_trip_s * 1e3:.0f} ms"
         lines.append(rates)
+        if status.frame_share is not None and status.frame_share < THINNED_SHARE:
+            lines.append(
+                f"your link is slower than the camera: 1 frame in "
+                f"{1.0 / status.frame_share:.0f} reaches you (the work site sends "
+                "fewer and smaller frames until it keeps up)"
+            )
     if status.last_frame_age_s is not None:
         # What the operator sees is this old: taken this long before it arrived, plus since.
         seen = f"last camera frame {status.last_frame_age_s:.1f} s ago"
