@@ -114,11 +114,13 @@ def settled_camera(client, timeout_s: float = 20.0, still_s: float = 0.5):
     raise TimeoutError(f"the page's camera kept moving for {timeout_s:g} s")
 
 
-def drag_gizmo(tab, page, axis: int, shift_m: float, gizmo_px: float) -> None:
+def drag_gizmo(tab, page, axis: int, shift_m: float, gizmo_px: float) -> dict[str, float]:
     """Drag the gizmo's ``axis`` arrow with the mouse so that the block's target moves about
-    ``shift_m`` along it."""
+    ``shift_m`` along it; how long (s) the view took to settle first and the mouse took."""
     client = next(iter(page.server.get_clients().values()))
+    start = time.monotonic()
     camera = settled_camera(client)
+    settled = time.monotonic()
     box = tab.locator("canvas").first.bounding_box()
     u, v = gizmo_grip_px(page, camera, box, axis, gizmo_px)
     p0 = np.asarray(page.dragger.position, dtype=np.float64)
@@ -126,11 +128,17 @@ def drag_gizmo(tab, page, axis: int, shift_m: float, gizmo_px: float) -> None:
     u0, v0 = project_px(camera, box, p0)
     u1, v1 = project_px(camera, box, p0 + R_WG[:, axis] * shift_m)
     du, dv = u1 - u0, v1 - v0  # the screen motion that moves the gizmo shift_m along the axis
+    aimed = time.monotonic()
     tab.mouse.move(u, v)
     tab.mouse.down()
     for k in range(1, DRAG_STEPS + 1):
         tab.mouse.move(u + du * k / DRAG_STEPS, v + dv * k / DRAG_STEPS)
     tab.mouse.up()
+    return {
+        "view_settle_s": settled - start,
+        "aim_s": aimed - settled,
+        "mouse_s": time.monotonic() - aimed,
+    }
 
 
 def run_page(page) -> Callable[[], None]:
@@ -241,8 +249,9 @@ def first_task(
     t.marks["pick_s"] = now() - mark
     step = now()
     tab.get_by_role("button", name="from above").click()
+    t.marks["from_above_click_s"] = now() - step
     start_W = page.session.X_WO[workpiece][:3, 3].copy()
-    drag_gizmo(tab, page, 0, shift_m, gizmo_px)
+    t.marks.update(drag_gizmo(tab, page, 0, shift_m, gizmo_px))
     t.marks["drag_s"] = now() - step
     step = now()
     wait_for(
@@ -304,9 +313,12 @@ CHROMIUM_FLAGS = [
 ]  # fmt: skip
 """Debian's Chromium, headless, software WebGL, nothing fetched from outside."""
 PARTS = ("vision_wait_s", "operator_s", "program_s", "robot_s", "page_s")
-STEPS = ("accept_s", "pick_s", "drag_s", "follow_s", "update_s")
+STEPS = ("accept_s", "pick_s", "drag_s", "from_above_click_s", "view_settle_s", "aim_s",
+         "mouse_s", "follow_s", "update_s")  # fmt: skip
 """The operator's steps within ``operator_s``: accept, pick the block (a click in 3D), look from
-above and drag the gizmo, the block following it on its spring, update the model."""
+above and drag the gizmo (of which: the click on "from above", the view settling after it,
+finding the gizmo's arrow on the screen, the mouse's press, moves and release), the block
+following it on its spring, update the model."""
 
 
 @contextmanager

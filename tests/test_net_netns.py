@@ -94,6 +94,16 @@ def operator_argv(link, *args: str) -> list[str]:
     )  # fmt: skip
 
 
+def run_probe(link, *args: str) -> dict:
+    """``deploy/operator_probe.py ARGS`` in the operator's namespace: its JSON line, asserting
+    it exited 0."""
+    done = subprocess.run(
+        operator_argv(link, *args), cwd=REPO, capture_output=True, text=True, timeout=240
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def check_program_ran_once_in_order(result: dict) -> None:
     reports = [tuple(r) for r in result["reports"]]
     assert reports[0] == (-1, "accepted"), reports
@@ -122,15 +132,7 @@ def check_program_ran_once_in_order(result: dict) -> None:
 )
 def test_scripted_program_end_to_end_across_namespaces(emulated, params: dict) -> None:
     link = emulated(**params)
-    done = subprocess.run(
-        operator_argv(link, "program", "--connect-timeout=60", "--timeout=120"),
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=240,
-    )
-    assert done.returncode == 0, done.stdout + done.stderr
-    result = json.loads(done.stdout.strip().splitlines()[-1])
+    result = run_probe(link, "program", "--connect-timeout=60", "--timeout=120")
     print(f"link {params}: acknowledged after {result['ack_ms']:.1f} ms, {result['sends']} send(s)")
     assert result["sends"] == 1
     check_program_ran_once_in_order(result)
@@ -196,15 +198,7 @@ def test_camera_frames_stay_fresh_on_a_link_too_thin_for_the_streams(emulated) -
     would wait ever longer in it; paced, the frames' age stops growing. Unpaced
     (``--no-stream-pacing``) this watch sees a few frames, each older than the bound below."""
     link = emulated(camera=True, delay_ms=25.0, rate_mbit=0.3, queue_ms=1000.0)
-    done = subprocess.run(
-        operator_argv(link, "streams", "--seconds=45", "--settle=15"),
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=240,
-    )
-    assert done.returncode == 0, done.stdout + done.stderr
-    result = json.loads(done.stdout.strip().splitlines()[-1])
+    result = run_probe(link, "streams", "--seconds=45", "--settle=15")
     print(f"thin link, paced streams: {result}")
     assert result["frames"] >= 10, result  # frames keep coming, if fewer
     assert result["frame_share"] < 0.9, result  # fewer: the page says so
