@@ -198,7 +198,7 @@ FIGURES: tuple[Figure, ...] = (
            lambda d: _latency(d, 500.0, 0.01, "successes"), "{0} of {1}", "≥ 19 of 20",
            lambda v: v[1] >= 20 and v[0] >= 19),
     Figure("Network (8)", "500 ± 50 ms + 1 % link: task time over 0 ms, median", "latency.json",
-           lambda d: _latency(d, 500.0, 0.01, "overhead_s_median")[0], "{:+.1f} s",
+           lambda d: _latency(d, 500.0, 0.01, "overhead_s_median")[0], "{:+.2f} s",
            "≤ 3 round trips (1.5 s)", lambda v: v <= 1.5),
     Figure("Network (8)", "1,000 ± 100 ms + 1 % link: corner task success", "latency.json",
            lambda d: _latency(d, 1000.0, 0.01, "successes"), "{0} of {1}", "≥ 19 of 20",
