@@ -318,7 +318,6 @@ class WorkSiteLink:
         self.recognitions: Recognitions | None = None
         """The latest recognitions the work site published (with its frame's ``seq``)."""
         self._state_rate, self._frame_rate = RateMeter(), RateMeter()
-        self._last_state_s: float | None = None
         self._newest_state: tuple[float, float] | None = None
         """The newest robot state's stamp (the work site's clock) and when it arrived
         (monotonic s), echoed by our beats."""
@@ -352,8 +351,8 @@ class WorkSiteLink:
                 log.warning("heartbeat thread woke %.3f s late", late_s)
             idle_s += HEARTBEAT_PERIOD_S
             running = bool(self._unanswered or self._unfinished)
-            last_state_s = self._last_state_s
-            receiving = last_state_s is not None and now - last_state_s < LEASE_BEAT_PERIOD_S
+            newest_state = self._newest_state
+            receiving = newest_state is not None and now - newest_state[1] < STALE_AFTER_S
             if (
                 running
                 or (self.holds_control and idle_s >= LEASE_BEAT_PERIOD_S)
@@ -438,7 +437,6 @@ class WorkSiteLink:
             if (msg := self._decode(sample, RobotState, "robot state")) is not None:
                 self.robot_state, new_state = msg, True
                 self._newest_state = (msg.stamp_s, arrived_s)
-                self._last_state_s = now
                 break
         arrivals = wire.frame_arrivals.drain()
         for arrived_s, _ in arrivals:
@@ -481,7 +479,8 @@ class WorkSiteLink:
         s.state_rate_hz = self._state_rate.rate_hz(now)
         s.frame_rate_hz = self._frame_rate.rate_hz(now)
         s.frame_share = self._frame_rate.share(now)
-        s.last_state_age_s = None if self._last_state_s is None else now - self._last_state_s
+        newest_state = self._newest_state
+        s.last_state_age_s = None if newest_state is None else now - newest_state[1]
         s.last_frame_age_s = None if self._last_frame_s is None else now - self._last_frame_s
         return new_state, new_frame
 

@@ -384,7 +384,7 @@ class WorkSiteServer(ProgramIntake):
         q, fingers = world.robot_joint_positions()
         poses = world.object_poses()
         quality = None
-        if self.options.camera_encoding == "jpeg" and self.options.stream_pacing:
+        if self.options.camera_encoding == "jpeg":
             quality = jpeg_quality(self._stream_scale(), self.options.camera_quality)
         camera.request(RenderRequest(self._seq_frame, time.time(), poses, q, fingers, quality))
         self._publish_truth(self._seq_frame, poses)
