@@ -19,6 +19,7 @@ from deploy.linkemu import LinkParams, LinkSchedule
 
 REPO = Path(__file__).resolve().parents[1]
 UDPPROBE = REPO / "deploy" / "udpprobe.py"
+CROSS_CPU_CLOCK_DISAGREEMENT_MS = 2.0
 
 
 # ------------------------------------------------------------------ schedule (no root needed)
@@ -157,7 +158,10 @@ def test_link_delays_by_the_configured_amount(link_factory) -> None:
     assert result["received"] == 300
     # Round trip = 2 × 30 ms; the relay and scheduler add well under a few ms here.
     assert 60.0 <= result["rtt_ms_median"] <= 65.0, result
-    assert result["rtt_ms_min"] >= 59.9, result
+    # The relay never releases early by its own clock, but the probe's round trip is read on
+    # whichever CPUs its process ran on, and a VM's per-CPU clocks may disagree by about a
+    # millisecond; a direction left undelayed would cost 30 ms.
+    assert result["rtt_ms_min"] >= 60.0 - CROSS_CPU_CLOCK_DISAGREEMENT_MS, result
     assert result["reordered"] == 0
 
 
