@@ -345,6 +345,10 @@ def validate(record: Any) -> None:
         checked = _convert_numpy_scalars(plan, values, exc)
     values.update(msgspec.structs.asdict(checked))
     for name in plan.texts:
+        # msgspec hands a str subclass (numpy's str_, a caller's own) back as it came for a
+        # str field but a plain str for a Literal one: every text field is a plain str.
+        if type(values[name]) is not str:
+            values[name] = str.__str__(values[name])
         if not values[name].isascii() and not _utf8(values[name]):
             where = f"{plan.cls.__name__}.{name}"
             raise ProtocolError(f"{where}: is not encodable as UTF-8 (lone surrogate)")

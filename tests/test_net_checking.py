@@ -40,7 +40,8 @@ def test_state_keeps_its_rate_and_a_stop_acts_while_a_long_program_is_checked(wo
         link.send_program(long_check_program("long"))
         assert wait_until(lambda: (poll(), bool(reports("long")))[1], 30, poll_s=0.002)
         answered = reports("long")[0].stamp_s
-        assert [r.status for r in reports("long")] == ["accepted"], reports("long")
+        # Its first answer (the start may come in the same poll).
+        assert reports("long")[0].status == "accepted", reports("long")
         # The states the work site stamped while it checked: their rate, and the longest gap.
         during = sorted((seq, t) for seq, t in states.items() if sent <= t <= answered)
         rate_hz = (during[-1][0] - during[0][0]) / (during[-1][1] - during[0][1])

@@ -22,6 +22,7 @@ from hypothesis import strategies as st
 
 from protocol import MESSAGE_TYPES, ProtocolError, Stop, decode, encode
 from protocol.images import decode_image
+from protocol.messages import ExecutionReport
 from tests.test_protocol_codec import (
     MANY,
     corrupted,
@@ -179,7 +180,7 @@ def ref_float(value: Any, lo: float | None) -> float:
 def ref_str(kind: tuple[Any, ...], value: Any) -> str:
     if kind[0] == "choice":
         need(isinstance(value, str) and value in kind[1])
-        return value
+        return str.__str__(value)
     _, max_len, pattern = kind
     need(isinstance(value, str) and len(value) <= max_len)
     need(pattern is None or re.fullmatch(pattern, value) is not None)
@@ -187,7 +188,7 @@ def ref_str(kind: tuple[Any, ...], value: Any) -> str:
         value.encode("utf-8")
     except UnicodeEncodeError:
         raise RefusedError from None
-    return value
+    return str.__str__(value)  # a plain str, whatever subclass came
 
 
 # ----------------------------------------------------------------- the reference: the wire
@@ -546,3 +547,14 @@ def test_constructors_copy_the_callers_arrays(cls: type) -> None:
             new = type(record)(**values)
             assert not np.shares_memory(getattr(new, name), mine), name
             assert mine.flags.writeable and not getattr(new, name).flags.writeable, name
+
+
+def test_text_fields_are_plain_str_whatever_str_subclass_came() -> None:
+    """A choice (Literal) and a free text field given numpy's or a caller's str subclass."""
+    mine = type("Text", (str,), {})
+    for text in (np.str_("done"), mine("done")):
+        values = fields_of(random_message(ExecutionReport, 1))
+        values.update(status=text, message=text)
+        report = ExecutionReport(**values)
+        assert type(report.status) is str and type(report.message) is str
+        assert report.status == report.message == "done"
