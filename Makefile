@@ -37,15 +37,21 @@ browser:
 	  else echo "make: no $(CHROMIUM) and not root: the browser test will skip"; fi; \
 	fi
 
+# Test files are shared between TEST_WORKERS processes, each file's tests in one of them (their
+# fixtures start work sites, namespaces and browsers per file). Most integration tests wait on
+# real time, so two workers on two cores take about half the time of one.
+TEST_WORKERS ?= 2
+
 test: $(STAMP) browser
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 # The unit tier: no processes, no network, no browser, nothing that takes seconds, and a tenth
 # of each large property test's examples (tests/conftest.py: examples).
 test-fast: $(STAMP)
 	$(VENV)/bin/ruff check .
-	TELEROBOT_TESTS=fast $(PY) -m pytest -q -m "not integration and not browser and not slow"
+	TELEROBOT_TESTS=fast $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile \
+	  -m "not integration and not browser and not slow"
 
 # The nightly-sized property run: 25 times each property test's examples (5,000 for each of the
 # simulator's and the deformation's extremes tests; tests/conftest.py: examples).
