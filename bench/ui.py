@@ -154,10 +154,14 @@ def run_page(page) -> Callable[[], None]:
     return stopper
 
 
-def shot(tab, out: Path | None, name: str) -> None:
+def shot(tab, out: Path | None, name: str, t: Timings, stem: str = "ui") -> None:
+    """Screenshot ``tab`` to ``out/<stem>_<name>.png`` (``out`` None: none); its time is the
+    bench's, kept apart in ``t`` as ``screenshots_s``."""
     if out is not None:
+        start = time.monotonic()
         out.mkdir(parents=True, exist_ok=True)
-        tab.screenshot(path=str(out / f"ui_{name}.png"))
+        tab.screenshot(path=str(out / f"{stem}_{name}.png"))
+        t.add("screenshots_s", time.monotonic() - start)
 
 
 ENDED = re.compile(r"#\d+: (done|failed|stopped|refused)$")
@@ -195,6 +199,7 @@ def first_task(
     workpiece: str = "cube",
     shift_m: float = -0.04,
     gizmo_px: float = 150.0,
+    stem: str = "ui",
 ) -> Timings:
     """The first task of the module docstring, in ``tab`` (a Playwright page already showing
     ``page``, an :class:`~operator_site.ui.page.OperatorPage` refreshed by :func:`run_page`);
@@ -203,7 +208,8 @@ def first_task(
     now = time.monotonic
     tab.get_by_text("work site: connected").wait_for(timeout=60_000)
     start = now()
-    shot(tab, out, "1_loaded")
+    t.marks["connected_at_s"] = start
+    shot(tab, out, "1_loaded", t, stem)
     # Vision's recognitions: listed, outlined on the camera image, see-through in 3D. As a
     # person would, wait until the block to move is among them (vision misses a block in some
     # frames).
@@ -211,7 +217,7 @@ def first_task(
         timeout=180_000
     )
     t.add("vision_wait_s", now() - start)
-    shot(tab, out, "2_recognised")
+    shot(tab, out, "2_recognised", t, stem)
     mark = now()
     tab.get_by_role("button", name="accept the recognised blocks").click()
     tab.get_by_text(re.compile(r"^model: \d+ blocks")).wait_for(timeout=30_000)
@@ -265,12 +271,12 @@ def first_task(
     t.marks["follow_s"] = now() - step
     t.add("operator_s", now() - mark)
     t.marks["moved_m"] = float(page.session.sim.state.X_WD[0, 3] - start_W[0])
-    shot(tab, out, "3_dragged")
+    shot(tab, out, "3_dragged", t, stem)
     mark = now()
     tab.get_by_role("button", name="make the robot program").click()
     tab.get_by_text(re.compile(r"\d+ commands; path")).first.wait_for(timeout=120_000)
     t.add("program_s", now() - mark)
-    shot(tab, out, "4_program")
+    shot(tab, out, "4_program", t, stem)
     mark = now()
     tab.get_by_role("button", name="send it to the robot").click()
     t.add("operator_s", now() - mark)
@@ -287,7 +293,7 @@ def first_task(
     ended.wait_for(timeout=300_000)
     t.add("robot_s", now() - mark)
     t.marks["outcome"] = ended.inner_text()
-    shot(tab, out, "5_done")
+    shot(tab, out, "5_done", t, stem)
     # After the run, the page says what vision sees now; the operator takes it into the model.
     mark = now()
     # (Not the help text's "what vision sees": the offer after the program.)
@@ -301,7 +307,7 @@ def first_task(
         raise AssertionError(f"update from vision: {page.model_md.content}")
     t.add("operator_s", now() - mark)
     t.marks["update_s"] = now() - mark
-    shot(tab, out, "6_updated")
+    shot(tab, out, "6_updated", t, stem)
     return t
 
 
@@ -312,7 +318,8 @@ CHROMIUM_FLAGS = [
     "--use-gl=swiftshader", "--enable-unsafe-swiftshader",
 ]  # fmt: skip
 """Debian's Chromium, headless, software WebGL, nothing fetched from outside."""
-PARTS = ("vision_wait_s", "operator_s", "program_s", "robot_s", "page_s")
+PARTS = ("vision_wait_s", "operator_s", "program_s", "robot_s", "page_s", "load_s")
+"""``load_s``: the page's address opened to "work site: connected", within ``page_s``."""
 STEPS = ("accept_s", "pick_s", "drag_s", "from_above_click_s", "view_settle_s", "aim_s",
          "mouse_s", "follow_s", "update_s")  # fmt: skip
 """The operator's steps within ``operator_s``: accept, pick the block (a click in 3D), look from
@@ -342,14 +349,23 @@ def page_for(ws) -> Iterator:
         link.close()
 
 
+def page_address(page, dpr: float | None = None) -> str:
+    """The address of ``page`` on loopback; with ``dpr``, its 3D view drawn at that fixed
+    device-pixel ratio instead of the browser's, adapted."""
+    from operator_site.ui.access import page_url
+
+    return page_url("127.0.0.1", page.server.get_port(), None, view_dpr=dpr)
+
+
 @contextmanager
-def chromium_tab(pw, page) -> Iterator:
-    """A tab of Debian's headless Chromium (``pw``: a started sync Playwright) showing
-    ``page``; the browser closed on exit."""
+def chromium_tab(pw, page=None) -> Iterator:
+    """A tab of Debian's headless Chromium (``pw``: a started sync Playwright), showing
+    ``page`` if given (else blank); the browser closed on exit."""
     browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
     try:
         tab = browser.new_page(viewport=VIEWPORT)
-        tab.goto(f"http://127.0.0.1:{page.server.get_port()}/")
+        if page is not None:
+            tab.goto(page_address(page))
         yield tab
     finally:
         browser.close()
@@ -369,16 +385,21 @@ def run(args: argparse.Namespace) -> dict:
     args.out.mkdir(parents=True, exist_ok=True)
     logs = Path(tempfile.mkdtemp(prefix="bench-ui-"))  # the work sites' logs and journals
     print(f"bench ui: work-site logs in {logs}", file=sys.stderr, flush=True)
+    stem = output_stem(args.dpr)
     rows = []
     for k in range(args.runs):
         ws = start_work_site(logs, k, site_id=f"ui{k}", vision=True)
-        row: dict = {"run": k, "success": False}
-        began = time.monotonic()
+        row: dict = {"run": k, "success": False, "dpr": args.dpr or "adaptive"}
         try:
-            with page_for(ws) as page, sync_playwright() as pw, chromium_tab(pw, page) as tab:
-                t = first_task(tab, page, args.out if k == 0 else None, gizmo_px=GIZMO_PX)
-                row["total_s"] = time.monotonic() - began
+            with page_for(ws) as page, sync_playwright() as pw, chromium_tab(pw) as tab:
+                opened = time.monotonic()  # the operator opens the page's address
+                tab.goto(page_address(page, args.dpr))
+                t = first_task(
+                    tab, page, args.out if k == 0 else None, gizmo_px=GIZMO_PX, stem=stem
+                )
+                row["total_s"] = time.monotonic() - opened - t.parts.pop("screenshots_s", 0.0)
                 row.update(t.parts)
+                row["load_s"] = t.marks["connected_at_s"] - opened
                 row["page_s"] = row["total_s"] - row["vision_wait_s"] - row["robot_s"]
                 row["success"] = t.marks["outcome"].endswith(": done")
                 row["outcome"] = t.marks["outcome"]
@@ -390,23 +411,29 @@ def run(args: argparse.Namespace) -> dict:
         print(f"bench ui: run {k + 1}/{args.runs}: {row}", file=sys.stderr, flush=True)
         rows.append(row)
     done = [r for r in rows if r["success"]]
-    summary: dict = {"runs": len(rows), "success": len(done)}
+    summary: dict = {"runs": len(rows), "success": len(done), "dpr": args.dpr or "adaptive"}
     if done:
         middle = sorted(done, key=lambda r: r["total_s"])[len(done) // 2]
         summary["total_s"] = round(middle["total_s"], 2)
         for part in (*PARTS, *STEPS):
             summary[part] = round(middle.get(part, 0.0), 2)
-    write_outputs(args.out, rows, summary)
+    write_outputs(args.out, rows, summary, stem)
     return summary
 
 
-def write_outputs(out: Path, rows: list[dict], summary: dict) -> None:
-    """ui.json (the summary), ui.csv (each run) and ui.png (each run's parts, stacked)."""
+def output_stem(dpr: float | None) -> str:
+    """``ui`` for the browser's own pixel ratio, ``ui_dpr0.5`` for a fixed one."""
+    return "ui" if dpr is None else f"ui_dpr{dpr:g}"
+
+
+def write_outputs(out: Path, rows: list[dict], summary: dict, stem: str = "ui") -> None:
+    """<stem>.json (the summary), .csv (each run) and .png (each run's parts, stacked)."""
     import csv
 
-    (out / "ui.json").write_text(json.dumps(summary, indent=1) + "\n")
-    with (out / "ui.csv").open("w", newline="") as f:
-        w = csv.DictWriter(f, ["run", "success", "total_s", *PARTS, *STEPS, "outcome", "error"])
+    (out / f"{stem}.json").write_text(json.dumps(summary, indent=1) + "\n")
+    with (out / f"{stem}.csv").open("w", newline="") as f:
+        fields = ["run", "success", "dpr", "total_s", *PARTS, *STEPS, "outcome", "error"]
+        w = csv.DictWriter(f, fields)
         w.writeheader()
         for r in rows:
             w.writerow({k: r.get(k, "") for k in w.fieldnames})
@@ -432,7 +459,7 @@ def write_outputs(out: Path, rows: list[dict], summary: dict) -> None:
     ax.legend(loc="lower right", fontsize=7)
     ax.set_title("A first task in the page: where the time goes")
     fig.tight_layout()
-    fig.savefig(out / "ui.png", dpi=120)
+    fig.savefig(out / f"{stem}.png", dpi=120)
     plt.close(fig)
 
 
@@ -447,12 +474,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="directory for ui.json, ui.csv, ui.png and the first run's screenshots "
         "ui_*.png (default: %(default)s)",
     )
+    parser.add_argument(
+        "--dpr",
+        type=float,
+        default=None,
+        help="draw the 3D view at this fixed device-pixel ratio (operator-site --view-dpr); "
+        "outputs then named ui_dpr<DPR>.* "
+        "(default: the browser's own ratio, which viser adapts to the frame rate)",
+    )
 
 
 def main(args: argparse.Namespace) -> int:
     """Run the benchmark; print its JSON (one line) last."""
     if args.runs < 1:
         raise SystemExit(f"bench ui: --runs must be at least 1, not {args.runs}")
+    if args.dpr is not None:
+        from operator_site.ui.access import check_view_dpr
+
+        try:
+            check_view_dpr(args.dpr)
+        except ValueError as e:
+            raise SystemExit(f"bench ui: --dpr: {e}") from None
     summary = run(args)
     print(json.dumps(summary), flush=True)
     return 0 if summary["success"] == summary["runs"] else 1

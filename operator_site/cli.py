@@ -84,6 +84,16 @@ def build_parser() -> argparse.ArgumentParser:
             "--port", type=int, default=8080, help="port of the web page (default: %(default)s)"
         )
         p.add_argument(
+            "--view-dpr",
+            type=float,
+            default=None,
+            metavar="RATIO",
+            help="the printed address draws the 3D view at this device-pixel ratio: 0.5 on a "
+            "machine without a GPU (the page then says 'Software WebGL rendering detected') "
+            "draws a quarter of the pixels and answers the mouse faster (default: the "
+            "browser's own)",
+        )
+        p.add_argument(
             "--connect",
             # serve: several routers of a mesh (it goes on through one when another fails)
             action="append" if p is serve else "store",
@@ -410,6 +420,13 @@ def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         config, connect, links_note = _link_config(args)
         if not 1 <= args.port <= 65535:
             raise ValueError(f"--port must be in 1..65535, got {args.port}")
+        if args.view_dpr is not None:
+            from operator_site.ui.access import check_view_dpr
+
+            try:
+                check_view_dpr(args.view_dpr)
+            except ValueError as e:
+                raise ValueError(f"--view-dpr: {e}") from None
         token = _page_token(args)
     except (ModelError, ProtocolError, ValueError) as e:
         print(f"operator-site: {e}", file=sys.stderr)
@@ -427,6 +444,7 @@ def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             initial_model=args.initial_model,
             token=token,
             browse_host=socket.gethostname() if args.host in ("0.0.0.0", "::") else None,
+            view_dpr=args.view_dpr,
         )
         try:
             print(

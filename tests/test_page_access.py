@@ -56,6 +56,17 @@ def test_the_url_makes_the_browser_websocket_carry_the_token() -> None:
     assert page_url("::", 8080, None, "::1") == "http://[::1]:8080/"
 
 
+def test_the_url_may_fix_the_3d_views_pixel_ratio_and_refuses_one_out_of_range() -> None:
+    url = page_url("127.0.0.1", 8080, "a-b_c.d~0123456789", view_dpr=0.5)
+    query = parse_qs(urlsplit(url).query)
+    assert query["fixedDpr"] == ["0.5"]
+    assert query["websocket"] == ["ws://127.0.0.1:8080/?token=a-b_c.d~0123456789"]
+    assert page_url("127.0.0.1", 8080, None, view_dpr=2) == "http://127.0.0.1:8080/?fixedDpr=2"
+    for ratio in (0.1, 5.0, float("nan")):
+        with pytest.raises(ValueError, match=r"0\.25\.\.4"):
+            page_url("127.0.0.1", 8080, None, view_dpr=ratio)
+
+
 def test_only_the_token_admits_a_client() -> None:
     access = PageAccess(TOKEN)
     assert not access.open and not access.allows(1)
@@ -245,10 +256,18 @@ def test_in_chromium_the_printed_url_or_the_typed_token_gives_control() -> None:
                 tab.get_by_role("button", name="STOP the robot").click()
                 assert wait_until(lambda: len(stops) == 1, 10.0)
                 tab.close()
-                # The printed address: control at once.
+                # The printed address: control at once (here with the 3D view drawn at half
+                # the pixel ratio: a canvas half as wide in pixels as on the page).
                 tab = browser.new_page(viewport={"width": 1400, "height": 900})
-                tab.goto(page_url("127.0.0.1", port, TOKEN))
+                tab.goto(page_url("127.0.0.1", port, TOKEN, view_dpr=0.5))
                 tab.get_by_role("button", name="STOP the robot").wait_for(timeout=60_000)
+                ratio = tab.wait_for_function(
+                    "() => { const c = [...document.querySelectorAll('canvas')]"
+                    ".find(c => c.clientWidth > 100 && c.width > 0);"
+                    " return c && c.width / c.clientWidth; }",
+                    timeout=60_000,
+                ).json_value()
+                assert ratio == pytest.approx(0.5, abs=0.01), ratio
                 tab.wait_for_timeout(1_000)  # a notice would have come with the first panel
                 assert tab.get_by_text("Read only.").count() == 0
                 tab.get_by_role("button", name="STOP the robot").click()

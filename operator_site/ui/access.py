@@ -64,18 +64,43 @@ def check_token(token: str) -> str:
     return token
 
 
-def page_url(host: str, port: int, token: str | None, browse_host: str | None = None) -> str:
+VIEW_DPR_RANGE = (0.25, 4.0)
+"""Device-pixel ratios the 3D view may be fixed at: below a quarter its labels are unreadable;
+4 is the densest displays'."""
+
+
+def check_view_dpr(ratio: float) -> float:
+    """``ratio`` if the 3D view may be drawn at it, else ValueError naming the range."""
+    if not VIEW_DPR_RANGE[0] <= ratio <= VIEW_DPR_RANGE[1]:
+        raise ValueError(
+            f"the 3D view's device-pixel ratio must be in {VIEW_DPR_RANGE[0]:g}.."
+            f"{VIEW_DPR_RANGE[1]:g}, got {ratio:g}"
+        )
+    return ratio
+
+
+def page_url(
+    host: str,
+    port: int,
+    token: str | None,
+    browse_host: str | None = None,
+    view_dpr: float | None = None,
+) -> str:
     """The URL to open: with a token, one whose websocket carries it (viser's page connects to
     the ``websocket`` parameter's address, query included). ``browse_host`` replaces a wildcard
-    ``host`` (0.0.0.0, ::) with a name other machines can reach."""
+    ``host`` (0.0.0.0, ::) with a name other machines can reach. ``view_dpr`` fixes the 3D
+    view's device-pixel ratio (viser's ``fixedDpr``; None: the browser's own, which viser lowers
+    to 0.75× while frames are slow)."""
     name = browse_host or host
     if ":" in name and not name.startswith("["):
         name = f"[{name}]"
     base = f"http://{name}:{port}/"
-    if token is None:
-        return base
-    ws = f"ws://{name}:{port}/?{TOKEN_PARAM}={check_token(token)}"
-    return f"{base}?websocket={ws}"
+    params = []
+    if view_dpr is not None:
+        params.append(f"fixedDpr={check_view_dpr(view_dpr):g}")
+    if token is not None:  # last: the websocket's address carries a query of its own
+        params.append(f"websocket=ws://{name}:{port}/?{TOKEN_PARAM}={check_token(token)}")
+    return base + ("?" + "&".join(params) if params else "")
 
 
 class PageAccess:

@@ -65,7 +65,8 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
 
     ``token``: only clients that show it may control the robot (:mod:`.access`); required
     when ``host`` is not loopback. ``browse_host``: the host name :attr:`url` uses when ``host``
-    is a wildcard address.
+    is a wildcard address. ``view_dpr``: the 3D view's fixed device-pixel ratio in :attr:`url`
+    (:func:`~operator_site.ui.access.page_url`).
     """
 
     def __init__(
@@ -77,6 +78,7 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
         initial_model: str = "scene",
         token: str | None = None,
         browse_host: str | None = None,
+        view_dpr: float | None = None,
     ) -> None:
         if initial_model not in ("scene", "empty"):
             raise ValueError(f"initial_model must be 'scene' or 'empty', not {initial_model!r}")
@@ -92,7 +94,7 @@ class OperatorPage(ModelPanel, TaskPanel, ProgramPanel, SceneView):
         if browse_host is None and host in ("0.0.0.0", "127.0.0.1", "::", "::1"):
             browse_host = "localhost"
         # viser moves to the next free port if this one is taken: the URL says where it is.
-        self.url = page_url(host, self.server.get_port(), token, browse_host)
+        self.url = page_url(host, self.server.get_port(), token, browse_host, view_dpr)
         self.server.scene.set_up_direction("+z")
         eye_W, look_at_W = initial_view_W(scene)
         self.server.initial_camera.fov = VIEW_FOV_RAD
