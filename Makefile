@@ -90,6 +90,7 @@ bench: $(BENCH_STAMP)
 	$(PY) -m bench pacing --out docs/bench
 	$(PY) -m bench latency --rtt-ms 0,500,1000 --loss 0.01 --runs $(LATENCY_RUNS) --out docs/bench
 	$(PY) -m bench ui --out docs/bench
+	$(PY) -m bench ui --dpr 0.5 --out docs/bench
 	$(PY) -m bench lcp > docs/bench/lcp.json
 	$(PY) -m bench program_sweeps --out docs/bench
 	$(PY) -m bench e2e --seeds $(E2E_SEEDS) --time-scale 3 --out docs/bench
