@@ -412,16 +412,16 @@ def _sweeps(out: Path, scenes: list, seed: int, cache_dir: Path | None) -> list[
     # Refinement: predict-and-refit rounds, and Gauss–Newton iterations per fit.
     for rounds in (1, 2, 3, 4):
         params = dataclasses.replace(RecognizerParams(), refine_rounds=rounds)
-        point("refine_rounds", rounds, _with_params(base, params), scenes)
+        point("refine_rounds", rounds, base.with_params(params), scenes)
     for iters in (2, 4, 8, 16):
         params = dataclasses.replace(RecognizerParams(), fit_iterations=iters)
-        point("fit_iterations", iters, _with_params(base, params), scenes)
-    point("table_prior", 0, _with_params(base, RecognizerParams(table_prior=False)), scenes)
+        point("fit_iterations", iters, base.with_params(params), scenes)
+    point("table_prior", 0, base.with_params(RecognizerParams(table_prior=False)), scenes)
     point("table_prior", 1, base, scenes)
     # Hypothesis budget (the main speed/recall knob).
     for budget in (0, 30, 60, 120, 240, 800):
         params = dataclasses.replace(RecognizerParams(), max_hypotheses=budget)
-        point("max_hypotheses", budget, _with_params(base, params), scenes)
+        point("max_hypotheses", budget, base.with_params(params), scenes)
     # Index viewpoint density.
     for n_views in (150, 300, 600, 1200):
         rec = Recognizer(index_params=IndexParams(n_views=n_views), cache_dir=cache_dir)
@@ -444,14 +444,6 @@ def _sweeps(out: Path, scenes: list, seed: int, cache_dir: Path | None) -> list[
     _write_csv(out / "vision_sweeps.csv", rows)
     _plot(out, rows)
     return rows
-
-
-def _with_params(rec: Recognizer, params: RecognizerParams) -> Recognizer:
-    """A shallow copy of ``rec`` (sharing its index) with other parameters."""
-    clone = object.__new__(Recognizer)
-    clone.__dict__.update(rec.__dict__)
-    clone.params = params
-    return clone
 
 
 def _resolution_sets(n: int, seed: int, out: Path) -> dict[int, list]:

@@ -3,6 +3,8 @@ stays fast and stable; the benchmark (`python -m bench vision`) measures the rea
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -96,9 +98,10 @@ def test_bad_inputs_raise_clear_errors(recognizer, scenes) -> None:
         recognizer.recognize(np.zeros((480, 640), np.float64), camera)
 
 
-def test_blocks_stacked_on_blocks_are_found_where_they_are(recognizer) -> None:
-    """No block of the stack rests on the table but the lowest: each is found, held up by the
-    one under it."""
+@pytest.fixture(scope="module")
+def stacks():
+    """A cube on a plank and a hexagonal prism on a tall block: the image, the poses, the
+    camera."""
     renderer = SceneRenderer(load_scene(), supersample=3)
     try:
         V = {o.name: np.vstack([pt.vertices_O for pt in o.model.parts]) for o in renderer.movable}
@@ -125,7 +128,21 @@ def test_blocks_stacked_on_blocks_are_found_where_they_are(recognizer) -> None:
     assert {t.model: t.support for t in truth if t.support} == {
         "plank": "table", "cube": "stacked", "tall_block": "table", "hex_prism": "stacked",
     }  # fmt: skip
-    found = {r.model: r for r in recognizer.recognize(image.astype(np.uint8), camera)}
+    return image.astype(np.uint8), poses, camera
+
+
+@pytest.mark.parametrize(
+    "search",
+    [{}, {"free_search": False}, {"stacked_search": False}],
+    ids=["both", "stacked-alone", "free-alone"],
+)
+def test_blocks_stacked_on_blocks_are_found_where_they_are(recognizer, stacks, search) -> None:
+    """No block of the stack rests on the table but the lowest: each is found, held up by the
+    one under it, by either search for blocks off the table: junctions on the found blocks'
+    top faces, or the fit without the table prior."""
+    image, poses, camera = stacks
+    rec = recognizer.with_params(dataclasses.replace(recognizer.params, **search))
+    found = {r.model: r for r in rec.recognize(image, camera)}
     for name in ("cube", "hex_prism"):
         assert name in found, f"{name} on its stack not found: {sorted(found)}"
         off = found[name].X_WO[:3, 3] - poses[name][:3, 3]

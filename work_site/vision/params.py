@@ -83,5 +83,9 @@ class RecognizerParams:
     table_coarse_min: float = 0.4  # table hypotheses are scored in full only if their support
     # at 2 of 6 points per edge reaches this
     table_angle_tol_rad: float = np.deg2rad(8.0)
+    stacked_search: bool = True  # after the table search, the junction hypotheses of blocks
+    # resting on the found objects' upward faces
+    stacked_face_tilt_rad: float = np.deg2rad(5.0)  # a found face this close to horizontal
+    # is a support
     free_search: bool = True  # after the table search, look for objects anywhere above the
     # table (on others, leaning), without the table prior

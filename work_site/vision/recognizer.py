@@ -8,10 +8,11 @@ verification (:mod:`.verification`): matched visible edge length, agreement of t
 gradient's direction along every predicted edge, a final residual bound, no interpenetration
 with accepted objects or the fixed environment, and the object inside the work area, resting
 on the table or held up by what else is found. The table's hypotheses and prior come first, as
-a fast first guess; then the hypotheses they set aside are fitted without the prior (blocks on
-blocks, leaning, any way up). The arm, at the joint angles given with the image, is part of
-the environment (:mod:`.robot_parts`). The selection of the candidates that explain the image
-best is in :mod:`.pose_sets`, the tuning in :mod:`.params`.
+a fast first guess; then the same junction hypotheses on the found blocks' upward faces, as on
+tables at their heights (blocks on blocks); then the hypotheses they set aside are fitted
+without the prior (leaning, any way up). The arm, at the joint angles given with the image, is
+part of the environment (:mod:`.robot_parts`). The selection of the candidates that explain the
+image best is in :mod:`.pose_sets`, the tuning in :mod:`.params`.
 """
 
 from __future__ import annotations
@@ -65,6 +66,12 @@ from work_site.vision.verification import (
     fit_and_verify,
     match_segments,
 )
+
+FACE_TOL_M = 1e-9
+"""A model vertex this close to a hull face's plane is on the face."""
+SUPPORT_HEIGHT_MERGE_M = 1e-3
+"""Found faces this close in height (blocks of one size side by side) share one set of stacked
+hypotheses: the fit without the prior settles the height."""
 
 
 def check_camera(camera: CameraModel) -> None:
@@ -187,6 +194,13 @@ class Recognizer:
             [q for name, _, parts, _ in self.environment if name != "table" for q in parts],
         )
 
+    def with_params(self, params: RecognizerParams) -> Recognizer:
+        """A recogniser like this one (sharing its index and models) with other parameters."""
+        clone = object.__new__(Recognizer)
+        clone.__dict__.update(self.__dict__)
+        clone.params = params
+        return clone
+
     @property
     def robot(self) -> RobotParts:
         """The arm as vision sees it: its links' models, placed by joint angles."""
@@ -263,6 +277,12 @@ class Recognizer:
         )
         if len(s.candidates) > n_before:
             accepted = self._select(s, f)
+        if p.stacked_search and p.table_hypotheses and accepted:
+            self._claimed_by(accepted, s)
+            n_before = len(s.candidates)
+            self._stacked(accepted, f, s, junctions)
+            if len(s.candidates) > n_before:
+                accepted = self._select(s, f)
         if not p.free_search or not free:
             return accepted
         # What is left may not rest on the table: on other blocks, leaning, any way up. Fit
@@ -273,6 +293,28 @@ class Recognizer:
         self._unpriored(accepted, f, s)
         self._search(free, f, s, resting=False)
         return self._select(s, f) if len(s.candidates) > n_before else accepted
+
+    def _stacked(self, accepted: list[Detection], f: _Frame, s: _Search, junctions: list) -> None:
+        """Blocks resting on the objects found: each found object's upward, near horizontal
+        hull face is a table at its height, where the junction hypotheses of :mod:`.table` are
+        made as on the table, then fitted without the table prior. The selection keeps those
+        that something found holds up."""
+        p = self.params
+        heights: set[float] = set()
+        for r in accepted:
+            model = self._by_name[r.model]
+            normals_O, offsets = self._facets[model.name]
+            up = (normals_O @ r.X_WO[:3, :3].T)[:, 2] >= np.cos(p.stacked_face_tilt_rad)
+            for n_O, d in zip(normals_O[up], offsets[up], strict=True):
+                on_face = np.abs(model.vertices_O @ n_O - d) < FACE_TOL_M
+                z = float(transform(r.X_WO, model.vertices_O[on_face])[:, 2].mean())
+                heights.add(round(z / SUPPORT_HEIGHT_MERGE_M) * SUPPORT_HEIGHT_MERGE_M)
+        for z in sorted(heights):
+            items = table_stream(
+                self._corners, self.models, self.group_params, z, f.segs, f.K, f.X_WC, f.gx,
+                f.gy, p, junctions,
+            )  # fmt: skip
+            self._search(items, f, s, resting=False)
 
     def _unpriored(self, accepted: list[Detection], f: _Frame, s: _Search) -> None:
         """Each accepted object fitted again without the table prior: one view hardly tells
