@@ -65,8 +65,8 @@ def check_token(token: str) -> str:
 
 
 VIEW_DPR_RANGE = (0.25, 4.0)
-"""Device-pixel ratios the 3D view may be fixed at: below a quarter its labels are unreadable;
-4 is the densest displays'."""
+"""Device-pixel ratios the 3D view may be fixed at. At a quarter the blocks still show but the
+names drawn on them no longer read (0.5 keeps them legible); 4 is the densest displays'."""
 
 
 def check_view_dpr(ratio: float) -> float:
