@@ -43,7 +43,8 @@ def test_a_scripted_task_succeeds_end_to_end(task: str, seed: int) -> None:
     )  # fmt: skip
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert result["task"] == task and result["seed"] == seed
-    assert result["success"], (result, proc.stderr[-2000:])
+    # The failure first: pytest cuts a long message short, and it says what went wrong.
+    assert result["success"], (result["failure"], proc.stderr[-2000:], result)
     assert proc.returncode == 0
     assert result["final_error_mm"] <= 1.5 and result["final_error_deg"] <= 1.5
     assert result["contacts_verified"] >= result["contacts_required"] > 0

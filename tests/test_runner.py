@@ -338,7 +338,8 @@ def test_the_corner_task_file_succeeds_end_to_end() -> None:
         timeout_s=600,
     )  # fmt: skip
     result = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert result["success"], (result, proc.stderr[-2000:])
+    # The failure first: pytest cuts a long message short, and it says what went wrong.
+    assert result["success"], (result["failure"], proc.stderr[-2000:], result)
     assert proc.returncode == 0 and result["failure"] is None and result["seed"] == 3
     assert result["task"] == load_task(TASKS_DIR / "cube-corner.json").name
     assert result["final_error_mm"] <= 1.5 and result["final_error_deg"] <= 1.5
