@@ -101,7 +101,10 @@ def gizmo_grip_px(page, camera, box: dict, axis: int, gizmo_px: float) -> tuple[
 
 def settled_camera(client, timeout_s: float = 20.0, still_s: float = 0.5):
     """The client's camera once it has stopped changing (the page's first view is animated
-    into place)."""
+    into place): at once if the browser last reported it ``still_s`` ago or more, else once
+    it has reported the same view for ``still_s``."""
+    if time.time() - client.camera.update_timestamp >= still_s:  # viser stamps by time.time
+        return client.camera
     last, since = None, time.monotonic()
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
