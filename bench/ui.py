@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from models.transforms import quat_wxyz_to_R
+from operator_site.ui.access import check_view_dpr, page_url
 from operator_site.ui.scene_view import block_label
 
 VIEWPORT = {"width": 1400, "height": 900}
@@ -355,8 +356,6 @@ def page_for(ws) -> Iterator:
 def page_address(page, dpr: float | None = None) -> str:
     """The address of ``page`` on loopback; with ``dpr``, its 3D view drawn at that fixed
     device-pixel ratio instead of the browser's, adapted."""
-    from operator_site.ui.access import page_url
-
     return page_url("127.0.0.1", page.server.get_port(), None, view_dpr=dpr)
 
 
@@ -492,8 +491,6 @@ def main(args: argparse.Namespace) -> int:
     if args.runs < 1:
         raise SystemExit(f"bench ui: --runs must be at least 1, not {args.runs}")
     if args.dpr is not None:
-        from operator_site.ui.access import check_view_dpr
-
         try:
             check_view_dpr(args.dpr)
         except ValueError as e:
