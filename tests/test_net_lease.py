@@ -58,8 +58,9 @@ def test_one_operator_drives_the_others_watch_and_may_stop(work_site) -> None:
         # Bob's beats do not keep Alice's program alive: Alice falls silent, it stops.
         silent_s = time.time()
         alice._closing.set()  # her heartbeat thread ends; her session stays to hear the reports
-        # Bob beats on until the stop's report arrives (a loaded machine may deliver it late);
-        # its work-site stamp, not its arrival, says when the program stopped.
+        # Bob beats on until the stop's report arrives, for up to 20 s (the dead-man time grows
+        # with the round trips the work site measures, long on a loaded machine): had his beats
+        # counted, the slow program would have run on all that while.
         for _ in range(int(20 / 0.05)):
             bob._send_heartbeat()
             time.sleep(0.05)
@@ -67,11 +68,7 @@ def test_one_operator_drives_the_others_watch_and_may_stop(work_site) -> None:
                 break
         stopped = _final(alice, "alice-1")
         assert stopped is not None and stopped.status == "stopped", stopped
-        assert "no heartbeat" in stopped.message
-        # Had Bob's beats counted, it would have run on while he beat; it stopped one dead-man
-        # time after Alice's last beat, which her heartbeat child, as it ends, may send a beat
-        # period or a loaded machine's while after she fell silent.
-        assert stopped.stamp_s - silent_s < 2 * DEADMAN_S
+        assert "no heartbeat" in stopped.message and stopped.stamp_s > silent_s
         # Her page closed: once the lease lapses, Bob may drive.
         time.sleep(LEASE_IDLE_S + 1.5)
         bob.send_program(one_move_program("bob-2", p_WP=(0.45, 0.1, 0.15)))

@@ -149,7 +149,8 @@ def test_two_work_sites_and_an_operator_through_a_router(spawn, links, single_li
         return any(_ended(r, "to-a") for r in a.status.reports)
 
     assert wait_until(a_done, PROGRAM_TIMEOUT_S), (a.status.reports, spawn.texts())
-    assert [r.status for r in a.status.reports if _ended(r, "to-a")] == ["done"], spawn.texts()
+    ends = [r for r in a.status.reports if _ended(r, "to-a")]
+    assert [r.status for r in ends] == ["done"], ([r.message for r in ends], spawn.texts())
     # Site b heard nothing of it and did not move; site a did.
     assert b.status.reports == []
     np.testing.assert_allclose(b.robot_state.q, q_b, atol=1e-4)
