@@ -30,6 +30,10 @@ pytestmark = pytest.mark.integration
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((REPO / "deploy" / "zenoh").glob("*.json5"))
 PROGRAM_TIMEOUT_S = 120.0
+ROUTED_DEADMAN_S = 2.0
+"""The routed work sites' dead-man time: what is tested here is where messages go, and on a
+loaded machine the operator's beats through the router have come further apart than the
+default (the dead-man has tests of its own)."""
 """A one-move program's end is waited for this long: it bounds a hang, not the run (a loaded
 machine simulates slower than real time)."""
 
@@ -120,7 +124,8 @@ def test_two_work_sites_and_an_operator_through_a_router(spawn, links, single_li
             site,
             [sys.executable, "-m", "work_site", "serve", "--site-id", site,
              "--listen", f"tcp/127.0.0.1:{free_port_pair()}", "--connect", router_ep, *one,
-             "--journal", str(spawn.tmp_path / f"{site}.jsonl"), "--vision-rate", "0"],
+             "--journal", str(spawn.tmp_path / f"{site}.jsonl"), "--vision-rate", "0",
+             "--deadman-s", str(ROUTED_DEADMAN_S)],
         )  # fmt: skip
     # A client's zenoh.open fails rather than retries while its router is not up yet.
     assert wait_until(lambda: "router: up" in router_log.read_text(), 30.0), spawn.texts()
