@@ -61,11 +61,7 @@ def test_one_operator_drives_the_others_watch_and_may_stop(work_site) -> None:
         # Bob beats on until the stop's report arrives, for up to 20 s (the dead-man time grows
         # with the round trips the work site measures, long on a loaded machine): had his beats
         # counted, the slow program would have run on all that while.
-        for _ in range(int(20 / 0.05)):
-            bob._send_heartbeat()
-            time.sleep(0.05)
-            if _final(alice, "alice-1") is not None:
-                break
+        wait_until(lambda: (bob._send_heartbeat(), _final(alice, "alice-1"))[1] is not None, 20)
         stopped = _final(alice, "alice-1")
         assert stopped is not None and stopped.status == "stopped", stopped
         assert "no heartbeat" in stopped.message and stopped.stamp_s > silent_s

@@ -30,12 +30,12 @@ pytestmark = pytest.mark.integration
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((REPO / "deploy" / "zenoh").glob("*.json5"))
 PROGRAM_TIMEOUT_S = 120.0
+"""A one-move program's end is waited for this long: it bounds a hang, not the run (a loaded
+machine simulates slower than real time)."""
 ROUTED_DEADMAN_S = 2.0
 """The routed work sites' dead-man time: what is tested here is where messages go, and on a
 loaded machine the operator's beats through the router have come further apart than the
 default (the dead-man has tests of its own)."""
-"""A one-move program's end is waited for this long: it bounds a hang, not the run (a loaded
-machine simulates slower than real time)."""
 
 
 def _ended(report, program_id: str) -> bool:
