@@ -39,8 +39,9 @@ HOLD_FORCE_N = 1.0
 of what it read carrying the block in free air."""
 
 
-LOOPBACK_ROUND_TRIP_S = 0.05
-"""A round trip on loopback is well under this, however loaded the machine (s)."""
+LOOPBACK_ROUND_TRIP_S = 0.2
+"""A round trip on loopback is under this, however loaded the machine (s): the whole suite in
+two workers on two cores has pushed it past a twentieth of a second."""
 
 
 def check_deadman_message(message: str) -> None:
