@@ -24,9 +24,9 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "eps_barrier_m": (
         1e-6,
         1e-3,
-        "below a micrometre fcl's distance between nearly parallel faces can be wrong by as "
-        "much as the gap itself, and a block pushed into a corner then stops short of a wall "
-        "or rocks; a barrier wider than a millimetre keeps blocks visibly apart",
+        "tested from a micrometre (distances are exact to a picometre, but pushed into a "
+        "corner with a barrier of nanometres blocks were seen to stop short of a wall when "
+        "distances were GJK's); a barrier wider than a millimetre keeps blocks visibly apart",
     ),
     "eps_capture_m": (
         1e-6,

@@ -429,11 +429,11 @@ class Simulator:
         the floor or outside a capture (at most :data:`MAX_FLOOR_HALVINGS` times, then no step
         at all: the last pose and contacts, unchanged).
 
-        fcl's GJK can overestimate a distance to an edge by an order of magnitude at micrometre
-        gaps, and answer right for the same pose rounded differently (docs/design.md), so the
-        line search may accept a pose under the floor; the contacts of the chosen pose are a
-        second query. (A capturable object within ε_c of a pose not taken is held all the same:
-        the pose taken is nearer the last one, itself about as near.)"""
+        The line search weighs the distances of the poses it samples; the pose it chooses is
+        built again (its rotation orthonormalised) and may differ from the one weighed by a
+        rounding, so its contacts are a second query. (A capturable object within ε_c of a pose
+        not taken is held all the same: the pose taken is nearer the last one, itself about as
+        near.)"""
         floor = self.params.floor_m
         held = set(self.state.held)
         for _ in range(MAX_FLOOR_HALVINGS + 1):
@@ -447,7 +447,7 @@ class Simulator:
                 return s, X1, contacts
             s *= 0.5
         # No step: the pose stays bit for bit. Rebuilt and queried again it would move by ulps,
-        # and fcl's distance near contact can jump under the floor for such a move.
+        # and at a floor of nanometres such a move can cross it.
         return 0.0, X0, self.state.contacts
 
     def _line_search(

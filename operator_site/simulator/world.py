@@ -1,5 +1,6 @@
-"""The simulator's geometry: the workpiece and the fixed obstacles as python-fcl convex parts, with
-a broad phase so that a step only queries obstacles the workpiece can reach."""
+"""The simulator's geometry: the workpiece and the fixed obstacles as convex parts, with a broad
+phase so that a step only queries obstacles the workpiece can reach. Distances are exact
+(:mod:`.polytope`); python-fcl answers overlaps' depths (EPA)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import numpy as np
 
 from models.geometry import ConvexPart
 from models.scene import Scene
+from operator_site.simulator.polytope import Polytope, PolytopeGroup, posed_distances
 
 
 def fcl_convex(part: ConvexPart) -> fcl.Convex:
@@ -60,11 +62,13 @@ class SimWorld:
         self._wp_objects = [
             fcl.CollisionObject(fcl_convex(p), fcl.Transform()) for p in self.wp_parts
         ]
+        self._wp_polytopes = [Polytope.of(p) for p in self.wp_parts]
         self.obstacle_names: list[str] = []
         self.obstacle_object: list[str] = []
         self.obstacle_vertices_W: list[np.ndarray] = []
         self.obstacle_normals_W: list[np.ndarray] = []
         self._obstacles: list[fcl.CollisionObject] = []
+        self._obstacle_polytopes: list[Polytope] = []
         thinnest = np.inf
         lo, hi = [], []
         for obj in scene.objects:
@@ -75,6 +79,7 @@ class SimWorld:
             for part in obj.model.parts:
                 V_W = part.vertices_O @ R.T + t
                 self._obstacles.append(fcl.CollisionObject(fcl_convex(part), fcl.Transform(R, t)))
+                self._obstacle_polytopes.append(Polytope.of(part).moved(R, t))
                 self.obstacle_object.append(obj.name)
                 self.obstacle_vertices_W.append(V_W)
                 self.obstacle_normals_W.append(part.normals_O @ R.T)
@@ -84,7 +89,8 @@ class SimWorld:
         self.lo_W = np.array(lo).reshape(-1, 3)
         self.hi_W = np.array(hi).reshape(-1, 3)
         self.thinnest_obstacle_m = float(thinnest)
-        self._request = fcl.DistanceRequest(enable_nearest_points=True)
+        self._group_key = b""
+        self._group: PolytopeGroup | None = None
         self._collide_request = fcl.CollisionRequest(num_max_contacts=4, enable_contact=True)
         self.queries = 0
         """Narrow-phase distance queries made so far (one per pair of convex parts)."""
@@ -101,22 +107,19 @@ class SimWorld:
 
     def distances(self, X_WO: np.ndarray, obstacles: np.ndarray) -> list[PairDistance]:
         """Distances from every workpiece part at ``X_WO`` to each listed obstacle part."""
-        tf = fcl.Transform(X_WO[:3, :3], X_WO[:3, 3])
+        if len(obstacles) == 0:
+            return []
+        key = obstacles.tobytes()
+        if key != self._group_key:  # the broad phase's answer seldom changes between queries
+            self._group_key = key
+            self._group = PolytopeGroup.of(tuple(self._obstacle_polytopes[i] for i in obstacles))
+        R, t = X_WO[:3, :3], X_WO[:3, 3]
         out = []
-        for k, wp in enumerate(self._wp_objects):
-            wp.setTransform(tf)
-            for i in obstacles:
-                result = fcl.DistanceResult()
-                d = fcl.distance(wp, self._obstacles[i], self._request, result)
-                out.append(
-                    PairDistance(
-                        float(d),
-                        int(i),
-                        k,
-                        np.array(result.nearest_points[0]),
-                        np.array(result.nearest_points[1]),
-                    )
-                )
+        for k, part in enumerate(self._wp_polytopes):
+            for i, (d, p_wp, p_obstacle) in zip(
+                obstacles, posed_distances(part, R, t, self._group), strict=True
+            ):
+                out.append(PairDistance(d, int(i), k, p_wp, p_obstacle))
         self.queries += len(self._wp_objects) * len(obstacles)
         return out
 
