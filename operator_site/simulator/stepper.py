@@ -118,6 +118,8 @@ class SimState:
     held: set[str] = field(default_factory=set)
     contacts: tuple[Contact, ...] = ()
     history: list[StepResult] = field(default_factory=list)
+    barrier_K: float = 0.0
+    """K of equation (6) (J), set with the target (:meth:`Simulator.set_target`)."""
     resting: bool = False
     """The last step did not move and no input has changed since: the next will not either."""
 
@@ -219,6 +221,17 @@ class Simulator:
             raise ValueError("target must be a finite 4×4 pose")
         self.state.X_WD = X_WD.copy()
         self.state.resting = False
+        # K of equation (6) (SimParams.barrier_gain), from the spring's pull now (its moment
+        # counted at the workpiece's reach), fixed until the target moves again: U_v plus the
+        # barriers is then one function for the whole approach, which every step lowers, so
+        # that no sequence of steps can come back to a pose. §V-B's K, from the step's work,
+        # vanishes as the workpiece settles and lets the spring press it onto the floor.
+        p = self.params
+        f, m = self._spring(self.state.X_WO)
+        pull_N = float(np.linalg.norm(f) + np.linalg.norm(m) / self.r_max_m)
+        self.state.barrier_K = (
+            p.barrier_gain * pull_N * p.eps_barrier_m / (1.0 / REST_GAP_FRACTION - 1.0)
+        )
 
     def capture(self, name: str) -> None:
         """Hold contact with ``name`` once the workpiece touches it (now, if it already does)."""
@@ -360,9 +373,7 @@ class Simulator:
                 np.vstack([x[0] for x in items]),
                 np.vstack([np.tile(x[1], (len(x[0]), 1)) for x in items]),
                 np.concatenate([x[2] for x in items]),
-                # fcl's GJK can overestimate a distance near an edge (docs/design.md); a
-                # contact polygon's gap nearer than its pair's distance is the better answer.
-                min(min(x[3], float(np.min(x[2]))) for x in items),
+                min(x[3] for x in items),
                 name in self.state.held,
                 any(len(x[0]) >= max_points for x in items),
             )
@@ -467,14 +478,8 @@ class Simulator:
         near = self._near(X0, plan.sweep_m)
         if not len(near):
             return p.dt_s
-        # K of equation (6) (SimParams.barrier_gain), from the spring's pull (its moment
-        # counted at the workpiece's reach). §V-B's K, from the step's work, vanishes as the
-        # workpiece settles, and lets the spring press it through the barrier to the floor.
-        f, m = self._spring(X0)
-        pull_N = float(np.linalg.norm(f) + np.linalg.norm(m) / self.r_max_m)
-        gain = p.barrier_gain * pull_N * p.eps_barrier_m / (1.0 / REST_GAP_FRACTION - 1.0)
-        at_start = {c.object: c.distance_m for c in contacts}
-        s = self._line_search(X0, plan.v, plan.w, near, plan.sweep_m, gain, at_start)
+        gain = self.state.barrier_K
+        s = self._line_search(X0, plan.v, plan.w, near, plan.sweep_m, gain)
         # A step found that would move no point further than REST_DISPLACEMENT_M is no step
         # (its U differs from staying put by rounding alone).
         return s if plan.sweep_m * s / p.dt_s >= REST_DISPLACEMENT_M else 0.0
@@ -515,11 +520,12 @@ class Simulator:
         near: np.ndarray,
         sweep_m: float,
         gain: float,
-        at_start: dict[str, float],
     ) -> float:
         """argmin over s ∈ [0, Δt] of U(s) = U_v(s) + Σ U_i(d_i(s)) (§V-B), U_v the spring's
-        energy along the step; the distances at s = 0 are ``at_start`` (the contacts', which
-        stay as they were when no step is taken: a query again could answer differently).
+        energy along the step. Staying put is weighed with the distances a hair along the
+        step (:data:`REST_DISPLACEMENT_M` at its fastest point): fcl's answer at a pose can
+        differ from its answer a nanometre away by a tenth of ε_b, and staying must be
+        compared with the points along the step on the same side of that.
 
         §V-B takes U_v linear in s (the work at the step's start rate), which makes a whole step
         best wherever no barrier acts. In contact the step's direction is not the spring's:
@@ -529,13 +535,14 @@ class Simulator:
         (the contact forces do no work along the LCP's velocity), and in free space the
         exact-rate step never passes the spring's minimum, so a free pull is unchanged."""
         p = self.params
-        cache: dict[float, float] = {0.0: self._potential(at_start, gain)}
-        springs: dict[float, float] = {0.0: 0.0}
+        cache: dict[float, float] = {}
+        springs: dict[float, float] = {}
         E0 = self._spring_energy(X0)
+        hair = p.dt_s * REST_DISPLACEMENT_M / sweep_m
 
         def U(s: float) -> float:
             if s not in cache:
-                X = self._pose_at(X0, v, w, s)
+                X = self._pose_at(X0, v, w, hair if s == 0.0 else s)
                 springs[s] = self._spring_energy(X) - E0
                 pairs = self.world.distances(X, near)
                 cache[s] = self._potential(self._object_distances(pairs), gain) + springs[s]
