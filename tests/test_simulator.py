@@ -17,7 +17,7 @@ from models.geometry import make_convex_part, mass_properties
 from models.scene import ObjectModel, Scene, SceneObject, load_scene
 from models.transforms import make_pose, rpy_to_R, so3_exp, so3_log
 from operator_site.simulator.contacts import contact_manifold
-from operator_site.simulator.params import SimParams
+from operator_site.simulator.params import RANGES, SimParams
 from operator_site.simulator.stepper import Simulator
 
 REPO = Path(__file__).resolve().parents[1]
@@ -281,7 +281,7 @@ def _log(lo: float, hi: float):
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
-    eps_b=_log(1e-6, 1e-3),
+    eps_b=_log(*RANGES["eps_barrier_m"][:2]),
     d_t=_log(3e-5, 1e6),
     d_ratio=_log(1e-3, 3e2),
     force=_log(1e-9, 1e6),
@@ -319,9 +319,10 @@ def test_random_pushes_never_break_the_invariants(
 
 
 def test_faces_parallel_to_1e9_rad_at_the_smallest_barrier(scene: Scene) -> None:
-    params = SimParams(eps_barrier_m=1e-6, eps_contact_m=2e-6, eps_capture_m=4e-6)
+    eps_b = RANGES["eps_barrier_m"][0]
+    params = SimParams(eps_barrier_m=eps_b, eps_contact_m=2 * eps_b, eps_capture_m=4 * eps_b)
     R = so3_exp(np.array([1e-9, 0.0, 0.0]))
-    start = make_pose(R, (0.2, 0.3, CUBE_HALF + 1e-6))
+    start = make_pose(R, (0.2, 0.3, CUBE_HALF + eps_b))
     sim = Simulator(scene, "cube", params, X_WO={"cube": start})
     sim.set_target(at(0.21, 0.3, CUBE_HALF - 0.01))
     for _ in range(20):

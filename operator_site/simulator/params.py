@@ -18,6 +18,23 @@ STEP_GAIN_RANGE = (1e-6, 1e6)
 way to the dragger a free step covers. Below, the workpiece needs millions of steps to follow
 the dragger; above, a step lands on the target whatever x is, so larger values buy nothing."""
 
+REST_GAP_FRACTION = 0.9
+"""With ``barrier_gain`` 1 the barrier holds a workpiece pressed into an obstacle this fraction
+of ε_b from it: near ε_b, clear of the floor (ε_b/2 by default)."""
+
+
+def rest_gap_fraction(barrier_gain: float) -> float:
+    """Where the barrier holds a workpiece the spring presses straight into an obstacle, as a
+    fraction δ of ε_b: the barrier's force K/ε_b·(1/δ − 1) equals the spring's pull P there,
+    K = barrier_gain × P × ε_b / (1/:data:`REST_GAP_FRACTION` − 1)."""
+    return 1.0 / (1.0 + (1.0 / REST_GAP_FRACTION - 1.0) / barrier_gain)
+
+
+def barrier_gain_for(rest_fraction: float) -> float:
+    """The ``barrier_gain`` that holds a pressed workpiece ``rest_fraction`` of ε_b away."""
+    return (1.0 / REST_GAP_FRACTION - 1.0) / (1.0 / rest_fraction - 1.0)
+
+
 RANGES: dict[str, tuple[float, float, str]] = {
     "dt_s": (1e-4, 1.0, "from a 10 kHz step to one a second"),
     "eps_contact_m": (1e-6, 1e-2, "contact within a micrometre (above ε_b) to 1 cm"),
@@ -42,7 +59,14 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "d_t": (1e-6, 1e6, "m/(N·s)"),
     "char_length_m": (1e-5, 10.0, "the lever arm that weighs turning against moving"),
     "k_t": (1e-6, 1e6, "N/m"),
-    "barrier_gain": (1e-6, 1e6, "multiples of the step's work"),
+    "barrier_gain": (
+        barrier_gain_for(0.75),
+        1e6,
+        "multiples of the spring's pull on the workpiece; below, at the default "
+        "floor, the barrier holds it nearer the floor than ε_b, and a workpiece on the floor "
+        "cannot turn or slide (any move along its contact nears it by the move's square); "
+        "above, it is held within a millionth of ε_b",
+    ),
     "tunnel_fraction": (
         0.01,
         1.0,
@@ -99,12 +123,13 @@ class SimParams:
     char_length_m: float = 0.025
     k_t: float = 100.0
     barrier_gain: float = 1.0
-    """K of equation (6) as a multiple of the step's work |U_v(Δt)|, which makes the barrier's
-    effect independent of how hard the workpiece is pushed."""
+    """K of equation (6) in multiples of the spring's pull on the workpiece (its moment counted
+    at the workpiece's reach), scaled so that 1 holds a workpiece pressed straight into an
+    obstacle at :data:`REST_GAP_FRACTION` × ε_b (:func:`rest_gap_fraction`): the barrier's
+    effect does not depend on how hard the workpiece is pressed."""
     min_separation_fraction: float = 0.5
-    """No step ends closer to anything than this fraction of ε_b. The barrier alone lets a
-    slow, mostly sideways approach sink deep into it (its push grows with the approach speed),
-    so the search also treats this floor as a wall."""
+    """No step ends closer to anything than this fraction of ε_b: the search treats this floor
+    as a wall, so that no rounding of a distance can carry a workpiece into an obstacle."""
     max_points_per_pair: int = 8
     """Contact points kept per pair of convex parts (the manifold is reduced beyond this)."""
     tunnel_fraction: float = 0.5
@@ -140,6 +165,14 @@ class SimParams:
             raise ValueError(
                 "SimParams.min_separation_fraction must be in (0, 1), got "
                 f"{self.min_separation_fraction!r}"
+            )
+        rest, floor = rest_gap_fraction(self.barrier_gain), self.min_separation_fraction
+        if rest < (1.0 + floor) / 2:
+            raise ValueError(
+                f"SimParams.barrier_gain {self.barrier_gain:g} holds a pressed workpiece at "
+                f"{rest:.3g} ε_b, less than halfway from the floor ({floor:g} ε_b) to ε_b: on "
+                f"the floor it could not turn or slide. With min_separation_fraction {floor:g} "
+                f"it must be at least {barrier_gain_for((1.0 + floor) / 2):.3g}"
             )
         lo, hi = STEP_GAIN_RANGE
         if not lo <= self.step_gain <= hi:

@@ -23,7 +23,7 @@ from models.transforms import orthonormalize, so3_exp, so3_log
 from operator_site.simulator.barrier import barrier, capture_barrier
 from operator_site.simulator.contacts import contact_manifold
 from operator_site.simulator.lcp import solve_lcp
-from operator_site.simulator.params import POINTS_PER_PAIR_RANGE, SimParams
+from operator_site.simulator.params import POINTS_PER_PAIR_RANGE, REST_GAP_FRACTION, SimParams
 from operator_site.simulator.world import PairDistance, SimWorld
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
@@ -32,6 +32,10 @@ MAX_LIFT_DOUBLINGS = 12
 REST_DISPLACEMENT_M = 1e-12
 """A step that would move no point of the workpiece further than this is no step: the pose and
 contacts stay as they are and no query is made (a settled block costs next to nothing)."""
+REST_ENERGY_FRACTION = 1e-12
+"""Nor is a step that would lower the spring's energy by less than
+this fraction of it: the line search compares energies whose float64 rounding is a few 1e-16
+of them, and a smaller change is noise to it."""
 MAX_FLOOR_HALVINGS = 20
 """A step whose chosen pose turns out under the floor is halved at most this many times (then
 not taken): see :meth:`Simulator._verified_move`."""
@@ -114,6 +118,8 @@ class SimState:
     held: set[str] = field(default_factory=set)
     contacts: tuple[Contact, ...] = ()
     history: list[StepResult] = field(default_factory=list)
+    barrier_K: float = 0.0
+    """K of equation (6) (J), set with the target (:meth:`Simulator.set_target`)."""
     resting: bool = False
     """The last step did not move and no input has changed since: the next will not either."""
 
@@ -126,8 +132,6 @@ class _Plan:
     w: np.ndarray
     lcp_ok: bool
     limited: bool
-    work_rate: float
-    """−dU_v/ds (J/s)."""
     sweep_m: float
     """How far the fastest point of the workpiece would move over the whole step."""
 
@@ -163,13 +167,14 @@ class Simulator:
         self._spring_factor = spring_step_factor(p)
         cuts = math.ceil(math.log(_golden_fraction(p, sweep_m)) / math.log(GOLDEN)) + 1
         pairs = len(self.world.wp_parts) * len(self.world.obstacle_object)
-        search = samples + cuts + 3
-        self.max_queries_per_step = (2 * search + 2 + MAX_FLOOR_HALVINGS) * pairs
+        search = samples + cuts + 2
+        verified = 1 + MAX_FLOOR_HALVINGS
+        self.max_queries_per_step = (3 * search + 1 + 2 * verified) * pairs
         """A bound on :attr:`StepResult.queries`: the collision samples, the golden-section
-        cuts, its two first points and s = 0 (twice when the step is planned again with the
-        whole contact polygons, after the contacts at the start again), and the contacts at
-        the new pose (and at each halving of a step found under the floor), each at most one
-        query per pair of parts."""
+        cuts and its two first points, for the push out of ε_b, the move and the move planned
+        again with the whole contact polygons (after the contacts at its start again); and the
+        contacts where the push and the move end (and at each halving of one found under the
+        floor), each at most one query per pair of parts."""
         model = scene.object(workpiece).model
         self.c_O = model.com_O.copy()
         self.r_max_m = float(np.max(np.linalg.norm(self.world.wp_vertices_O - self.c_O, axis=1)))
@@ -216,6 +221,17 @@ class Simulator:
             raise ValueError("target must be a finite 4×4 pose")
         self.state.X_WD = X_WD.copy()
         self.state.resting = False
+        # K of equation (6) (SimParams.barrier_gain), from the spring's pull now (its moment
+        # counted at the workpiece's reach), fixed until the target moves again: U_v plus the
+        # barriers is then one function for the whole approach, which every step lowers, so
+        # that no sequence of steps can come back to a pose. §V-B's K, from the step's work,
+        # vanishes as the workpiece settles and lets the spring press it onto the floor.
+        p = self.params
+        f, m = self._spring(self.state.X_WO)
+        pull_N = float(np.linalg.norm(f) + np.linalg.norm(m) / self.r_max_m)
+        self.state.barrier_K = (
+            p.barrier_gain * pull_N * p.eps_barrier_m / (1.0 / REST_GAP_FRACTION - 1.0)
+        )
 
     def capture(self, name: str) -> None:
         """Hold contact with ``name`` once the workpiece touches it (now, if it already does)."""
@@ -235,14 +251,26 @@ class Simulator:
 
     # ------------------------------------------------------------------------------ forces
 
+    def _spring_stretch(self, X_WO: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """How far the dragger spring is stretched at ``X_WO``: c_D − c (m) and the rotation
+        vector from R to R_D (rad), both in W."""
+        R, R_D = X_WO[:3, :3], self.state.X_WD[:3, :3]
+        c = X_WO[:3, :3] @ self.c_O + X_WO[:3, 3]
+        c_D = R_D @ self.c_O + self.state.X_WD[:3, 3]
+        return c_D - c, so3_log(R_D @ R.T)
+
     def _spring(self, X_WO: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The dragger spring's force and moment on the workpiece, scaled by
         :func:`spring_step_factor` for the step."""
         p, phi = self.params, self._spring_factor
-        R, R_D = X_WO[:3, :3], self.state.X_WD[:3, :3]
-        c = X_WO[:3, :3] @ self.c_O + X_WO[:3, 3]
-        c_D = R_D @ self.c_O + self.state.X_WD[:3, 3]
-        return phi * p.k_t * (c_D - c), phi * p.k_r * so3_log(R_D @ R.T)
+        dc, dr = self._spring_stretch(X_WO)
+        return phi * p.k_t * dc, phi * p.k_r * dr
+
+    def _spring_energy(self, X_WO: np.ndarray) -> float:
+        """The spring's energy at ``X_WO``, scaled like its force (J)."""
+        p = self.params
+        dc, dr = self._spring_stretch(X_WO)
+        return 0.5 * self._spring_factor * (p.k_t * dc @ dc + p.k_r * dr @ dr)
 
     def _velocity(
         self, X_WO: np.ndarray, contacts: tuple[Contact, ...]
@@ -288,11 +316,12 @@ class Simulator:
             d[name] = min(d.get(name, math.inf), pair.distance_m)
         return d
 
-    def _potential(self, pairs: list[PairDistance], gain: float) -> float:
-        """Σ U_i over obstacle objects (excluding U_v); ``inf`` closer than the hard floor."""
+    def _potential(self, distances_m: dict[str, float], gain: float) -> float:
+        """Σ U_i over obstacle objects at ``distances_m`` (excluding U_v); ``inf`` closer than
+        the hard floor."""
         p, total = self.params, 0.0
         floor = p.floor_m
-        for name, d in self._object_distances(pairs).items():
+        for name, d in distances_m.items():
             if d <= floor:
                 return math.inf
             if name in self.state.held:
@@ -352,33 +381,42 @@ class Simulator:
         )
 
     def step(self) -> StepResult:
-        """Advance one time step Δt and return what happened."""
+        """Advance one time step Δt and return what happened: the barrier's push out of ε_b,
+        then the move the spring and the contacts make."""
         p, st = self.params, self.state
         if st.resting and st.history:
             st.time_s += p.dt_s
             result = dataclasses.replace(st.history[-1], time_s=st.time_s, queries=0)
             st.history.append(result)
             return result
-        X0 = st.X_WO
+        X0, contacts = st.X_WO, st.contacts
         queries0 = self.world.queries
-        plan = self._plan(X0, st.contacts)
         st.time_s += p.dt_s
-        if plan.sweep_m < REST_DISPLACEMENT_M:
-            s_best, X1 = 0.0, X0
-            st.resting = True
-        else:
-            s_best = self._search(X0, plan)
-            if s_best == 0.0 and any(c.reduced for c in st.contacts):
+        plan = self._plan(X0, contacts)
+        push = self._push(contacts)
+        pushed = False
+        if push is not None:
+            s_push, X_pushed, contacts_pushed = self._verified_move(
+                X0, push.v, push.w, self._search(X0, push, contacts)
+            )
+            if s_push > 0.0:
+                X0, contacts, pushed = X_pushed, contacts_pushed, True
+                plan = self._plan(X0, contacts)
+        s_best, X1 = 0.0, X0
+        if not self._still(X0, plan):
+            s_best = self._search(X0, plan, contacts)
+            if s_best == 0.0 and any(c.reduced for c in contacts):
                 # Dropped corners of a contact polygon are not in the LCP, which may then drive
                 # one into its obstacle: blocked at once, the step would block again for ever.
                 # Planned with the whole polygons, the LCP sees every corner.
-                full = self._contacts(X0, self._near(X0, 0.0), FULL_MANIFOLD_POINTS)
-                plan = self._plan(X0, full)
-                if plan.sweep_m >= REST_DISPLACEMENT_M:
-                    s_best = self._search(X0, plan)
+                contacts = self._contacts(X0, self._near(X0, 0.0), FULL_MANIFOLD_POINTS)
+                plan = self._plan(X0, contacts)
+                if not self._still(X0, plan):
+                    s_best = self._search(X0, plan, contacts)
             s_best, X1, contacts = self._verified_move(X0, plan.v, plan.w, s_best)
-            st.X_WO = X1
-            st.contacts = contacts
+        st.X_WO, st.contacts = X1, contacts
+        # Nothing moved and nothing changed: the next step would find the same.
+        st.resting = s_best == 0.0 and not pushed
         d_min = min((c.distance_m for c in st.contacts), default=math.inf)
         result = StepResult(
             time_s=st.time_s,
@@ -393,34 +431,58 @@ class Simulator:
         st.history.append(result)
         return result
 
+    def _still(self, X0: np.ndarray, plan: _Plan) -> bool:
+        """Whether ``plan`` is no step: it would move no point of the workpiece further than
+        :data:`REST_DISPLACEMENT_M`, or lower the spring's energy by less than
+        :data:`REST_ENERGY_FRACTION` of it."""
+        if plan.sweep_m < REST_DISPLACEMENT_M:
+            return True
+        f, m = self._spring(X0)
+        drop_J = float(f @ plan.v + m @ plan.w) * self.params.dt_s
+        return drop_J <= REST_ENERGY_FRACTION * self._spring_energy(X0)
+
     def _plan(self, X0: np.ndarray, contacts: tuple[Contact, ...]) -> _Plan:
-        """The step's velocity from ``X0`` with ``contacts``: spring, LCP, speed limit, and the
-        barrier's push out of ε_b."""
+        """The step's velocity from ``X0`` with ``contacts``: spring, LCP, speed limit."""
         p = self.params
         v, w, lcp_ok = self._velocity(X0, contacts)
         speed = float(np.linalg.norm(v) + np.linalg.norm(w) * self.r_max_m)
         limited = speed > p.max_speed_mps
         if limited:
             v, w = v * (p.max_speed_mps / speed), w * (p.max_speed_mps / speed)
-        # Repel from anything closer than ε_b (§V-B) along the barrier's gradient, fast enough
-        # to restore ε_b in one step. (The paper scales the gradient by K; K is tied to how hard
-        # the workpiece is pushed, which is zero exactly when it is blocked and most needs it.)
-        for contact in contacts:
-            if contact.distance_m < p.eps_barrier_m:
-                n = contact.normals_W.mean(axis=0)
-                v = v + (p.eps_barrier_m - contact.distance_m) / p.dt_s * n / np.linalg.norm(n)
-        speed = float(np.linalg.norm(v) + np.linalg.norm(w) * self.r_max_m)
-        work_rate = v @ v / p.d_t + w @ w / p.d_r  # −dU_v/ds (J/s)
-        return _Plan(v, w, lcp_ok, limited, work_rate, speed * p.dt_s)
+            speed = p.max_speed_mps
+        return _Plan(v, w, lcp_ok, limited, speed * p.dt_s)
 
-    def _search(self, X0: np.ndarray, plan: _Plan) -> float:
-        """The line search's s along ``plan`` (Δt where nothing is near)."""
+    def _push(self, contacts: tuple[Contact, ...]) -> _Plan | None:
+        """The barrier's push out of ε_b (§V-B) along each nearer obstacle's normal, fast
+        enough to restore ε_b in one step if the line search lets it; None if nothing is
+        nearer by more than :data:`REST_DISPLACEMENT_M`.
+
+        A move along the LCP's velocity keeps gaps only to first order, and turning about a
+        contact brings it nearer by the second; the push is a move of its own, before it:
+        inside it, the search could take the push only as far as the turn, and a workpiece
+        turning on a contact at the floor would creep."""
+        p = self.params
+        v = np.zeros(3)
+        for contact in contacts:
+            if p.eps_barrier_m - contact.distance_m >= REST_DISPLACEMENT_M:
+                n = contact.normals_W.mean(axis=0)
+                v += (p.eps_barrier_m - contact.distance_m) / p.dt_s * n / np.linalg.norm(n)
+        if not v.any():
+            return None
+        return _Plan(v, np.zeros(3), True, False, float(np.linalg.norm(v)) * p.dt_s)
+
+    def _search(self, X0: np.ndarray, plan: _Plan, contacts: tuple[Contact, ...]) -> float:
+        """The line search's s along ``plan`` from ``X0``, whose contacts are ``contacts`` (Δt
+        where nothing is near)."""
         p = self.params
         near = self._near(X0, plan.sweep_m)
         if not len(near):
             return p.dt_s
-        gain = p.barrier_gain * plan.work_rate * p.dt_s
-        return self._line_search(X0, plan.v, plan.w, near, plan.sweep_m, plan.work_rate, gain)
+        gain = self.state.barrier_K
+        s = self._line_search(X0, plan.v, plan.w, near, plan.sweep_m, gain)
+        # A step found that would move no point further than REST_DISPLACEMENT_M is no step
+        # (its U differs from staying put by rounding alone).
+        return s if plan.sweep_m * s / p.dt_s >= REST_DISPLACEMENT_M else 0.0
 
     def _verified_move(
         self, X0: np.ndarray, v: np.ndarray, w: np.ndarray, s: float
@@ -457,17 +519,29 @@ class Simulator:
         w: np.ndarray,
         near: np.ndarray,
         sweep_m: float,
-        work_rate: float,
         gain: float,
     ) -> float:
-        """argmin over s ∈ [0, Δt] of U(s) = −work_rate·s + Σ U_i(d_i(s)) (§V-B)."""
+        """argmin over s ∈ [0, Δt] of U(s) = U_v(s) + Σ U_i(d_i(s)) (§V-B), U_v the spring's
+        energy along the step.
+
+        §V-B takes U_v linear in s (the work at the step's start rate), which makes a whole step
+        best wherever no barrier acts. In contact the step's direction is not the spring's:
+        turning about a contact, the spring's energy along it may be least well before Δt, a
+        whole step then overshoots, and at large steps the workpiece rocks for ever. With the
+        spring's own energy every step taken lowers U; its slope at s = 0 is the linear U_v's
+        (the contact forces do no work along the LCP's velocity), and in free space the
+        exact-rate step never passes the spring's minimum, so a free pull is unchanged."""
         p = self.params
         cache: dict[float, float] = {}
+        springs: dict[float, float] = {}
+        E0 = self._spring_energy(X0)
 
         def U(s: float) -> float:
             if s not in cache:
-                pairs = self.world.distances(self._pose_at(X0, v, w, s), near)
-                cache[s] = self._potential(pairs, gain) - work_rate * s
+                X = self._pose_at(X0, v, w, s)
+                springs[s] = self._spring_energy(X) - E0
+                pairs = self.world.distances(X, near)
+                cache[s] = self._potential(self._object_distances(pairs), gain) + springs[s]
             return cache[s]
 
         # Collision samples no further apart than a fraction of the thinnest obstacle.
@@ -479,8 +553,10 @@ class Simulator:
                 hi = s
                 break
         else:
-            if U(p.dt_s) == -work_rate * p.dt_s:
-                return p.dt_s  # no barrier active at the end: U_v alone is least there
+            f, m = self._spring(self._pose_at(X0, v, w, p.dt_s))
+            if U(p.dt_s) == springs[p.dt_s] and f @ v + m @ w >= 0.0:
+                # No barrier to speak of at the end, the spring still pulls on: least there.
+                return p.dt_s
         lo = 0.0
         a, b = hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo)
         tol = p.dt_s * _golden_fraction(p, sweep_m)
