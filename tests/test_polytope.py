@@ -1,48 +1,20 @@
-"""Exact polytope distance against an independent reference: the origin's distance to the
-Minkowski difference's hull (Qhull), on every pair of the scene's parts at random poses and gaps."""
+"""Exact polytope distance against an independent reference (the origin's distance to the
+Minkowski difference's hull, :func:`reference_distance_m`), on every pair of the scene's parts
+at random poses and gaps."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.spatial import ConvexHull
 
 from models.geometry import ConvexPart
 from models.scene import load_scene
 from models.transforms import so3_exp
-from operator_site.simulator.polytope import Polytope, polytope_distance
+from operator_site.simulator.polytope import Polytope, polytope_distance, reference_distance_m
 
 ROUNDING_M = 1e-12
 """How far two float64 computations of one distance between parts within a metre of the origin
 may differ (thousands of ulps of their coordinates)."""
-
-
-def _point_triangle_m(T: np.ndarray) -> float:
-    """Distance from the origin to triangle T (3, 3)."""
-    a, b, c = T
-    n = np.cross(b - a, c - a)
-    n /= np.linalg.norm(n)
-    p = (a @ n) * n  # the origin projected onto the triangle's plane
-    inside = all(np.cross(v1 - v0, p - v0) @ n >= 0.0 for v0, v1 in ((a, b), (b, c), (c, a)))
-    if inside:
-        return abs(float(a @ n))
-    best = np.inf
-    for v0, v1 in ((a, b), (b, c), (c, a)):
-        d = v1 - v0
-        s = np.clip(-(v0 @ d) / (d @ d), 0.0, 1.0)
-        best = min(best, float(np.linalg.norm(v0 + s * d)))
-    return best
-
-
-def reference_distance_m(V_A: np.ndarray, V_B: np.ndarray) -> float:
-    """Signed distance between the hulls of V_A and V_B: from the origin to the hull of
-    {a − b}, outside by its nearest triangle, inside by minus its nearest facet plane."""
-    M = (V_A[:, None, :] - V_B[None, :, :]).reshape(-1, 3)
-    hull = ConvexHull(M)
-    planes = hull.equations  # n·x + c ≤ 0 inside, n outward
-    if np.all(planes[:, 3] < 0.0):
-        return float(np.max(planes[:, 3]))
-    return min(_point_triangle_m(M[s]) for s in hull.simplices)
 
 
 def _pairs() -> list[tuple[str, ConvexPart, str, ConvexPart]]:

@@ -392,8 +392,9 @@ def test_a_block_pushed_into_the_inside_corner_never_rocks_and_rests_once_still(
     """Pushed past the inside corner with any knobs: a finite pose, a rotation, nowhere under
     the floor, each step within its cost bound; it never turns back, and once still it rests
     touching the frame and the table, or the frame alone in balance. (A tall block may tip
-    onto the bar and rest leaning on it: from near its balance on the bar's edge it leaves first-order slowly, for as many steps
-    as it started near that balance, so that no number of steps bounds coming to rest.)"""
+    onto the bar and rest leaning on it: from near its balance on the bar's edge it leaves
+    first-order slowly, for as many steps as it started near that balance, so that no number
+    of steps bounds coming to rest.)"""
     sim, results = _push_into_corner(scenes[block], block, params, gaps, yaw, beyond, press, 300)
     if sim is None:
         return

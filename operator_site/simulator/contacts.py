@@ -1,12 +1,13 @@
 """Contact manifolds between two convex polyhedra that are close but apart (paper §V-A).
 
-python-fcl gives one nearest pair of points; a resting block needs all of its contact: a vertex on a
-face is one point, an edge on a face the two ends of the overlap, a face on a face the corners of
-the overlap polygon. With ``n`` the unit vector from the workpiece's nearest point to the
-obstacle's, the planes through the two nearest points perpendicular to ``n`` separate the bodies;
-each body's *support feature* is its set of vertices within ``eps_contact`` of the other body's
-plane. Projected onto the plane, the two features are convex sets whose intersection is the
-contact region; its corners, lifted back to the mid-plane, are the contact points.
+A distance query gives one nearest pair of points; a resting block needs all of its contact: a
+vertex on a face is one point, an edge on a face the two ends of the overlap, a face on a face
+the corners of the overlap polygon. With ``n`` the unit vector from the workpiece's nearest
+point to the obstacle's, the planes through the two nearest points perpendicular to ``n``
+separate the bodies; each body's *support feature* is its set of vertices within ``eps_contact``
+of the other body's plane. Projected onto the plane, the two features are convex sets whose
+intersection is the contact region; its corners, lifted back to the mid-plane, are the contact
+points.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ NORMAL_SNAP_RAD = 1e-6
 """A nearest-point direction within this angle of a face normal is that face normal: the
 direction between nearest points of parallel faces 0.1 mm apart is only good to ~1e-12."""
 NEAREST_POINT_PRECISION_M = 1e-14
-"""How far fcl's nearest points may be off in float64 on parts within metres of the origin
+"""How far the nearest points may be off in float64 on parts within metres of the origin
 (tens of ulps of their coordinates, with a margin); the direction between points d apart is
 only good to this over d, so closer than 1e-8 m the snapping angle grows as that."""
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from models.geometry import ConvexPart
 
@@ -283,3 +284,32 @@ def _settled(
         return nearest
     p = V_AW[int(np.argmax(V_AW @ axis))]
     return sep, p, p + sep * axis
+
+
+def _point_triangle_m(T: np.ndarray) -> float:
+    """Distance from the origin to triangle T (3, 3)."""
+    a, b, c = T
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n)
+    p = (a @ n) * n  # the origin projected onto the triangle's plane
+    inside = all(np.cross(v1 - v0, p - v0) @ n >= 0.0 for v0, v1 in ((a, b), (b, c), (c, a)))
+    if inside:
+        return abs(float(a @ n))
+    best = np.inf
+    for v0, v1 in ((a, b), (b, c), (c, a)):
+        d = v1 - v0
+        s = np.clip(-(v0 @ d) / (d @ d), 0.0, 1.0)
+        best = min(best, float(np.linalg.norm(v0 + s * d)))
+    return best
+
+
+def reference_distance_m(V_A: np.ndarray, V_B: np.ndarray) -> float:
+    """Signed distance between the hulls of V_A and V_B (n, 3), slowly and independently of
+    :func:`polytope_distance`, for tests and benchmarks: from the origin to the hull of
+    {a − b} (Qhull), outside by its nearest triangle, inside by minus its nearest facet plane."""
+    M = (V_A[:, None, :] - V_B[None, :, :]).reshape(-1, 3)
+    hull = ConvexHull(M)
+    planes = hull.equations  # n·x + c ≤ 0 inside, n outward
+    if np.all(planes[:, 3] < 0.0):
+        return float(np.max(planes[:, 3]))
+    return min(_point_triangle_m(M[s]) for s in hull.simplices)
