@@ -36,6 +36,9 @@ REST_ENERGY_FRACTION = 1e-12
 """Nor is a step that would lower the spring's energy by less than
 this fraction of it: the line search compares energies whose float64 rounding is a few 1e-16
 of them, and a smaller change is noise to it."""
+STRETCH_ROUNDING = 64 * np.finfo(np.float64).eps
+"""The spring's stretch, a difference of coordinates (or of rotations), is good to this fraction
+of their size: each is rounded to an ulp, and a few operations make them."""
 MAX_FLOOR_HALVINGS = 20
 """A step whose chosen pose turns out under the floor is halved at most this many times (then
 not taken): see :meth:`Simulator._verified_move`."""
@@ -265,6 +268,18 @@ class Simulator:
         p, phi = self.params, self._spring_factor
         dc, dr = self._spring_stretch(X_WO)
         return phi * p.k_t * dc, phi * p.k_r * dr
+
+    def _pull_rounding(self, X_WO: np.ndarray, v: np.ndarray, w: np.ndarray) -> float:
+        """How far rounding can take the spring's power f·v + m·w at ``X_WO`` (W): its stretch
+        is a difference of coordinates and of rotations, each good to
+        :data:`STRETCH_ROUNDING` of their size."""
+        p, X_WD = self.params, self.state.X_WD
+        size_m = float(np.linalg.norm(X_WO[:3, 3]) + np.linalg.norm(X_WD[:3, 3])) + self.r_max_m
+        return (
+            self._spring_factor
+            * STRETCH_ROUNDING
+            * (p.k_t * size_m * float(np.linalg.norm(v)) + p.k_r * float(np.linalg.norm(w)))
+        )
 
     def _spring_energy(self, X_WO: np.ndarray) -> float:
         """The spring's energy at ``X_WO``, scaled like its force (J)."""
@@ -553,9 +568,11 @@ class Simulator:
                 hi = s
                 break
         else:
-            f, m = self._spring(self._pose_at(X0, v, w, p.dt_s))
-            if U(p.dt_s) == springs[p.dt_s] and f @ v + m @ w >= 0.0:
-                # No barrier to speak of at the end, the spring still pulls on: least there.
+            X1 = self._pose_at(X0, v, w, p.dt_s)
+            f, m = self._spring(X1)
+            if U(p.dt_s) == springs[p.dt_s] and f @ v + m @ w >= -self._pull_rounding(X1, v, w):
+                # No barrier to speak of at the end, the spring still pulls on (or is at its
+                # target, where what is left of its pull is rounding): least there.
                 return p.dt_s
         lo = 0.0
         a, b = hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo)
