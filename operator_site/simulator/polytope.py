@@ -5,9 +5,10 @@ answer a distance several times the true one, and a block then steps under the b
 meant to keep. Two separated convex polytopes have their nearest points on a vertex of one and
 inside a face of the other, or on an edge of each (a vertex is an edge's end, and parallel faces
 or edges also reach the minimum at such a pair). Every candidate below is a pair of points on the
-two bodies, so the smallest is the distance itself, to rounding. Whether they overlap is decided
-first by separating axes (face normals and edge-by-edge cross products), which for convex
-polytopes also give the exact penetration depth and its direction.
+two bodies, so the smallest is the distance itself, to rounding, and the plane between its points
+certifies it. Where no candidate certifies itself (the bodies overlap, or touch too closely for a
+direction), separating axes decide (face normals and edge-by-edge cross products), which for
+convex polytopes also give the exact penetration depth and its direction.
 """
 
 from __future__ import annotations
@@ -99,10 +100,8 @@ class Polytope:
 def _separation(A: Polytope, B: Polytope) -> tuple[float, np.ndarray]:
     """The largest gap between the two bodies' projections over the separating axes (m; < 0: the
     smallest overlap, the penetration depth) and its axis, a unit vector from A towards B."""
-    dA = A.vertices[A.edges[:, 1]] - A.vertices[A.edges[:, 0]]
-    dB = B.vertices[B.edges[:, 1]] - B.vertices[B.edges[:, 0]]
-    dA /= np.linalg.norm(dA, axis=1, keepdims=True)
-    dB /= np.linalg.norm(dB, axis=1, keepdims=True)
+    dA = A.edge_vectors / np.sqrt(A.edge_length2)[:, None]
+    dB = B.edge_vectors / np.sqrt(B.edge_length2)[:, None]
     cross = np.cross(dA[:, None, :], dB[None, :, :]).reshape(-1, 3)
     norms = np.linalg.norm(cross, axis=1)
     keep = norms > PARALLEL_AXIS_SIN
@@ -144,8 +143,8 @@ def _edge_edge(A: Polytope, B: Polytope) -> tuple[float, np.ndarray, np.ndarray]
 def certified(V_A: np.ndarray, V_B: np.ndarray, d: float, p_A: np.ndarray, p_B: np.ndarray) -> bool:
     """Whether points p_A and p_B, d apart, are the nearest points of the hulls of V_A and V_B
     (n, 3) to :data:`CERTIFICATE_SLACK_M`: the planes through them perpendicular to p_B − p_A
-    separate the hulls by d. Any pair of points on the bodies is at least their distance apart;
-    the planes show it is at most that."""
+    separate the hulls by d, so that the hulls are no nearer than d; being on them, the points
+    show they are no further."""
     if not 0.0 < d < np.inf:
         return False
     n = (p_B - p_A) / d
@@ -254,12 +253,12 @@ def posed_distances(
     return [
         (float(d[g]), p_A[g], p_B[g])
         if ok[g]
-        else _settled(A_O, R_WO, p_WO, V_AW, B, (float(d[g]), p_A[g], p_B[g]))
+        else _by_edges_and_axes(A_O, R_WO, p_WO, V_AW, B, (float(d[g]), p_A[g], p_B[g]))
         for g, B in enumerate(G.members)
     ]
 
 
-def _settled(
+def _by_edges_and_axes(
     A_O: Polytope,
     R_WO: np.ndarray,
     p_WO: np.ndarray,
@@ -267,14 +266,9 @@ def _settled(
     B_W: Polytope,
     nearest: tuple[float, np.ndarray, np.ndarray],
 ) -> tuple[float, np.ndarray, np.ndarray]:
-    """The nearest pair of vertex–face pairs if it certifies itself, else what the edge pairs and
-    separating axes give."""
-    # The nearest pair of separated bodies certifies itself: the plane between its points
-    # separates them by its distance. Resting on a face, a vertex–face pair does, and the edge
-    # pairs are not needed; overlapping bodies, or a pair too close for a direction, fail the
-    # check and are decided by separating axes.
-    if certified(V_AW, B_W.vertices, *nearest):
-        return nearest
+    """The distance where the nearest vertex–face pair, ``nearest``, did not certify itself: the
+    edge pairs join it, and if the nearest of all does not certify itself either, the bodies
+    overlap or touch too closely for a direction, which separating axes decide."""
     A_W = A_O.moved(R_WO, p_WO)
     nearest = min(nearest, _edge_edge(A_W, B_W), key=lambda c: c[0])
     if certified(V_AW, B_W.vertices, *nearest):

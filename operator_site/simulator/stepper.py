@@ -33,9 +33,9 @@ REST_DISPLACEMENT_M = 1e-12
 """A step that would move no point of the workpiece further than this is no step: the pose and
 contacts stay as they are and no query is made (a settled block costs next to nothing)."""
 REST_ENERGY_FRACTION = 1e-12
-"""Nor is a step that would lower the spring's energy by less than
-this fraction of it: the line search compares energies whose float64 rounding is a few 1e-16
-of them, and a smaller change is noise to it."""
+"""Nor is a step that would lower the spring's energy by less than this fraction of it: the line
+search compares energies whose float64 rounding is a few 1e-16 of them, and a smaller change is
+noise to it."""
 STRETCH_ROUNDING = 64 * np.finfo(np.float64).eps
 """The spring's stretch, a difference of coordinates (or of rotations), is good to this fraction
 of their size: each is rounded to an ulp, and a few operations make them."""
