@@ -206,6 +206,20 @@ def polytope_distance(A: Polytope, B: Polytope) -> tuple[float, np.ndarray, np.n
     return posed_distances(A, np.eye(3), np.zeros(3), PolytopeGroup.of((B,)))[0]
 
 
+def _vertex_face_table(
+    V: np.ndarray, planes: np.ndarray, offsets: np.ndarray, side_starts: np.ndarray, n_faces: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """For vertices V (n, 3) and faces given as :class:`Polytope` stacks them (``planes``,
+    ``offsets``, ``side_starts``, the last ``n_faces`` rows the faces' own planes): each vertex's
+    distance to each face's plane where it projects inside the face (inf elsewhere) and its
+    signed height over the plane, both (n, n_faces) m."""
+    H = V @ planes.T - offsets
+    n_sides = len(planes) - n_faces
+    inside = np.maximum.reduceat(H[:, :n_sides], side_starts, axis=1) < 0.0
+    height = H[:, n_sides:]
+    return np.where(inside, np.abs(height), np.inf), height
+
+
 def posed_distances(
     A_O: Polytope, R_WO: np.ndarray, p_WO: np.ndarray, group_W: PolytopeGroup
 ) -> list[tuple[float, np.ndarray, np.ndarray]]:
@@ -215,23 +229,18 @@ def posed_distances(
     V_AW = A_O.vertices @ R_WO.T + p_WO
     G = group_W
     # A's vertices over the members' faces: (vertices of A) × (faces of all members).
-    H = V_AW @ G.planes.T - G.plane_offsets
-    n_sides = len(G.planes) - len(G.normals)
-    inside = np.maximum.reduceat(H[:, :n_sides], G.side_starts, axis=1) < 0.0
-    d_AB = np.where(inside, np.abs(H[:, n_sides:]), np.inf)
+    d_AB, h_AB = _vertex_face_table(V_AW, G.planes, G.plane_offsets, G.side_starts, len(G.normals))
     v_AB = np.argmin(d_AB, axis=0)
     cols = np.arange(len(v_AB))
-    d_AB, h_AB = d_AB[v_AB, cols], H[v_AB, n_sides + cols]
+    d_AB, h_AB = d_AB[v_AB, cols], h_AB[v_AB, cols]
     # The members' vertices over A's faces, in A's frame: (vertices of all) × (faces of A).
     V_BO = (G.vertices - p_WO) @ R_WO
-    H = V_BO @ A_O.planes.T - A_O.plane_offsets
-    n_sides = len(A_O.planes) - len(A_O.normals)
-    inside = np.maximum.reduceat(H[:, :n_sides], A_O.side_starts, axis=1) < 0.0
-    d_BA = np.where(inside, np.abs(H[:, n_sides:]), np.inf)
+    d_BA, h_BA = _vertex_face_table(
+        V_BO, A_O.planes, A_O.plane_offsets, A_O.side_starts, len(A_O.normals)
+    )
     f_BA = np.argmin(d_BA, axis=1)
     rows = np.arange(len(f_BA))
-    d_BA = d_BA[rows, f_BA]
-    h_BA = H[rows, n_sides + f_BA]
+    d_BA, h_BA = d_BA[rows, f_BA], h_BA[rows, f_BA]
     # Each member's nearest vertex–face pair: sorted by member, then distance, a member's first
     # entry is its nearest.
     f = np.lexsort((d_AB, G.face_member))[G.face_starts]
