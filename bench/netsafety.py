@@ -320,15 +320,19 @@ class Observer:
         ):
             raise TimeoutError(f"no robot state stamped after {stamp_s}")
 
-    def motion_after(self, stamp_s: float, count: int = 5) -> float:
-        """Largest joint motion a control period (rad) in the states stamped from ``stamp_s``
-        on (waits for ``count`` of them)."""
-        if not wait_until(
-            lambda: (self.poll(), sum(s.stamp_s >= stamp_s for s in self.states) >= count)[1], 2
-        ):
-            raise TimeoutError(f"fewer than {count} robot states after {stamp_s}")
-        later = [s for s in self.states if s.stamp_s >= stamp_s]
-        return max(motion_per_period(a, b) for a, b in itertools.pairwise(later))
+    def motion_after(self, stamp_s: float, periods: int = 0, count: int = 5) -> float:
+        """Largest joint motion a control period (rad) in the states from ``periods`` control
+        periods after the first one stamped at or after ``stamp_s`` on (waits for ``count`` of
+        them). Periods are counted on the states' own clock, their ``seq``: a loaded work site
+        falls behind the wall clock but runs every period's physics all the same."""
+
+        def later() -> list[RobotState]:
+            first = next((s.seq for s in self.states if s.stamp_s >= stamp_s), None)
+            return [] if first is None else [s for s in self.states if s.seq >= first + periods]
+
+        if not wait_until(lambda: (self.poll(), len(later()) >= count)[1], 2 + 0.1 * periods):
+            raise TimeoutError(f"fewer than {count} robot states {periods} periods after {stamp_s}")
+        return max(motion_per_period(a, b) for a, b in itertools.pairwise(later()))
 
     def close(self) -> None:
         self.link.close()

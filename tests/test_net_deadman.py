@@ -23,13 +23,13 @@ from operator_site.heartbeats import OPERATOR_FROZEN_S
 from operator_site.link import FINAL_STATUSES, WorkSiteLink
 from protocol import make_config
 from tests.conftest import REPO, wait_until
-from work_site.control.controller import EASE_S
+from work_site.control.controller import CONTROL_PERIOD_S, EASE_S
 from work_site.server import DEADMAN_ROUND_TRIPS
 
 pytestmark = pytest.mark.integration
 
 DEADMAN_S = 0.5
-CONTROL_PERIOD_S = 0.01
+EASE_PERIODS = round(EASE_S / CONTROL_PERIOD_S)
 STILL_RAD = 2e-4
 """Joint motion in a control period that counts as still (rad)."""
 PRESSING_N = 3.0
@@ -55,12 +55,12 @@ def check_deadman_message(message: str) -> None:
 
 
 def check_deadman_stop(
-    ws, observer: Observer, pid: str, silent_s: float, still_after_s: float = CONTROL_PERIOD_S
+    ws, observer: Observer, pid: str, silent_s: float, still_after_periods: int = 1
 ) -> float:
     """The program was stopped for want of heartbeats after the operator fell silent at
     ``silent_s`` (time.time(): its last beat was no later), once the work site had by its own
-    clock gone DEADMAN_S without one; the arm is still from ``still_after_s`` after the stop
-    on. Returns the delay from ``silent_s`` (s)."""
+    clock gone DEADMAN_S without one; the arm is still from ``still_after_periods`` control
+    periods after the stop on. Returns the delay from ``silent_s`` (s)."""
     stopped = observer.wait_report(pid, -1, "stopped", 5 + 4 * DEADMAN_S)
     check_deadman_message(stopped.message)
     delay_s = stopped.stamp_s - silent_s
@@ -68,7 +68,7 @@ def check_deadman_stop(
     silences_s = [float(x) for x in re.findall(r"dead-man: ([0-9.]+) s without", ws.log())]
     # The log rounds the silence to the millisecond: a stop just past the timeout reads as it.
     assert len(silences_s) == 1 and silences_s[0] >= DEADMAN_S, silences_s
-    assert observer.motion_after(stopped.stamp_s + still_after_s) <= STILL_RAD
+    assert observer.motion_after(stopped.stamp_s, still_after_periods) <= STILL_RAD
     return delay_s
 
 
@@ -136,7 +136,7 @@ def test_a_link_cut_during_a_contact_move_stops_and_eases_the_press(work_site) -
         assert observer.report("corner", contact, "contact_verified") is None  # still moving
         silent_s = relay.cut()
         # In contact the hand first eases off the press (EASE_S), then holds still.
-        delay_s = check_deadman_stop(ws, observer, "corner", silent_s, EASE_S + CONTROL_PERIOD_S)
+        delay_s = check_deadman_stop(ws, observer, "corner", silent_s, EASE_PERIODS + 1)
         stopped = observer.report("corner", -1, "stopped")
         for _ in range(100):
             observer.poll()
