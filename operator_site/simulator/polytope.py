@@ -37,7 +37,8 @@ class Polytope:
     (s + k,) m: first each face's sides as half-planes (outward in the face's plane, < 0 inside),
     face i's starting at row ``side_starts[i]``, then the faces' own planes; edge j runs from
     ``edge_starts[j]`` along ``edge_vectors[j]`` (m, 3) m, of squared length ``edge_length2[j]``
-    (m²)."""
+    (m²); ``face_sides`` (k, w, 3) and ``face_side_offsets`` (k, w) m: face i's sides again,
+    padded to the widest face with sides that hold every point (normal 0, offset 1)."""
 
     vertices: np.ndarray
     edges: np.ndarray
@@ -49,6 +50,8 @@ class Polytope:
     planes: np.ndarray
     plane_offsets: np.ndarray
     side_starts: np.ndarray
+    face_sides: np.ndarray
+    face_side_offsets: np.ndarray
 
     @classmethod
     def of(cls, part: ConvexPart) -> Polytope:
@@ -67,6 +70,11 @@ class Polytope:
                 side_d.append(float(m @ V[a]))
         E = np.array(edges, dtype=np.int64)
         D = V[E[:, 1]] - V[E[:, 0]]
+        ends = [*starts[1:], len(side_n)]
+        sides, side_offsets = _padded(
+            [np.array(side_n[a:b]) for a, b in zip(starts, ends, strict=True)],
+            [np.array(side_d[a:b]) for a, b in zip(starts, ends, strict=True)],
+        )
         return cls(
             V,
             E,
@@ -78,11 +86,13 @@ class Polytope:
             np.vstack([np.array(side_n), part.normals_O]),
             np.concatenate([side_d, part.offsets_m]),
             np.array(starts, dtype=np.int64),
+            sides,
+            side_offsets,
         )
 
     def moved(self, R: np.ndarray, t: np.ndarray) -> Polytope:
         """These features after the motion x ↦ R x + t."""
-        normals, planes = self.normals @ R.T, self.planes @ R.T
+        normals, planes, sides = self.normals @ R.T, self.planes @ R.T, self.face_sides @ R.T
         return Polytope(
             self.vertices @ R.T + t,
             self.edges,
@@ -94,7 +104,20 @@ class Polytope:
             planes,
             self.plane_offsets + planes @ t,
             self.side_starts,
+            sides,
+            self.face_side_offsets + sides @ t,
         )
+
+
+def _padded(sides: list[np.ndarray], offsets: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Faces' side planes, (s_i, 3) normals and (s_i,) offsets each, stacked as (k, w, 3) and
+    (k, w), w the most sides of any, the rest sides that hold every point: 0 · x − 1 < 0."""
+    width = max(len(n) for n in sides)
+    N = np.zeros((len(sides), width, 3))
+    D = np.ones((len(sides), width))
+    for i, (n, d) in enumerate(zip(sides, offsets, strict=True)):
+        N[i, : len(n)], D[i, : len(d)] = n, d
+    return N, D
 
 
 def _separation(A: Polytope, B: Polytope) -> tuple[float, np.ndarray]:
@@ -157,7 +180,9 @@ class PolytopeGroup:
     ``vertices`` (N, 3), member g's from row ``vertex_starts[g]``, each row's member in
     ``vertex_member``; their faces' ``normals`` (F, 3), g's from ``face_starts[g]``, each face's
     member in ``face_member``; ``planes`` (S + F, 3) and ``plane_offsets`` (S + F,):
-    every face's sides (face i's from row ``side_starts[i]``), then every face's own plane."""
+    every face's sides (face i's from row ``side_starts[i]``), then every face's own plane;
+    ``offsets`` (F,) the faces' own planes' offsets; ``face_sides`` (F, w, 3) and
+    ``face_side_offsets`` (F, w) every face's sides padded as :class:`Polytope`'s are."""
 
     members: tuple[Polytope, ...]
     vertices: np.ndarray
@@ -169,6 +194,9 @@ class PolytopeGroup:
     planes: np.ndarray
     plane_offsets: np.ndarray
     side_starts: np.ndarray
+    offsets: np.ndarray
+    face_sides: np.ndarray
+    face_side_offsets: np.ndarray
 
     @classmethod
     def of(cls, members: tuple[Polytope, ...]) -> PolytopeGroup:
@@ -194,6 +222,11 @@ class PolytopeGroup:
                 + [m.offsets for m in members]
             ),
             np.concatenate([m.side_starts + b for m, b in zip(members, side_base, strict=True)]),
+            np.concatenate([m.offsets for m in members]),
+            *_padded(
+                [n for m in members for n in m.face_sides],
+                [d for m in members for d in m.face_side_offsets],
+            ),
         )
 
 
@@ -226,6 +259,25 @@ def posed_distances(
     """:func:`polytope_distance` of ``A_O`` moved to the pose (``R_WO``, ``p_WO``) and each
     member of ``group_W``, points in W. The vertex–face pairs of all members are found at once;
     a member whose nearest pair they do not certify gets the edge pairs and separating axes."""
+    return posed_distances_and_faces(A_O, R_WO, p_WO, group_W)[0]
+
+
+@dataclass(frozen=True)
+class SeparatingFaces:
+    """For each member of a group, the face whose plane held the nearest pair of points at a
+    query: ``on_member[g]``: the member's face ``face[g]`` (the group's numbering), else A's
+    face ``face[g]``; ``face[g]`` −1 where none did (an edge pair was nearest, or they
+    overlapped)."""
+
+    on_member: np.ndarray
+    face: np.ndarray
+
+
+def posed_distances_and_faces(
+    A_O: Polytope, R_WO: np.ndarray, p_WO: np.ndarray, group_W: PolytopeGroup
+) -> tuple[list[tuple[float, np.ndarray, np.ndarray]], SeparatingFaces]:
+    """:func:`posed_distances`, and the faces whose planes held each member's nearest pair, for
+    :func:`distances_over_faces` at nearby poses."""
     V_AW = A_O.vertices @ R_WO.T + p_WO
     G = group_W
     # A's vertices over the members' faces: (vertices of A) × (faces of all members).
@@ -259,12 +311,59 @@ def posed_distances(
         np.einsum("ij,ij->i", G.vertices, n[G.vertex_member]), G.vertex_starts
     )
     ok = finite & (bottom_B - top_A >= d - CERTIFICATE_SLACK_M)
-    return [
+    faces = SeparatingFaces(
+        from_A[:, 0], np.where(ok, np.where(from_A[:, 0], f, f_BA[v]), -1).astype(np.int64)
+    )
+    results = [
         (float(d[g]), p_A[g], p_B[g])
         if ok[g]
         else _by_edges_and_axes(A_O, R_WO, p_WO, V_AW, B, (float(d[g]), p_A[g], p_B[g]))
         for g, B in enumerate(G.members)
     ]
+    return results, faces
+
+
+def distances_over_faces(
+    A_O: Polytope,
+    R_WO: np.ndarray,
+    p_WO: np.ndarray,
+    group_W: PolytopeGroup,
+    faces: SeparatingFaces,
+) -> np.ndarray | None:
+    """The distances (M,) m of :func:`posed_distances` where, for every member, the face in
+    ``faces`` still holds the nearest pair: the body on the face's other side lies wholly at
+    least its nearest vertex's height above the face's plane, and where that vertex projects
+    inside the face it is the nearest point, so the height is the distance. None where a
+    member has no face or its nearest vertex falls outside it (or touches): then the whole
+    query is due. Nearby poses (a line search's) mostly keep their faces, at a fraction of the
+    whole query's cost."""
+    if np.any(faces.face < 0):
+        return None
+    G = group_W
+    V_AW = A_O.vertices @ R_WO.T + p_WO
+    d = np.empty(len(G.members))
+    on = faces.on_member
+    if np.any(on):
+        # A's vertices over members' faces, in W.
+        f = faces.face[on]
+        H = V_AW @ G.normals[f].T - G.offsets[f]
+        j = np.argmin(H, axis=0)
+        h = H[j, np.arange(len(f))]
+        P = V_AW[j]
+        sides = np.einsum("kwi,ki->kw", G.face_sides[f], P) - G.face_side_offsets[f]
+        if not (np.all(sides < 0.0) and np.all(h > 0.0)):
+            return None
+        d[on] = h
+    for g in np.flatnonzero(~on):
+        # The member's vertices over A's face, in A's frame.
+        f = int(faces.face[g])
+        V = (G.members[g].vertices - p_WO) @ R_WO
+        h = V @ A_O.normals[f] - A_O.offsets[f]
+        j = int(np.argmin(h))
+        if not (h[j] > 0.0 and np.all(A_O.face_sides[f] @ V[j] - A_O.face_side_offsets[f] < 0.0)):
+            return None
+        d[g] = h[j]
+    return d
 
 
 def _by_edges_and_axes(

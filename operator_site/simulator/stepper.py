@@ -551,12 +551,17 @@ class Simulator:
         springs: dict[float, float] = {}
         E0 = self._spring_energy(X0)
 
+        objects = [self.world.obstacle_object[i] for i in near]
+
         def U(s: float) -> float:
             if s not in cache:
                 X = self._pose_at(X0, v, w, s)
                 springs[s] = self._spring_energy(X) - E0
-                pairs = self.world.distances(X, near)
-                cache[s] = self._potential(self._object_distances(pairs), gain) + springs[s]
+                nearest_m = self.world.distances_m(X, near).min(axis=0)
+                distances_m: dict[str, float] = {}
+                for name, d in zip(objects, nearest_m.tolist(), strict=True):
+                    distances_m[name] = min(distances_m.get(name, math.inf), d)
+                cache[s] = self._potential(distances_m, gain) + springs[s]
             return cache[s]
 
         # Collision samples no further apart than a fraction of the thinnest obstacle.

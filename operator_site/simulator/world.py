@@ -11,7 +11,13 @@ import numpy as np
 
 from models.geometry import ConvexPart
 from models.scene import Scene
-from operator_site.simulator.polytope import Polytope, PolytopeGroup, posed_distances
+from operator_site.simulator.polytope import (
+    Polytope,
+    PolytopeGroup,
+    SeparatingFaces,
+    distances_over_faces,
+    posed_distances_and_faces,
+)
 
 
 def fcl_convex(part: ConvexPart) -> fcl.Convex:
@@ -91,6 +97,8 @@ class SimWorld:
         self.thinnest_obstacle_m = float(thinnest)
         self._group_key = b""
         self._group: PolytopeGroup | None = None
+        self._faces: list[SeparatingFaces | None] = [None] * len(self.wp_parts)
+        """Per workpiece part, the faces that held its nearest pairs with ``_group`` last."""
         self._collide_request = fcl.CollisionRequest(num_max_contacts=4, enable_contact=True)
         self.queries = 0
         """Narrow-phase distance queries made so far (one per pair of convex parts)."""
@@ -105,21 +113,44 @@ class SimWorld:
         V = self.wp_vertices_O @ X_WO[:3, :3].T + X_WO[:3, 3]
         return V.min(axis=0) - grow_m, V.max(axis=0) + grow_m
 
-    def distances(self, X_WO: np.ndarray, obstacles: np.ndarray) -> list[PairDistance]:
-        """Distances from every workpiece part at ``X_WO`` to each listed obstacle part."""
-        if len(obstacles) == 0:
-            return []
+    def _group_of(self, obstacles: np.ndarray) -> PolytopeGroup:
         key = obstacles.tobytes()
         if key != self._group_key:  # the broad phase's answer seldom changes between queries
             self._group_key = key
             self._group = PolytopeGroup.of(tuple(self._obstacle_polytopes[i] for i in obstacles))
+            self._faces = [None] * len(self.wp_parts)
+        return self._group
+
+    def distances(self, X_WO: np.ndarray, obstacles: np.ndarray) -> list[PairDistance]:
+        """Distances from every workpiece part at ``X_WO`` to each listed obstacle part."""
+        if len(obstacles) == 0:
+            return []
+        group = self._group_of(obstacles)
         R, t = X_WO[:3, :3], X_WO[:3, 3]
         out = []
         for k, part in enumerate(self._wp_polytopes):
-            for i, (d, p_wp, p_obstacle) in zip(
-                obstacles, posed_distances(part, R, t, self._group), strict=True
-            ):
+            pairs, self._faces[k] = posed_distances_and_faces(part, R, t, group)
+            for i, (d, p_wp, p_obstacle) in zip(obstacles, pairs, strict=True):
                 out.append(PairDistance(d, int(i), k, p_wp, p_obstacle))
+        self.queries += len(self._wp_objects) * len(obstacles)
+        return out
+
+    def distances_m(self, X_WO: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
+        """The distances alone (m), (workpiece parts, ``obstacles``): as :meth:`distances`, but
+        first over the faces that held the nearest pairs at the last query, which a pose near
+        it (a line search's next) mostly keeps."""
+        out = np.empty((len(self._wp_polytopes), len(obstacles)))
+        if len(obstacles) == 0:
+            return out
+        group = self._group_of(obstacles)
+        R, t = X_WO[:3, :3], X_WO[:3, 3]
+        for k, part in enumerate(self._wp_polytopes):
+            faces = self._faces[k]
+            d = None if faces is None else distances_over_faces(part, R, t, group, faces)
+            if d is None:
+                pairs, self._faces[k] = posed_distances_and_faces(part, R, t, group)
+                d = np.array([pair[0] for pair in pairs])
+            out[k] = d
         self.queries += len(self._wp_objects) * len(obstacles)
         return out
 
