@@ -145,7 +145,8 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
 
 def so3_log(R: np.ndarray) -> np.ndarray:
     """Rotation vector (rad) of rotation matrix ``R``, robust near 0 and π."""
-    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    # The cosine as np.clip(np.trace …) computes it, without their per-call overhead.
+    cos = min(max((float(R[0, 0] + R[1, 1] + R[2, 2]) - 1.0) / 2.0, -1.0), 1.0)
     theta = math.acos(cos)
     v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     if theta < 1e-6:

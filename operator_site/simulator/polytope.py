@@ -265,12 +265,37 @@ def posed_distances(
 @dataclass(frozen=True)
 class SeparatingFaces:
     """For each member of a group, the face whose plane held the nearest pair of points at a
-    query: ``on_member[g]``: the member's face ``face[g]`` (the group's numbering), else A's
-    face ``face[g]``; ``face[g]`` −1 where none did (an edge pair was nearest, or they
-    overlapped)."""
+    query, gathered for :func:`distances_over_faces`: ``complete`` whether every member has
+    one (none where an edge pair was nearest, or they overlapped); the members ``on`` (g,)
+    whose own face it was, with those faces' ``normals`` (g, 3), ``offsets`` (g,) m,
+    ``sides`` (g, w, 3) and ``side_offsets`` (g, w) m in W (as :class:`Polytope`'s); and the
+    members ``off`` whose nearest pair lay on A's face ``off_faces`` (A's numbering)."""
 
-    on_member: np.ndarray
-    face: np.ndarray
+    complete: bool
+    on: np.ndarray
+    normals: np.ndarray
+    offsets: np.ndarray
+    sides: np.ndarray
+    side_offsets: np.ndarray
+    off: tuple[int, ...]
+    off_faces: tuple[int, ...]
+
+    @classmethod
+    def of(cls, group: PolytopeGroup, on_member: np.ndarray, face: np.ndarray) -> SeparatingFaces:
+        """From ``on_member`` (M,) bool and ``face`` (M,) (−1: none) per member of ``group``."""
+        on = np.flatnonzero(on_member & (face >= 0))
+        f = face[on]
+        off = np.flatnonzero(~on_member & (face >= 0))
+        return cls(
+            bool(np.all(face >= 0)),
+            on,
+            group.normals[f],
+            group.offsets[f],
+            group.face_sides[f],
+            group.face_side_offsets[f],
+            tuple(int(g) for g in off),
+            tuple(int(k) for k in face[off]),
+        )
 
 
 def posed_distances_and_faces(
@@ -311,8 +336,8 @@ def posed_distances_and_faces(
         np.einsum("ij,ij->i", G.vertices, n[G.vertex_member]), G.vertex_starts
     )
     ok = finite & (bottom_B - top_A >= d - CERTIFICATE_SLACK_M)
-    faces = SeparatingFaces(
-        from_A[:, 0], np.where(ok, np.where(from_A[:, 0], f, f_BA[v]), -1).astype(np.int64)
+    faces = SeparatingFaces.of(
+        G, from_A[:, 0], np.where(ok, np.where(from_A[:, 0], f, f_BA[v]), -1)
     )
     results = [
         (float(d[g]), p_A[g], p_B[g])
@@ -337,30 +362,26 @@ def distances_over_faces(
     member has no face or its nearest vertex falls outside it (or touches): then the whole
     query is due. Nearby poses (a line search's) mostly keep their faces, at a fraction of the
     whole query's cost."""
-    if np.any(faces.face < 0):
+    if not faces.complete:
         return None
     G = group_W
-    V_AW = A_O.vertices @ R_WO.T + p_WO
     d = np.empty(len(G.members))
-    on = faces.on_member
-    if np.any(on):
+    if len(faces.on):
         # A's vertices over members' faces, in W.
-        f = faces.face[on]
-        H = V_AW @ G.normals[f].T - G.offsets[f]
-        j = np.argmin(H, axis=0)
-        h = H[j, np.arange(len(f))]
-        P = V_AW[j]
-        sides = np.einsum("kwi,ki->kw", G.face_sides[f], P) - G.face_side_offsets[f]
-        if not (np.all(sides < 0.0) and np.all(h > 0.0)):
+        V_AW = A_O.vertices @ R_WO.T + p_WO
+        H = V_AW @ faces.normals.T - faces.offsets
+        j = H.argmin(axis=0)
+        h = H[j, np.arange(len(j))]
+        sides = np.einsum("kwi,ki->kw", faces.sides, V_AW[j]) - faces.side_offsets
+        if not ((sides < 0.0).all() and (h > 0.0).all()):
             return None
-        d[on] = h
-    for g in np.flatnonzero(~on):
+        d[faces.on] = h
+    for g, f in zip(faces.off, faces.off_faces, strict=True):
         # The member's vertices over A's face, in A's frame.
-        f = int(faces.face[g])
         V = (G.members[g].vertices - p_WO) @ R_WO
         h = V @ A_O.normals[f] - A_O.offsets[f]
-        j = int(np.argmin(h))
-        if not (h[j] > 0.0 and np.all(A_O.face_sides[f] @ V[j] - A_O.face_side_offsets[f] < 0.0)):
+        j = int(h.argmin())
+        if not (h[j] > 0.0 and (A_O.face_sides[f] @ V[j] - A_O.face_side_offsets[f] < 0.0).all()):
             return None
         d[g] = h[j]
     return d
