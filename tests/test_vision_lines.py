@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from work_site.vision.lines import LineParams, check_grey_image, detect_lines
+from work_site.vision.lines import FAINT_LINE_PARAMS, LineParams, check_grey_image, detect_lines
 
 SCALE = 8
 
@@ -146,3 +146,25 @@ def test_merge_collinear_equals_the_greedy_merge_one_by_one() -> None:
         assert merged.shape == expected.shape
         np.testing.assert_allclose(merged, expected, atol=1e-9)
     assert len(merged) < len(segs)  # merges happened
+
+
+def test_the_faint_pass_finds_a_low_contrast_edge_the_first_misses_and_no_lines_in_noise():
+    """A 15-grey-level edge, blurred and in σ = 3 noise (a block's face-to-face edge in flat
+    light): the first pass covers little of it, the faint pass (smoothed, finer quantisation)
+    most; in noise alone the faint pass finds no line as long as a block's edge."""
+    rng = np.random.default_rng(0)
+    covered = np.zeros(2)
+    for _ in range(10):
+        img = np.full((120, 160), 100.0)
+        img[:, 80:] += 15.0
+        img = cv2.GaussianBlur(img, (0, 0), 1.2) + rng.normal(0.0, 3.0, img.shape)
+        img = np.clip(img, 0, 255).astype(np.uint8)
+        for j, params in enumerate((LineParams(), FAINT_LINE_PARAMS)):
+            segs = detect_lines(img, params)
+            on_edge = (np.abs(segs[:, 0] - 79.5) < 2) & (np.abs(segs[:, 2] - 79.5) < 2)
+            covered[j] += np.sum(np.abs(segs[on_edge, 3] - segs[on_edge, 1])) / 120 / 10
+    assert covered[0] < 0.2 and covered[1] > 0.5, covered
+    noise = np.clip(100.0 + rng.normal(0.0, 3.0, (120, 160)), 0, 255).astype(np.uint8)
+    segs = detect_lines(noise, FAINT_LINE_PARAMS)
+    lengths = np.hypot(segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1])
+    assert np.all(lengths < 20.0), lengths

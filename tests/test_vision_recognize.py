@@ -182,8 +182,9 @@ def test_the_arm_in_view_is_set_aside_when_vision_knows_its_joints(recognizer) -
         renderer.close()
     image = np.clip(image + np.random.default_rng(1).normal(0, 1.0, image.shape), 0, 255)
     image = image.astype(np.uint8)
-    lines_all = recognizer._frame(image, camera).segs
-    lines_left = recognizer._frame(image, camera, recognizer.robot.at(ik.q, 0.04)).segs
+    # The first pass's lines, from which hypotheses come (the faint pass's only weigh them).
+    lines_all = recognizer._frame(image, camera).strong
+    lines_left = recognizer._frame(image, camera, recognizer.robot.at(ik.q, 0.04)).strong
     assert len(lines_left) < 0.7 * len(lines_all), "the arm's lines should be set aside"
     found = recognizer.recognize(image, camera, ik.q, 0.04)
     assert [r.model for r in found] == ["cube"], [(r.model, r.score) for r in found]

@@ -34,6 +34,15 @@ class LineParams:
     merge_gap_px: float = 4.0
     lsd_scale: float = 1.0
     lsd_quant: float = 2.0
+    lsd_smooth_px: float = 0.0
+    """Standard deviation (px) of a Gaussian the image is smoothed with before LSD (0: none;
+    LSD's own smoothing is off at ``lsd_scale`` 1)."""
+
+
+FAINT_LINE_PARAMS = LineParams(lsd_quant=1.0, lsd_smooth_px=0.75)
+"""A second, more sensitive pass (smoothed, finer gradient quantisation) for the faint edges
+LSD's default pass misses under dim or flat light: a block's own face-to-face edges, a block
+against one of the same shade."""
 
 
 _LSD: dict[tuple[float, float], cv2.LineSegmentDetector] = {}
@@ -68,6 +77,8 @@ def detect_lines(
     img = check_grey_image(image)
     if min(img.shape) < 4:
         return np.zeros((0, 4))
+    if params.lsd_smooth_px > 0.0:
+        img = cv2.GaussianBlur(img, (0, 0), params.lsd_smooth_px)
     found = _lsd(params.lsd_scale, params.lsd_quant).detect(img)[0]
     if found is None:
         return np.zeros((0, 4))

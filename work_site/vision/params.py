@@ -83,6 +83,8 @@ class RecognizerParams:
     table_coarse_min: float = 0.4  # table hypotheses are scored in full only if their support
     # at 2 of 6 points per edge reaches this
     table_angle_tol_rad: float = np.deg2rad(8.0)
+    faint_lines: bool = True  # a second, sensitive line pass (lines.FAINT_LINE_PARAMS) whose
+    # lines, beyond the first pass's, weigh only in the selection's re-check of candidates
     stacked_search: bool = True  # after the table search, the junction hypotheses of blocks
     # resting on the found objects' upward faces
     stacked_face_tilt_rad: float = np.deg2rad(5.0)  # a found face this close to horizontal

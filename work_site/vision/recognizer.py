@@ -44,7 +44,13 @@ from work_site.vision.index import (
     find_junctions,
     load_or_build_index,
 )
-from work_site.vision.lines import LineParams, check_grey_image, detect_lines, image_gradients
+from work_site.vision.lines import (
+    FAINT_LINE_PARAMS,
+    LineParams,
+    check_grey_image,
+    detect_lines,
+    image_gradients,
+)
 from work_site.vision.model import (
     Occluders,
     VisionModel,
@@ -69,6 +75,10 @@ from work_site.vision.verification import (
 
 FACE_TOL_M = 1e-9
 """A model vertex this close to a hull face's plane is on the face."""
+FAINT_SAME_LINE_PX = 1.5
+FAINT_SAME_LINE_RAD = np.deg2rad(3.0)
+"""A faint-pass line within these of a first-pass one, at both ends and in direction, is that
+line found again."""
 SUPPORT_HEIGHT_MERGE_M = 1e-3
 """Found faces this close in height (blocks of one size side by side) share one set of stacked
 hypotheses: the fit without the prior settles the height."""
@@ -97,6 +107,12 @@ class _Frame:
     gy: np.ndarray
     occluders_C: Occluders  # the fixed environment, in C
     t0: float  # time.perf_counter() at the start, for the time budget
+    n_strong: int  # segs[:n_strong] are the first pass's lines, from which hypotheses come
+    # and are fitted and verified; the faint pass's after them only weigh in the selection
+
+    @property
+    def strong(self) -> np.ndarray:
+        return self.segs[: self.n_strong]
 
 
 @dataclass(eq=False)
@@ -244,19 +260,21 @@ class Recognizer:
                 raise ValueError(f"robot joint state must be 6 finite angles, got {q.tolist()}")
             robot = self._robot.at(q, float(finger_opening_m))
         f = self._frame(image, camera, robot)
-        if len(f.segs) < 4:
+        if len(f.strong) < 4:
             return []
         p = self.params
-        junctions = find_junctions(f.segs, self.group_params)  # for both kinds of hypotheses
+        junctions = find_junctions(f.strong, self.group_params)  # for both kinds of hypotheses
         hyps = (
-            index_hypotheses(self.index, self.group_params, f.segs, p, p.max_hypotheses, junctions)
+            index_hypotheses(
+                self.index, self.group_params, f.strong, p, p.max_hypotheses, junctions
+            )
             if p.max_hypotheses > 0
             else []
         )
         s = _Search(np.zeros(len(f.segs), dtype=bool), PoseSet(p.same_pose_m, p.same_pose_rad))
         stream = table_stream(
             self._corners, self.models, self.group_params, self.table_z,
-            f.segs, f.K, f.X_WC, f.gx, f.gy, p, junctions,
+            f.strong, f.K, f.X_WC, f.gx, f.gy, p, junctions,
         )  # fmt: skip
         resting, free = index_stream(
             hyps, self.index, self.models, self._facets, self.table_z, f.K, f.X_WC, p,
@@ -311,8 +329,8 @@ class Recognizer:
                 heights.add(round(z / SUPPORT_HEIGHT_MERGE_M) * SUPPORT_HEIGHT_MERGE_M)
         for z in sorted(heights):
             items = table_stream(
-                self._corners, self.models, self.group_params, z, f.segs, f.K, f.X_WC, f.gx,
-                f.gy, p, junctions,
+                self._corners, self.models, self.group_params, z, f.strong, f.K, f.X_WC,
+                f.gx, f.gy, p, junctions,
             )  # fmt: skip
             self._search(items, f, s, resting=False)
 
@@ -326,7 +344,7 @@ class Recognizer:
         for r in accepted:
             model = self._by_name[r.model]
             result = fit_and_verify(
-                model, X_CW @ r.X_WO, f.segs, f.K, f.gx, f.gy, f.occluders_C, p, None
+                model, X_CW @ r.X_WO, f.strong, f.K, f.gx, f.gy, f.occluders_C, p, None
             )
             if result is None:
                 continue
@@ -373,7 +391,15 @@ class Recognizer:
             K,
         )
         segs = self._drop_environment(segs, X_CW, K, env_C, [*self._env_models, *robot])
-        return _Frame(segs, K, camera.X_WC, gx, gy, env_C, t0)
+        n_strong = len(segs)
+        if self.params.faint_lines and n_strong:
+            faint = detect_lines(img, FAINT_LINE_PARAMS, (gx, gy))
+            faint = self._drop_environment(faint, X_CW, K, env_C, [*self._env_models, *robot])
+            if len(faint):
+                # Those the first pass found too are already there.
+                _, again = match_segments(segs, faint, FAINT_SAME_LINE_PX, FAINT_SAME_LINE_RAD)
+                segs = np.vstack([segs, np.delete(faint, again, axis=0)])
+        return _Frame(segs, K, camera.X_WC, gx, gy, env_C, t0, n_strong)
 
     def _search(
         self, items: list[tuple], f: _Frame, s: _Search, resting: bool = True
@@ -398,7 +424,7 @@ class Recognizer:
             else:
                 entry, X = how
                 X0 = initial_fit(
-                    model, self.index, entry, X, g_segs, f.segs, f.K, f.X_WC, self.table_z, p,
+                    model, self.index, entry, X, g_segs, f.strong, f.K, f.X_WC, self.table_z, p,
                     self._prior(model, f.X_WC, resting), height,
                 )  # fmt: skip
             if X0 is None:
@@ -408,7 +434,7 @@ class Recognizer:
                 continue
             s.tested.add(model, X0)
             result = fit_and_verify(
-                model, X0, f.segs, f.K, f.gx, f.gy, f.occluders_C, p,
+                model, X0, f.strong, f.K, f.gx, f.gy, f.occluders_C, p,
                 self._prior(model, f.X_WC, resting),
             )  # fmt: skip
             if result is None:
@@ -450,7 +476,7 @@ class Recognizer:
                 0.0 if resting else self.max_height_m,
             ):  # fmt: skip
                 r2 = fit_and_verify(
-                    whole, X_CB, f.segs, f.K, f.gx, f.gy, f.occluders_C, p,
+                    whole, X_CB, f.strong, f.K, f.gx, f.gy, f.occluders_C, p,
                     self._prior(whole, f.X_WC, resting), grown=True,
                 )  # fmt: skip
                 if r2 is not None:
@@ -487,7 +513,10 @@ class Recognizer:
                 s.confident.add(model.name)
 
     def _select(self, s: _Search, f: _Frame) -> list[Detection]:
-        """The candidates found so far, conflicts resolved (see :func:`.pose_sets.select`)."""
+        """The candidates found so far, conflicts resolved (see :func:`.pose_sets.select`),
+        weighed against every line, the faint pass's too: a block whose own faint edges the
+        first pass missed is not dropped for want of them, while what becomes a candidate is
+        decided on the first pass's lines alone."""
         return select(
             s.candidates, f.segs, f.K, f.gx, f.gy, f.occluders_C, self.params, self.surroundings,
             self.max_height_m,
