@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,7 +25,7 @@ from operator_site.simulator.barrier import barrier, capture_barrier
 from operator_site.simulator.contacts import contact_manifold
 from operator_site.simulator.lcp import solve_lcp
 from operator_site.simulator.params import POINTS_PER_PAIR_RANGE, REST_GAP_FRACTION, SimParams
-from operator_site.simulator.world import PairDistance, SimWorld
+from operator_site.simulator.world import SimWorld
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 MAX_LIFT_DOUBLINGS = 12
@@ -324,11 +325,14 @@ class Simulator:
         lo, hi = self.world.workpiece_box(X_WO, sweep_m + self.params.eps_capture_m)
         return self.world.candidates(lo, hi)
 
-    def _object_distances(self, pairs: list[PairDistance]) -> dict[str, float]:
+    def _object_distances(
+        self, obstacles: Iterable[int], distances_m: Iterable[float]
+    ) -> dict[str, float]:
+        """The least of ``distances_m`` (to the obstacle parts ``obstacles``) per object."""
         d: dict[str, float] = {}
-        for pair in pairs:
-            name = self.world.obstacle_object[pair.obstacle]
-            d[name] = min(d.get(name, math.inf), pair.distance_m)
+        for i, distance_m in zip(obstacles, distances_m, strict=True):
+            name = self.world.obstacle_object[i]
+            d[name] = min(d.get(name, math.inf), distance_m)
         return d
 
     def _potential(self, distances_m: dict[str, float], gain: float) -> float:
@@ -359,7 +363,9 @@ class Simulator:
         V_wp = [part.vertices_O @ R.T + t for part in self.world.wp_parts]
         N_wp = [part.normals_O @ R.T for part in self.world.wp_parts]
         by_object: dict[str, list] = {}
-        dist = self._object_distances(pairs)
+        dist = self._object_distances(
+            (pair.obstacle for pair in pairs), (pair.distance_m for pair in pairs)
+        )
         for name, d in dist.items():
             if name in self.state.capturable and d < p.eps_contact_m:
                 self.state.held.add(name)
@@ -551,16 +557,12 @@ class Simulator:
         springs: dict[float, float] = {}
         E0 = self._spring_energy(X0)
 
-        objects = [self.world.obstacle_object[i] for i in near]
-
         def U(s: float) -> float:
             if s not in cache:
                 X = self._pose_at(X0, v, w, s)
                 springs[s] = self._spring_energy(X) - E0
-                nearest_m = self.world.distances_m(X, near).min(axis=0)
-                distances_m: dict[str, float] = {}
-                for name, d in zip(objects, nearest_m.tolist(), strict=True):
-                    distances_m[name] = min(distances_m.get(name, math.inf), d)
+                nearest_m = self.world.distances_m(X, near).min(axis=0).tolist()
+                distances_m = self._object_distances(near.tolist(), nearest_m)
                 cache[s] = self._potential(distances_m, gain) + springs[s]
             return cache[s]
 
