@@ -557,12 +557,14 @@ class Simulator:
         springs: dict[float, float] = {}
         E0 = self._spring_energy(X0)
 
+        parts = near.tolist()
+
         def U(s: float) -> float:
             if s not in cache:
                 X = self._pose_at(X0, v, w, s)
                 springs[s] = self._spring_energy(X) - E0
                 nearest_m = self.world.distances_m(X, near).min(axis=0).tolist()
-                distances_m = self._object_distances(near.tolist(), nearest_m)
+                distances_m = self._object_distances(parts, nearest_m)
                 cache[s] = self._potential(distances_m, gain) + springs[s]
             return cache[s]
 

@@ -390,15 +390,16 @@ class Recognizer:
             + [planes_in(X_CW @ X, P) for m, X in robot for P in m.planes_O],
             K,
         )
-        segs = self._drop_environment(segs, X_CW, K, env_C, [*self._env_models, *robot])
-        n_strong = len(segs)
-        if self.params.faint_lines and n_strong:
+        n_first = len(segs)
+        if self.params.faint_lines and n_first:
             faint = detect_lines(img, FAINT_LINE_PARAMS, (gx, gy))
-            faint = self._drop_environment(faint, X_CW, K, env_C, [*self._env_models, *robot])
-            if len(faint):
-                # Those the first pass found too are already there.
-                _, again = match_segments(segs, faint, FAINT_SAME_LINE_PX, FAINT_SAME_LINE_RAD)
-                segs = np.vstack([segs, np.delete(faint, again, axis=0)])
+            # Those the first pass found too are already there.
+            _, again = match_segments(segs, faint, FAINT_SAME_LINE_PX, FAINT_SAME_LINE_RAD)
+            segs = np.vstack([segs, np.delete(faint, again, axis=0)])
+        # Both passes' lines at once: the environment's edges are projected once a frame.
+        kept = ~self._explained_by(segs, X_CW, K, env_C, [*self._env_models, *robot])
+        n_strong = int(np.count_nonzero(kept[:n_first]))
+        segs = segs[kept]
         return _Frame(segs, K, camera.X_WC, gx, gy, env_C, t0, n_strong)
 
     def _search(
@@ -522,19 +523,19 @@ class Recognizer:
             self.max_height_m,
         )  # fmt: skip
 
-    def _drop_environment(self, segs, X_CW, K, env_C, env_models) -> np.ndarray:
-        """Image segments not explained by the projected edges of ``env_models`` (model,
-        ``X_WO``): the frame's many corners would otherwise flood the hypotheses, and the
-        robot's fingers look like a plank."""
-        if len(segs) == 0:
-            return segs
+    def _explained_by(self, segs, X_CW, K, env_C, env_models) -> np.ndarray:
+        """Which image segments (bool, one per row of ``segs``) the projected edges of
+        ``env_models`` (model, ``X_WO``) explain: set aside, since the frame's many corners
+        would otherwise flood the hypotheses, and the robot's fingers look like a plank."""
         explained = np.zeros(len(segs), dtype=bool)
+        if len(segs) == 0:
+            return explained
         for env in env_models:
             X_CO = X_CW @ env[1]
             _, proj, _ = visible_edges(env[0], X_CO, K, env_C)
             _, mj = match_segments(proj, segs, ENV_MATCH_TOL_PX, np.deg2rad(3.0))
             explained[mj] = True
-        return segs[~explained]
+        return explained
 
     def _prior(self, model: VisionModel, X_WC: np.ndarray, resting: bool = True):
         """The fits' soft prior that ``model`` rests on a face on the table (None if off, or
