@@ -162,6 +162,17 @@ class _Truth:
         )
 
 
+def _model_error(model: WorkSiteModel, X_truth: dict[str, np.ndarray]) -> dict[str, list]:
+    """Each modelled block's pose against the truth ``X_truth``, up to its symmetries:
+    ``{name: [mm, degrees]}``."""
+    out = {}
+    for name, X in model.poses.items():
+        if name in X_truth:
+            error_m, error_rad = pose_error(X_truth[name], X, model.symmetries(name))
+            out[name] = [round(error_m * 1e3, 2), round(math.degrees(error_rad), 2)]
+    return out
+
+
 class _ExecutionWatch:
     """What the operator waits for while its program runs: its first report, and the camera
     (how old each frame is as it arrives, how often they come)."""
@@ -352,6 +363,9 @@ def run_chain(
         stage_s["vision_wait"] = time.monotonic() - t0
         out["recognised"] = sorted(model.poses)
         out["corrections_mm"] = {c.name: round(c.moved_mm, 2) for c in corrections}
+        if not oracle:  # the model against the truth before anything moved: vision's error
+            X_before = {o.name: o.X_WO for o in truth.latest_after(time.time()).objects}
+            out["model_error"] = _model_error(model, X_before)
 
         t0 = time.monotonic()
         demo = task.demonstrate(model)
