@@ -41,7 +41,8 @@ from operator_site.simulator import SimParams
 from operator_site.task import MAX_UNDO, TaskSession
 from operator_site.taskdrag import TaskDemonstration, drag_task, reference_pose_W, turn_rad
 from operator_site.taskfile import Task, TaskGoal, TaskStep
-from protocol import MotionProgram, ProtocolError, Recognitions, decode, encode
+from protocol import MotionProgram, ProtocolError, Recognitions, encode
+from protocol.codec import decode_saved
 from protocol.messages import ExecutionReport
 
 ACCEPT_SCORE = 0.5
@@ -105,6 +106,7 @@ def generated_program(
         command_params=command_params,
         X_WO=session.X_WO,
         progress=progress,
+        grip_opening_m=session.opening_m if session.fingers_O else None,
     )
 
 
@@ -436,6 +438,6 @@ def load_program(path: Path | str) -> MotionProgram:
     except OSError as e:
         raise ValueError(f"{path}: cannot read it ({e.strerror})") from None
     try:
-        return decode(payload, expected=MotionProgram)
+        return decode_saved(payload, expected=MotionProgram)
     except ProtocolError as e:
         raise ValueError(f"{path}: not a robot program ({e})") from None

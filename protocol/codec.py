@@ -40,6 +40,7 @@ from .errors import ProtocolError
 from .images import decode_image, encode_image
 from .messages import (
     BODY_CHANGED_IN,
+    FIELDS_ADDED,
     MESSAGE_TYPES,
     OLDEST_READ_VERSION,
     SCHEMA_VERSION,
@@ -290,6 +291,34 @@ def decode(payload: bytes, expected: type | tuple[type, ...] | None = None) -> A
         return wire.record(body)
     except _RefusedError as e:
         raise ProtocolError(f"{wire.cls.__name__}{''.join(reversed(e.path))}: {e.text}") from None
+
+
+def decode_saved(payload: bytes, expected: type[M]) -> M:
+    """:func:`decode` for a message saved to a file by an earlier version: a body from before
+    its type last changed is read with the fields added since set as :data:`FIELDS_ADDED`
+    says it meant them; the payload's own refusal where that cannot be done."""
+    try:
+        return decode(payload, expected=expected)
+    except ProtocolError as refusal:
+        try:
+            env = msgpack.unpackb(
+                payload, raw=False, strict_map_key=True, ext_hook=_refuse_ext, **_UNPACK_LIMITS
+            )
+        except Exception:  # not msgpack at all: the refusal says so
+            raise refusal from None
+        if not (isinstance(env, dict) and isinstance(env.get("b"), dict)):
+            raise refusal from None
+        version, added = env.get("v"), FIELDS_ADDED.get(env.get("t"), {})
+        if type(version) is not int or version < OLDEST_READ_VERSION:
+            raise refusal from None
+        since = [v for v in sorted(added) if v > version]
+        if not since:
+            raise refusal from None
+        for v in since:
+            for name, value in added[v].items():
+                env["b"].setdefault(name, value)
+        env["v"] = SCHEMA_VERSION
+        return decode(msgpack.packb(env, use_bin_type=True), expected=expected)
 
 
 def _refuse_ext(code: int, data: bytes) -> Any:

@@ -31,19 +31,24 @@ from ._schema import (
 )
 from .images import DEFAULT_JPEG_QUALITY, ImageEncoding
 
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 9
 """Version of the wire schema; bump on any incompatible change to a message.
 2: ``CameraFrame`` carries its image's ``encoding`` and ``quality``.
 3: ``ExecutionReport`` carries its number within its program (``seq``).
 4: ``MotionProgram`` and ``Heartbeat`` carry an ``operator`` (the control lease).
 6: ``Stop`` carries the programs it ``cancels``.
-7: ``Heartbeat`` echoes the other side's latest beat (the round trip)."""
+7: ``Heartbeat`` echoes the other side's latest beat (the round trip).
+9: ``MotionProgram`` says what its grasp should hold (``holds``)."""
 OLDEST_READ_VERSION = 6
 """The oldest schema version read, for a message type whose body has not changed since (a
 program saved by the version before stays loadable)."""
-BODY_CHANGED_IN: dict[str, int] = {"heartbeat": 8}
+BODY_CHANGED_IN: dict[str, int] = {"heartbeat": 8, "motion_program": 9}
 """The version in which a type's body last changed, where that is after
-:data:`OLDEST_READ_VERSION`: older envelopes of that type are refused."""
+:data:`OLDEST_READ_VERSION`: older envelopes of that type are refused (a saved file's are read
+where :data:`FIELDS_ADDED` says what the older body meant)."""
+FIELDS_ADDED: dict[str, dict[int, dict[str, object]]] = {"motion_program": {9: {"holds": []}}}
+"""Fields a type's body gained in a version, each with the wire value a body from before meant
+by leaving it out: files saved before read so (``protocol.codec.decode_saved``)."""
 
 
 def readable_versions(type_tag: str) -> tuple[int, ...]:
@@ -255,6 +260,36 @@ class MotionCommand(Record):
     contacts: Annotated[tuple[ContactState, ...], Meta(max_length=MAX_CONTACTS)]
 
 
+MAX_HELD_MASS_KG = 100.0
+"""Heaviest block a program may say it holds (kg): a bound on the wire; each work site refuses
+what its own arm cannot carry."""
+MAX_HELD_OPENING_M = 1.0
+"""Widest grip a program may say it holds (m): a bound on the wire, as above; a held block's
+centre of mass lies no farther from the gripper either."""
+
+
+def _check_held_com(p_G: np.ndarray) -> str | None:
+    bound_m = MAX_HELD_OPENING_M
+    # An entry beyond the bound says it alone (the norm of a huge one would overflow).
+    if float(np.max(np.abs(p_G))) <= bound_m and float(np.linalg.norm(p_G)) <= bound_m:
+        return None
+    return f"farther than {bound_m} m from G"
+
+
+@dataclass(frozen=True, eq=False)
+class HeldBlock(Record):
+    """What a program's grasp should hold, from the operator's model (nested in
+    :class:`MotionProgram`): block ``name``, its mass, the finger opening that holds it and its
+    centre of mass in the gripper frame G. The work site weighs the grip against it before
+    carrying anything: another block, or this one not where or as the model has it, is set back
+    down and the program fails."""
+
+    name: Name
+    mass_kg: Annotated[float, Meta(gt=0.0, le=MAX_HELD_MASS_KG)]
+    opening_m: Annotated[float, Meta(gt=0.0, le=MAX_HELD_OPENING_M)]
+    com_G: Annotated[np.ndarray, Array((3,), check=_check_held_com)]
+
+
 @dataclass(frozen=True, eq=False)
 class MotionProgram(Message):
     """A robot program: the grasp ``X_GP`` (workpiece in gripper frame) and 1..1000 commands;
@@ -262,7 +297,8 @@ class MotionProgram(Message):
     anonymous sender, which holds no lease). ``continues``: the id of a stopped program this one
     resumes ("": none): with the same grasp and commands, it starts at the command that one was
     stopped in, holding what it held; the work site runs it only while no other program has run
-    since."""
+    since. ``holds``: what its grasps should hold (none: the grip is only checked to hold
+    something)."""
 
     TYPE: ClassVar[str] = "motion_program"
     program_id: Name
@@ -270,6 +306,7 @@ class MotionProgram(Message):
     commands: Annotated[tuple[MotionCommand, ...], Meta(min_length=1, max_length=MAX_COMMANDS)]
     operator: NameOrNone = ""
     continues: NameOrNone = ""
+    holds: Annotated[tuple[HeldBlock, ...], Meta(max_length=1)] = ()
 
 
 @dataclass(frozen=True, eq=False)

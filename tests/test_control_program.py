@@ -12,7 +12,7 @@ import pytest
 from models.robot import load_robot
 from models.scene import load_scene
 from models.transforms import make_pose, rpy_to_R, so3_log
-from protocol import ContactState, MotionCommand, MotionProgram, ProtocolError
+from protocol import ContactState, HeldBlock, MotionCommand, MotionProgram, ProtocolError
 from work_site.control.controller import TaskController
 from work_site.control.executor import Execution, program_refusal
 from work_site.options import PHYSICS_RATE_RANGE_HZ
@@ -82,6 +82,7 @@ def pick_carry_and_place(world: World, controller: TaskController) -> None:
             command("move", placed, 0.03),
             command("release", placed),
         ),
+        holds=(held_as_modelled(world, "cube", X_GP),),
     )
     assert program_refusal(program, controller) == ""
     reports = []
@@ -95,11 +96,93 @@ def pick_carry_and_place(world: World, controller: TaskController) -> None:
     assert in_air[2, 3] > X_cube[2, 3] + 0.05, in_air[:3, 3]
     run(execution)
     assert reports[-1][2:] == ("done", "program complete"), reports
+    held = [r[3] for r in reports if r[3].startswith("holds the cube as modelled")]
+    assert held and "mm wide (model 50.0)" in held[0], held
     for _ in range(300):
         controller.tick()
     final = world.object_pose("cube")
     np.testing.assert_allclose(final[:2, 3], placed[:2, 3], atol=2e-3)
     assert final[2, 3] == pytest.approx(CUBE_HALF, abs=1e-3)  # back on the table
+
+
+def held_as_modelled(world: World, name: str, X_GP: np.ndarray) -> HeldBlock:
+    """What a grasp ``X_GP`` from above holds of block ``name``, as the operator's model says."""
+    model = world.scene.object(name).model
+    lo, hi = model.bbox_O
+    opening_m = float(hi[1] - lo[1])  # the fingers on the block's y faces
+    return HeldBlock(name, model.mass_kg, opening_m, X_GP[:3, :3] @ model.com_O + X_GP[:3, 3])
+
+
+def grasp_as_modelled(
+    world: World, controller: TaskController, name: str, X_WO_model: np.ndarray, held: HeldBlock
+) -> tuple[list[tuple], np.ndarray]:
+    """Grasp block ``name`` where the model has it (``X_WO_model``), saying it holds ``held``;
+    the reports and the block's pose before."""
+    X_before = world.object_pose(name)
+    program = MotionProgram(
+        "grasp", TOP_GRASP, (command("guarded_grasp", X_WO_model),), holds=(held,)
+    )
+    assert program_refusal(program, controller) == ""
+    reports: list[tuple] = []
+    run(Execution(program, controller, lambda *r: reports.append(r)), max_ticks=6000)
+    return reports, X_before
+
+
+def assert_set_back_and_withdrawn(
+    world: World, controller: TaskController, name: str, X_before: np.ndarray
+) -> None:
+    """The block lies where it was taken from, the fingers are open and clear above it."""
+    X_after = world.object_pose(name)
+    np.testing.assert_allclose(X_after[:3, 3], X_before[:3, 3], atol=5e-4)
+    assert np.linalg.norm(so3_log(X_before[:3, :3].T @ X_after[:3, :3])) < math.radians(0.5)
+    snapshot = world.robot_snapshot()
+    assert snapshot.gripper_opening_m > 0.07
+    assert controller.measured_tcp_W()[2, 3] > X_before[2, 3] + 0.03
+
+
+@pytest.mark.slow
+def test_a_grip_that_does_not_weigh_what_the_program_holds_is_set_back(site) -> None:
+    world, controller = site
+    # The model took the cube for the tall block: the grip weighs half of what it says.
+    held = held_as_modelled(world, "tall_block", TOP_GRASP)
+    reports, X_before = grasp_as_modelled(
+        world, controller, "cube", world.object_pose("cube"), held
+    )
+    assert reports[-1][2] == "failed", reports[-3:]
+    assert "holding 75 g where the tall_block weighs 150 g" in reports[-1][3]
+    assert_set_back_and_withdrawn(world, controller, "cube", X_before)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["l_block", "wedge"])
+def test_a_block_held_turned_from_its_model_is_set_back(site, name: str) -> None:
+    """The model has the block half a turn from where it lies: the grip's width and weight
+    are right, where its weight pulls is not (the centre of mass off the grip's middle)."""
+    world, controller = site
+    X = world.object_pose(name)
+    turned = X @ make_pose(rpy_to_R(np.array([0.0, 0.0, math.pi])))
+    reports, X_before = grasp_as_modelled(
+        world, controller, name, turned, held_as_modelled(world, name, TOP_GRASP)
+    )
+    assert reports[-1][2] == "failed", reports[-3:]
+    assert f"the {name}'s weight pulls" in reports[-1][3]
+    assert_set_back_and_withdrawn(world, controller, name, X_before)
+
+
+@pytest.mark.slow
+def test_a_grip_of_another_width_opens_before_lifting(site) -> None:
+    """The model has the hexagonal prism turned 30° from where it lies: the fingers close on
+    two of its corners, wider than the faces the program holds it by."""
+    world, controller = site
+    X = world.object_pose("hex_prism")
+    turned = X @ make_pose(rpy_to_R(np.array([0.0, 0.0, math.radians(30.0)])))
+    reports, X_before = grasp_as_modelled(
+        world, controller, "hex_prism", turned, held_as_modelled(world, "hex_prism", TOP_GRASP)
+    )
+    assert reports[-1][2] == "failed", reports[-3:]
+    assert "where the hex_prism is 50.0 mm wide" in reports[-1][3]
+    assert not any("holding" in r[3] for r in reports)  # never lifted
+    assert_set_back_and_withdrawn(world, controller, "hex_prism", X_before)
 
 
 @pytest.mark.slow
@@ -171,6 +254,12 @@ def test_each_unsafe_program_is_refused_with_its_reason_before_motion(site) -> N
         # The grasp pose is reachable, the approach 6 cm above it is not (the elbow folds past
         # its limit): refused here, not on the way down.
         "outside joint limits": program(cmd("guarded_grasp", near)),
+        "not in [0.005, 1.0] kg": dataclasses.replace(
+            program(grasp), holds=(HeldBlock("anvil", 50.0, 0.05, np.zeros(3)),)
+        ),
+        "more than the fingers open (80 mm)": dataclasses.replace(
+            program(grasp), holds=(HeldBlock("plank", 0.075, 0.1, np.zeros(3)),)
+        ),
     }
     # The pose itself is reachable along the table; straight down from home the line passes
     # where the elbow folds past its limit.

@@ -27,6 +27,7 @@ from protocol import (
     ContactState,
     ExecutionReport,
     Heartbeat,
+    HeldBlock,
     MotionCommand,
     MotionProgram,
     ObjectPose,
@@ -39,7 +40,8 @@ from protocol import (
     decode,
     encode,
 )
-from protocol.messages import OLDEST_READ_VERSION, readable_versions
+from protocol.codec import decode_saved
+from protocol.messages import BODY_CHANGED_IN, OLDEST_READ_VERSION, readable_versions
 from tests.conftest import examples
 
 MANY = settings(
@@ -259,7 +261,12 @@ def random_message(cls: type, seed: int) -> Any:
             )
             for _ in range(rng.integers(1, 4))
         )
-        return MotionProgram(name, random_pose(rng), commands)
+        holds = tuple(
+            HeldBlock(name, float(rng.uniform(0.01, 1.0)), float(rng.uniform(0.01, 0.08)),
+                      rng.uniform(-0.05, 0.05, size=3))
+            for _ in range(rng.integers(0, 2))
+        )  # fmt: skip
+        return MotionProgram(name, random_pose(rng), commands, holds=holds)
     if cls is ExecutionReport:
         status = str(rng.choice(REPORT_STATUSES))
         return ExecutionReport(
@@ -469,6 +476,7 @@ ARRAY_SHAPES: dict[str, tuple[tuple[int, int], ...]] = {
     "normals_W": ((1, 16), (3, 3)),
     "X_WP": ((4, 4), (4, 4)),
     "X_GP": ((4, 4), (4, 4)),
+    "com_G": ((3, 3),),
 }
 
 WRONG_VALUES: dict[str, Any] = {
@@ -635,8 +643,21 @@ def test_an_older_version_is_read_for_a_type_whose_fields_have_not_changed_since
     reject(pack(env), "envelope.v: unsupported schema version")
     beat = Heartbeat(site_id="s", role="work_site", seq=0, stamp_s=1.0)
     env = unpack(encode(beat))
-    env["v"] = SCHEMA_VERSION - 1
+    env["v"] = BODY_CHANGED_IN["heartbeat"] - 1
     reject(pack(env), "envelope.v: a heartbeat of schema version", "changed in")
+    # A program of the version before programs said what they hold: refused on the wire, read
+    # from a file (holding nothing said).
+    command = MotionCommand("move", np.eye(4), 0.1, 5.0, ())
+    env = unpack(encode(MotionProgram("p", np.eye(4), (command,))))
+    del env["b"]["holds"]
+    env["v"] = BODY_CHANGED_IN["motion_program"] - 1
+    reject(pack(env), "envelope.v: a motion_program of schema version", "changed in")
+    assert decode_saved(pack(env), MotionProgram).holds == ()
+    env["v"] = OLDEST_READ_VERSION - 1
+    with pytest.raises(ProtocolError, match="unsupported schema version"):
+        decode_saved(pack(env), MotionProgram)
+    with pytest.raises(ProtocolError, match="not a valid msgpack document"):
+        decode_saved(b"\xc1", MotionProgram)
 
 
 def test_a_heartbeat_echo_measures_the_round_trip_on_the_echoed_clock() -> None:
@@ -813,6 +834,15 @@ def test_error_messages_name_the_field() -> None:
     reject(pack(env), "MotionProgram.commands[0].contacts[0].normals_W: row 0 is not a unit")
     env["b"]["commands"] = []
     reject(pack(env), "MotionProgram.commands: must have 1..1000 items, got 0")
+    held = HeldBlock("cube", 0.075, 0.05, np.zeros(3))
+    env = unpack(encode(MotionProgram("p1", np.eye(4), (command,), holds=(held,))))
+    env["b"]["holds"][0]["mass_kg"] = 0.0
+    reject(pack(env), "MotionProgram.holds[0].mass_kg: Expected `float` > 0.0")
+    env["b"]["holds"][0]["mass_kg"] = 0.075
+    env["b"]["holds"][0]["com_G"] = [[3], np.array([0.0, 0.0, 2.0]).tobytes()]
+    reject(pack(env), "MotionProgram.holds[0].com_G: farther than 1.0 m from G")
+    env["b"]["holds"] = [env["b"]["holds"][0]] * 2
+    reject(pack(env), "MotionProgram.holds: must have 0..1 items, got 2")
     stop = unpack(encode(Stop("why", 0.0)))
     stop["b"]["reason"] = "x" * 4097
     reject(pack(stop), "Stop.reason: must be at most 4096 characters, got 4097")

@@ -84,12 +84,19 @@ SCHEMA: dict[str, dict[str, tuple[Any, ...]]] = {
         "force_limit_n": NON_NEGATIVE,
         "contacts": ("records", "ContactState", 0, 16),
     },
+    "HeldBlock": {
+        "name": NAME,
+        "mass_kg": ("positive float", 100.0),
+        "opening_m": ("positive float", 1.0),
+        "com_G": ("array", ((3, 3),), "within 1 m"),
+    },
     "MotionProgram": {
         "program_id": NAME,
         "X_GP": POSE,
         "commands": ("records", "MotionCommand", 1, 1000),
         "operator": NAME_OR_NONE,
         "continues": NAME_OR_NONE,
+        "holds": ("records", "HeldBlock", 0, 1),
     },
     "ExecutionReport": {
         "program_id": NAME,
@@ -156,6 +163,9 @@ def ref_array_content(check: str | None, arr: np.ndarray) -> np.ndarray:
     elif check == "intrinsics":
         need(arr[1, 0] == 0.0 and arr[2, 0] == 0.0 and arr[2, 1] == 0.0 and arr[2, 2] == 1.0)
         need(arr[0, 0] > 0.0 and arr[1, 1] > 0.0)
+    elif check == "within 1 m":
+        with np.errstate(over="ignore", invalid="ignore"):
+            need(bool(np.linalg.norm(arr) <= 1.0))
     elif check == "unit rows":
         with np.errstate(over="ignore", invalid="ignore"):
             need(bool(np.all(np.abs(np.linalg.norm(arr, axis=1) - 1.0) <= 1e-6)))
@@ -207,6 +217,11 @@ def ref_wire_value(kind: tuple[Any, ...], value: Any, body: dict[str, Any]) -> A
     if kind[0] == "float":
         need(type(value) in (int, float))
         return ref_float(value, kind[1])
+    if kind[0] == "positive float":
+        need(type(value) in (int, float))
+        number = ref_float(value, None)
+        need(0.0 < number <= kind[1])
+        return number
     if kind[0] in ("str", "choice"):
         need(type(value) is str)
         return ref_str(kind, value)
@@ -243,8 +258,9 @@ def ref_decode(payload: bytes) -> tuple[str, dict[str, Any]]:
         raise RefusedError from None
     need(isinstance(env, dict) and sorted(env) == ["b", "t", "v"])
     need(isinstance(env["t"], str) and env["t"] in TAGS)
-    # Version 8 changed the heartbeat; the other types are read back to 6.
-    need(type(env["v"]) is int and env["v"] in ((8,) if env["t"] == "heartbeat" else (6, 7, 8)))
+    # Version 8 changed the heartbeat, 9 the program; the other types are read back to 6.
+    versions = {"heartbeat": (8, 9), "motion_program": (9,)}.get(env["t"], (6, 7, 8, 9))
+    need(type(env["v"]) is int and env["v"] in versions)
     name = TAGS[env["t"]]
     return name, ref_wire_record(name, env["b"])
 
@@ -435,6 +451,12 @@ def ref_python_value(kind: tuple[Any, ...], value: Any) -> Any:
         need(not isinstance(value, bool | np.bool_))
         need(isinstance(value, int | float | np.integer | np.floating))
         return ref_float(value, kind[1])
+    if kind[0] == "positive float":
+        need(not isinstance(value, bool | np.bool_))
+        need(isinstance(value, int | float | np.integer | np.floating))
+        number = ref_float(value, None)
+        need(0.0 < number <= kind[1])
+        return number
     if kind[0] in ("str", "choice"):
         return ref_str(kind, value)
     if kind[0] == "records":

@@ -21,7 +21,7 @@ from operator_site.program.feasibility import (
 )
 from operator_site.program.path import WorkpiecePath, path_from_history
 from operator_site.simulator import SimParams, StepResult
-from protocol import MotionProgram
+from protocol import HeldBlock, MotionProgram
 
 REFUSED_RETRY_MAX_SWEEPS = 300
 """A program the check refuses after a deformation stopped unsettled by its sweep cap is made
@@ -58,6 +58,19 @@ class Generated:
     check: CheckResult
 
 
+def _holding(
+    program: MotionProgram, scene: Scene, workpiece: str, opening_m: float
+) -> MotionProgram:
+    """``program`` saying that its grasp holds ``workpiece`` between fingers ``opening_m`` apart
+    (unchanged for a model without a mass: there is nothing to weigh it against)."""
+    model = scene.object(workpiece).model
+    if model.mass_kg <= 0:
+        return program
+    X_GP = program.X_GP
+    com_G = X_GP[:3, :3] @ model.com_O + X_GP[:3, 3]
+    return replace(program, holds=(HeldBlock(workpiece, model.mass_kg, opening_m, com_G),))
+
+
 def generate_program(
     program_id: str,
     scene: Scene,
@@ -71,13 +84,16 @@ def generate_program(
     X_WO: dict[str, np.ndarray] | None = None,
     progress: Callable[[float, str], None] | None = None,
     feasible: bool = True,
+    grip_opening_m: float | None = None,
 ) -> Generated:
     """The motion program for the task in ``history``; raises :class:`ProgramRefusedError` if its
     sweep finds a collision or a lost contact, and with ``feasible``
     :class:`ProgramInfeasibleError` if the robot cannot do it (:func:`check_feasibility`: its
     grasp, its reach, a contact it could not verify). ``X_WO`` overrides the scene's object
     poses, as for the simulator (pass the task session's ``X_WO``: the poses the simulation
-    used).
+    used). With ``grip_opening_m`` (the fingers' opening on the block in the grasp ``X_GP``)
+    the program says what its grasp holds (:class:`~protocol.HeldBlock`: the model's mass and
+    centre of mass), which the work site weighs the grip against before carrying it.
     ``progress(fraction, stage)`` is called as each stage begins (fraction of the work done)."""
     say = progress or (lambda _fraction, _stage: None)
     say(0.05, "reading the path")
@@ -100,6 +116,8 @@ def generate_program(
             scene.robot.X_WB,
             movable_names(scene),
         )
+        if grip_opening_m is not None:
+            program = _holding(program, scene, workpiece, grip_opening_m)
         say(0.85, "checking every move for collisions")
         check = sweeper.program(program)
         if check.ok:

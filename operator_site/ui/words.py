@@ -38,6 +38,24 @@ _FAILURES: tuple[tuple[re.Pattern[str], str], ...] = tuple(
             "the gripper closed on nothing: the block is not where the model has it.",
         ),
         (
+            r"^the fingers closed to [\d.]+ mm where the (\S+) is",
+            "the gripper closed on something narrower or wider than the {0}: it holds the "
+            "{0} across an edge or a corner, or another block. It opened again and withdrew; "
+            "the {0} is likely not where the model has it.",
+        ),
+        (
+            r"^holding \d+ g where the (\S+) weighs",
+            "the gripper lifted something that does not weigh what the {0} does: another "
+            "block, most likely, where the model has the {0}. The robot set it back down and "
+            "withdrew.",
+        ),
+        (
+            r"^the (\S+)'s weight pulls",
+            "the {0} hangs in the gripper off from where the model has it: it is held "
+            "elsewhere along it, or lies turned from the model's pose. The robot set it back "
+            "down and withdrew.",
+        ),
+        (
             r"^the fingers touched something on the way down",
             "the gripper touched something on its way down to the block, so it stopped "
             "before grasping.",

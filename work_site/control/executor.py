@@ -5,7 +5,9 @@ Commands (targets are workpiece poses ``X_WP``; the gripper TCP goes to ``X_WP �
 - ``guarded_grasp``: open, approach from above, descend (guarded: touching anything fails),
   close the coupled fingers until they stop on the block, check something is between them,
   lift it clear by :data:`GRASP_LIFT_M` and weigh it (the payload's weight is then removed from
-  the wrist force);
+  the wrist force); where the program says what it holds (``holds``), the grip must match it
+  (:func:`held_problem`: its width, its weight, where its weight pulls) or the block is set
+  back down, the hand withdraws and the program fails;
 - ``move``: a spatially-linear move, failing on any force above the command's limit;
 - ``guarded_move``: a move that stops when the force against its direction exceeds the
   command's ``force_limit_n``; with ``contacts`` it must end in them, verified by force;
@@ -25,8 +27,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import nnls
 
+from models.scene import GRAVITY_W
 from models.transforms import invert_pose
-from protocol import ContactState, MotionProgram
+from protocol import ContactState, HeldBlock, MotionProgram
 from protocol.execution import (
     CONTACT_VERIFY_N,
     GRASP_LIFT_M,
@@ -50,6 +53,7 @@ from work_site.control.controller import (
     compliant_projector,
 )
 from work_site.control.kinematics import Approach, PathFollow, follow_line_tcp, plan_approach
+from work_site.world import MOVABLE_MASS_RANGE_KG
 
 GRIPPER_OPEN_M = 0.08
 MAX_CONTACT_SPEED_MPS = 0.02
@@ -132,7 +136,8 @@ def program_refusal(
     approaches: dict[int, Approach] | None = None,
 ) -> str:
     """Why ``program`` must not run ("" if it may): a contact move with nothing held, targets
-    outside the workspace or unreachable, speeds or force limits beyond the work site's.
+    outside the workspace or unreachable, speeds or force limits beyond the work site's, a held
+    block it could not grasp or weigh.
     Checked whole, before any motion; raises :class:`CheckCancelledError` as soon as ``cancelled()``
     (asked before each command) holds. Reads the controller's joint targets and kinematics
     only, so it may run on another thread while the arm holds still. A program that resumes a
@@ -141,6 +146,18 @@ def program_refusal(
     execution takes them from there, for planning one can take longer than a control period."""
     if not program.commands:
         return "empty program"
+    for held in program.holds:
+        low, high = MOVABLE_MASS_RANGE_KG
+        if not low <= held.mass_kg <= high:
+            return (
+                f"holds: the {held.name} weighs {held.mass_kg} kg, not in [{low}, {high}] kg, "
+                "the masses this work site grasps and weighs"
+            )
+        if held.opening_m > GRIPPER_OPEN_M:
+            return (
+                f"holds: the {held.name} is held {held.opening_m * 1e3:.1f} mm wide, more than "
+                f"the fingers open ({GRIPPER_OPEN_M * 1e3:.0f} mm)"
+            )
     X_PG = invert_pose(program.X_GP)
     q = np.array(controller.world.q_target, copy=True)
     X_WG_before = controller.robot.tcp_pose_W(q, controller.X_WB)
@@ -266,16 +283,40 @@ class SetFingers:
 
 @dataclass(frozen=True)
 class CheckGrip:
-    """Fail unless the fingers stopped at least ``min_opening_m`` apart (a block between)."""
+    """Fail unless the fingers stopped at least ``min_opening_m`` apart (a block between); with
+    ``held``, open and withdraw to ``above_WG`` unless they stopped at its width."""
 
     min_opening_m: float
+    held: HeldBlock | None = None
+    above_WG: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
 class Weigh:
-    """Hold still ``ticks`` periods, then take the mean force as the payload's weight."""
+    """Hold still ``ticks`` periods, then take the mean force as the payload's weight; ``empty``:
+    only note the wrist's torque (the hand's own, to tell a payload's moment from)."""
 
     ticks: int
+    empty: bool = False
+
+
+@dataclass(frozen=True)
+class CheckHeld:
+    """With the block lifted to ``X_WG`` and weighed: unless it is ``held``
+    (:func:`held_problem`), set it back down at ``grasped_WG``, open, withdraw to
+    ``above_WG``."""
+
+    held: HeldBlock
+    X_WG: np.ndarray
+    grasped_WG: np.ndarray
+    above_WG: np.ndarray
+
+
+@dataclass(frozen=True)
+class Fail:
+    """End the program as failed, saying ``message``."""
+
+    message: str
 
 
 @dataclass(frozen=True)
@@ -317,7 +358,62 @@ LOCK_SETTLE_TICKS = 10
 """After locking the fingers the wrist reads the coupled grip's false force for a few steps
 more: the lift waits this long."""
 MIN_GRIP_OPENING_M = 0.005
+GRIP_OPENING_TOLERANCE_M = 0.003
+"""Fingers stopped farther than this from the held block's width (its model's) hold it across
+something else: an edge, a corner, another block (m)."""
+HELD_MASS_TOLERANCE = 0.2
+"""A held block may weigh this fraction more or less than its model says (wooden blocks differ
+in density); beyond it and :data:`WEIGHING_UNCERTAINTY_KG`, the grip holds something else."""
+WEIGHING_UNCERTAINTY_KG = 0.01
+"""What the wrist sensor's weighing may be off by, whatever the block (about 0.1 N)."""
+HELD_COM_TOLERANCE_M = 0.005
+"""How far (across the vertical) the held block's centre of mass, from its weight's moment on
+the wrist, may lie from where the model puts it in the grasp: vision's error along the block
+(its position and its turn times the block's size) and the fingers' slip; beyond it, and
+:data:`WRIST_TORQUE_UNCERTAINTY_NM`'s share, the block is held elsewhere along it or turned
+from where the model has it, and would be carried off by as much."""
+WRIST_TORQUE_UNCERTAINTY_NM = 0.002
+"""What the wrist sensor's torque may be off by between two readings (N·m): a light block's
+moment says less about where its weight pulls."""
 _UP_W = np.array([0.0, 0.0, 1.0])
+_G_MPS2 = float(np.linalg.norm(GRAVITY_W))
+
+
+def held_com_off_m(
+    held: HeldBlock, mass_kg: float, moment_W: np.ndarray, X_WG: np.ndarray, p_WS: np.ndarray
+) -> float:
+    """How far (m, across the vertical) the weighed block's centre of mass lies from the
+    model's in the grasp: from the moment ``moment_W`` its weight (``mass_kg``) added on the
+    wrist, about the sensor's origin ``p_WS``, the hand at ``X_WG``."""
+    weight_n = mass_kg * _G_MPS2
+    # moment = r × (0, 0, −W): its x is −W r_y, its y W r_x.
+    r_xy = np.array([moment_W[1], -moment_W[0]]) / weight_n
+    expected_xy = (X_WG[:3, :3] @ held.com_G + X_WG[:3, 3] - p_WS)[:2]
+    return float(np.linalg.norm(r_xy - expected_xy))
+
+
+def held_problem(
+    held: HeldBlock, mass_kg: float, moment_W: np.ndarray, X_WG: np.ndarray, p_WS: np.ndarray
+) -> str:
+    """Why the weighed grip does not hold ``held`` ("" if it does): its mass ``mass_kg`` against
+    the model's (:data:`HELD_MASS_TOLERANCE`), and where its weight pulls, from the moment it
+    added on the wrist ``moment_W`` (N·m, about the sensor's origin ``p_WS``, the hand at
+    ``X_WG``), against the model's centre of mass in the grasp (horizontally: a vertical offset
+    adds no moment)."""
+    tolerance_kg = HELD_MASS_TOLERANCE * held.mass_kg + WEIGHING_UNCERTAINTY_KG
+    if abs(mass_kg - held.mass_kg) > tolerance_kg:
+        return (
+            f"holding {mass_kg * 1e3:.0f} g where the {held.name} weighs "
+            f"{held.mass_kg * 1e3:.0f} g: the fingers hold something else"
+        )
+    off_m = held_com_off_m(held, mass_kg, moment_W, X_WG, p_WS)
+    if off_m > HELD_COM_TOLERANCE_M + WRIST_TORQUE_UNCERTAINTY_NM / (mass_kg * _G_MPS2):
+        return (
+            f"the {held.name}'s weight pulls {off_m * 1e3:.0f} mm from where the model puts "
+            "it in the grip: the block is held elsewhere along it, or turned from where the "
+            "model has it"
+        )
+    return ""
 
 
 def default_impedance() -> Impedance:
@@ -389,6 +485,8 @@ def expand(
         first, *then = grasp_approach_W(X_WG)
         approach = [MoveTo(first, cmd.speed_mps, limit, approach=True)]
         approach += [MoveTo(X, cmd.speed_mps, limit) for X in then]
+        held = program.holds[0] if program.holds else None
+        above = grasp_approach_W(X_WG)[-1]
         return [
             ForgetPayload(),
             SetFingers(GRIPPER_OPEN_M / 2),
@@ -400,12 +498,14 @@ def expand(
                 guard=Guard(_UP_W, GRASP_TOUCH_N),
                 touch_fails="the fingers touched something on the way down to the grasp",
             ),
+            *([Weigh(WEIGH_TICKS, empty=True)] if held else []),
             SetFingers(0.0),
-            CheckGrip(MIN_GRIP_OPENING_M),
+            CheckGrip(MIN_GRIP_OPENING_M, held, above),
             LockGrip(),
             Settle(LOCK_SETTLE_TICKS),
             MoveTo(lifted, GRASP_DESCENT_MPS, limit),
             Weigh(WEIGH_TICKS),
+            *([CheckHeld(held, lifted, X_WG, above)] if held else []),
         ]
     raise ValueError(f"command {index}: {cmd.kind} is not supported by this work site")
 
@@ -439,6 +539,10 @@ class Execution:
         self._fingers_still = 0
         self._fingers_ticks = 0
         self._weighed: list[np.ndarray] = []
+        self._torques_W: list[np.ndarray] = []
+        self._empty_torque_W = np.zeros(3)
+        self._held_torque_W = np.zeros(3)
+        self._grip_opening_m = 0.0
         self._settle_ticks = 0
 
     def tick(self) -> None:
@@ -483,12 +587,18 @@ class Execution:
         elif isinstance(action, Weigh):
             c.tick()
             self._weighed.append(c.force_W)
+            self._torques_W.append(c.sensor.torque_W(c.world.robot_snapshot()))
             if len(self._weighed) < action.ticks:
                 return
-            mass = c.sensor.tare(np.mean(self._weighed, axis=0))
-            self.report(
-                self.program.program_id, self.index, "started", f"holding {mass * 1e3:.0f} g"
-            )
+            torque_W = np.mean(self._torques_W, axis=0)
+            if action.empty:
+                self._empty_torque_W = torque_W
+            else:
+                self._held_torque_W = torque_W
+                mass = c.sensor.tare(np.mean(self._weighed, axis=0))
+                self.report(
+                    self.program.program_id, self.index, "started", f"holding {mass * 1e3:.0f} g"
+                )
         else:
             c.tick()
         if self._actions:
@@ -523,6 +633,38 @@ class Execution:
                         f"fingers (they closed to {opening * 1e3:.1f} mm)",
                     )
                     return
+                self._grip_opening_m = opening
+                held = action.held
+                if held is not None and abs(opening - held.opening_m) > GRIP_OPENING_TOLERANCE_M:
+                    self._give_back(
+                        f"the fingers closed to {opening * 1e3:.1f} mm where the {held.name} "
+                        f"is {held.opening_m * 1e3:.1f} mm wide: they hold something else",
+                        action.above_WG,
+                    )
+                    continue
+            elif isinstance(action, CheckHeld):
+                weighed = (
+                    action.held,
+                    c.sensor.payload_mass_kg,
+                    self._held_torque_W - self._empty_torque_W,
+                    action.X_WG,
+                    c.world.robot_snapshot().X_WF[:3, 3],
+                )
+                problem = held_problem(*weighed)
+                if problem:
+                    self._give_back(problem, action.above_WG, action.grasped_WG)
+                    continue
+                self.report(
+                    self.program.program_id,
+                    self.index,
+                    "started",
+                    f"holds the {action.held.name} as modelled: {self._grip_opening_m * 1e3:.1f} "
+                    f"mm wide (model {action.held.opening_m * 1e3:.1f}), its weight "
+                    f"{held_com_off_m(*weighed) * 1e3:.1f} mm from the model's centre of mass",
+                )
+            elif isinstance(action, Fail):
+                self._finish("failed", f"command {self.index}: {action.message}")
+                return
             elif isinstance(action, VerifyContacts):
                 force_W = c.guard_force_W if action.at_guard else c.force_W
                 problem = self._verify(action.contacts, force_W)
@@ -576,12 +718,31 @@ class Execution:
                 self._fingers_last, self._fingers_still, self._fingers_ticks = -1.0, 0, 0
                 return
             elif isinstance(action, Weigh):
-                self._weighed = []
+                self._weighed, self._torques_W = [], []
                 return
             elif isinstance(action, Settle):
                 self._settle_ticks = 0
                 return
             self._actions.pop(0)
+
+    def _give_back(
+        self, why: str, above_WG: np.ndarray, grasped_WG: np.ndarray | None = None
+    ) -> None:
+        """The grip is not what the program said it holds: set the block back down where it was
+        taken from (``grasped_WG``, if it was lifted: a guarded move, the table ends it), open,
+        withdraw to ``above_WG``, then fail saying ``why``."""
+        back: list = []
+        if grasped_WG is not None:
+            down = grasped_WG.copy()
+            down[2, 3] -= GUARD_OVERTRAVEL_M
+            back.append(MoveTo(down, GRASP_DESCENT_MPS, guard=Guard(_UP_W, GRASP_TOUCH_N)))
+        self._actions = [
+            *back,
+            ForgetPayload(),
+            SetFingers(GRIPPER_OPEN_M / 2),
+            MoveTo(above_WG, GRASP_DESCENT_MPS),
+            Fail(why),
+        ]
 
     def _verify(self, contacts: tuple[ContactState, ...], force_W: np.ndarray) -> str:
         """Report the contacts verified by ``force_W`` (N, W); the reason if one is not ("" if

@@ -34,10 +34,21 @@ class WristSensor:
         R_WS = snapshot.X_WF[:3, :3]  # the sensor joint is fixed at the flange, unrotated
         return -R_WS @ snapshot.wrench_S[:3] - self._hand_weight_W - self.payload_W
 
+    def torque_W(self, snapshot: RobotSnapshot) -> np.ndarray:
+        """Torque on hand + payload about the sensor's origin (N·m, W), their weights included:
+        what two readings in one orientation of the hand differ by is what changed between them
+        (a block taken up: its weight's moment)."""
+        return -snapshot.X_WF[:3, :3] @ snapshot.wrench_S[3:]
+
     def tare(self, force_W: np.ndarray) -> float:
         """Take ``force_W`` (mean :meth:`force_W`, held still and free of contact) as the
         payload's weight; returns the payload's mass (kg)."""
         self.payload_W = self.payload_W + np.asarray(force_W, dtype=np.float64)
+        return self.payload_mass_kg
+
+    @property
+    def payload_mass_kg(self) -> float:
+        """The held payload's mass as last weighed (kg; 0 when nothing is held)."""
         return float(-self.payload_W[2] / np.linalg.norm(GRAVITY_W))
 
     def clear_payload(self) -> None:
