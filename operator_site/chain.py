@@ -33,7 +33,6 @@ from operator_site.program import Generated
 from operator_site.session import (
     ACCEPT_SCORE,
     OperatorSession,
-    disagreement,
     generated_program,
 )
 from operator_site.task import TaskSession
@@ -49,9 +48,12 @@ CONNECT_TIMEOUT_S = 60.0
 VISION_TIMEOUT_S = 120.0
 VISION_FRAMES = 3
 """Recognised frames waited for at most while they come back empty."""
-WORKPIECE_FRAMES = 6
+MIN_FUSED_FRAMES = 3
+"""A block is taken into the model once vision's pose of it fuses this many frames of one
+placement (``Recognition.frames``): their median, which one frame's outlier moves little."""
+WORKPIECE_FRAMES = 8
 """Recognised frames looked at in all, at most, while none fit for the task's workpiece is
-among them (3 s at the work site's 2 Hz)."""
+among them (4 s at the work site's 2 Hz)."""
 FRAME_TIMEOUT_S = 10.0
 """A next recognised frame is waited for at most this long (the work site sends one a 0.5 s)."""
 EXECUTE_TIMEOUT_S = 240.0
@@ -87,16 +89,15 @@ def model_from_frames(
     trusted: bool = False,
 ) -> RecognisedModel:
     """The model built as a person builds it in the page (``operator``'s, or a new operator
-    session's), who takes a block into the model once vision has seen it in the same place
-    twice: a recognition scoring at least :data:`~operator_site.session.ACCEPT_SCORE` is
-    accepted, and the model made consistent, when vision's last sighting of that block in an
-    earlier frame was not far from it (:func:`~operator_site.session.disagreement`). Each frame
-    has its own sensor noise: one that mistakes a block for another is not taken at its word.
-    Frames are read until ``ready`` says the model holds what the task needs, ``max_frames``
-    in all at most. ``trusted``: the frames are the ground truth, each taken at its word."""
+    session's), who takes a block into the model once vision has seen it in the same place in
+    :data:`MIN_FUSED_FRAMES` frames: a recognition scoring at least
+    :data:`~operator_site.session.ACCEPT_SCORE` whose pose fuses that many frames is
+    accepted, and the model made consistent. Each frame has its own sensor noise: one that
+    mistakes a block for another, or turns it, is not taken at its word. Frames are read until
+    ``ready`` says the model holds what the task needs, ``max_frames`` in all at most.
+    ``trusted``: the frames are the ground truth, each taken at its word."""
     op = operator or OperatorSession(scene)
     corrections: dict[str, Correction] = {}
-    last_seen: dict[str, Recognition] = {}
     n, vision_s, model_s = 0, 0.0, 0.0
     for recs in frames:
         n += 1
@@ -106,17 +107,15 @@ def model_from_frames(
         for r in recs.objects:
             if r.score >= ACCEPT_SCORE:
                 seen.setdefault(r.model, r)  # a second of one block is not a block of the scene
-        twice = [
+        steady = [
             r
             for name, r in seen.items()
-            if name not in op.model.poses
-            and (trusted or (name in last_seen and _same_place(op.model, last_seen[name], r)))
+            if name not in op.model.poses and (trusted or r.frames >= MIN_FUSED_FRAMES)
         ]
-        last_seen |= seen  # a block missed in a frame is compared with its last sighting
-        if twice:
+        if steady:
             t0 = time.monotonic()
             try:
-                op.accept_all(replace(recs, objects=tuple(twice)))
+                op.accept_all(replace(recs, objects=tuple(steady)))
             except ValueError as e:
                 log(f"frame {n}: not added to the model: {e}")
             corrections |= {c.name: c for c in op.corrections}
@@ -124,13 +123,6 @@ def model_from_frames(
         if ready(op.model) or n >= max_frames:
             break
     return RecognisedModel(op.model, list(corrections.values()), n, vision_s, model_s)
-
-
-def _same_place(model: WorkSiteModel, a: Recognition, b: Recognition) -> bool:
-    """Whether two recognitions of one block are of one placement: not far apart (vision's
-    error about a block far from the camera is a few millimetres; a block mistaken for
-    another is centimetres away)."""
-    return disagreement(*pose_error(a.X_WO, b.X_WO, model.symmetries(a.model))) != "far"
 
 
 ProgramMaker = Callable[[TaskSession, str], Generated]

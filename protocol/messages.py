@@ -38,11 +38,12 @@ SCHEMA_VERSION = 9
 4: ``MotionProgram`` and ``Heartbeat`` carry an ``operator`` (the control lease).
 6: ``Stop`` carries the programs it ``cancels``.
 7: ``Heartbeat`` echoes the other side's latest beat (the round trip).
-9: ``MotionProgram`` says what its grasp should hold (``holds``)."""
+9: ``MotionProgram`` says what its grasp should hold (``holds``); a ``Recognition`` how many
+frames its pose fuses and how they spread."""
 OLDEST_READ_VERSION = 6
 """The oldest schema version read, for a message type whose body has not changed since (a
 program saved by the version before stays loadable)."""
-BODY_CHANGED_IN: dict[str, int] = {"heartbeat": 8, "motion_program": 9}
+BODY_CHANGED_IN: dict[str, int] = {"heartbeat": 8, "motion_program": 9, "recognitions": 9}
 """The version in which a type's body last changed, where that is after
 :data:`OLDEST_READ_VERSION`: older envelopes of that type are refused (a saved file's are read
 where :data:`FIELDS_ADDED` says what the older body meant)."""
@@ -69,6 +70,8 @@ MAX_IMAGE_SIDE = 4096
 """Largest image height or width (pixels)."""
 
 MAX_RECOGNITIONS = 256
+MAX_FUSED_FRAMES = 1000
+"""Most sightings one recognised pose may say it fuses."""
 MAX_CONTACT_NORMALS = 16
 MAX_CONTACTS = 16
 MAX_COMMANDS = 1000
@@ -157,11 +160,16 @@ class CameraFrame(Message):
 
 @dataclass(frozen=True, eq=False)
 class Recognition(Record):
-    """One recognised object (nested in :class:`Recognitions`): model name, pose, score."""
+    """One recognised object (nested in :class:`Recognitions`): model name, pose, score; the
+    pose fused over ``frames`` sightings of that placement, which spread about it by
+    ``spread_m`` (RMS distance) and ``spread_rad`` (RMS angle): how sure vision is."""
 
     model: Name
     X_WO: Pose
     score: Real
+    frames: Annotated[int, Meta(ge=1, le=MAX_FUSED_FRAMES)] = 1
+    spread_m: NonNegative = 0.0
+    spread_rad: NonNegative = 0.0
 
 
 @dataclass(frozen=True, eq=False)

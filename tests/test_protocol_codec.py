@@ -240,7 +240,14 @@ def random_message(cls: type, seed: int) -> Any:
         return CameraFrame(seq, stamp, random_pose(rng), K, rng.normal(size=5), image)
     if cls is Recognitions:
         objects = tuple(
-            Recognition(name, random_pose(rng), float(rng.uniform()))
+            Recognition(
+                name,
+                random_pose(rng),
+                float(rng.uniform()),
+                int(rng.integers(1, 6)),
+                float(rng.uniform(0, 1e-3)),
+                float(rng.uniform(0, 0.01)),
+            )
             for _ in range(rng.integers(0, 4))
         )
         return Recognitions(seq, stamp, float(rng.uniform()), objects)

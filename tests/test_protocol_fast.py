@@ -58,7 +58,14 @@ SCHEMA: dict[str, dict[str, tuple[Any, ...]]] = {
         "encoding": ("choice", ("raw", "png", "jpeg")),
         "quality": ("int", 1, 101),
     },
-    "Recognition": {"model": NAME, "X_WO": POSE, "score": ("float", None)},
+    "Recognition": {
+        "model": NAME,
+        "X_WO": POSE,
+        "score": ("float", None),
+        "frames": ("int", 1, 1001),
+        "spread_m": NON_NEGATIVE,
+        "spread_rad": NON_NEGATIVE,
+    },
     "Recognitions": {
         "seq": SEQ,
         "stamp_s": NON_NEGATIVE,
@@ -258,8 +265,11 @@ def ref_decode(payload: bytes) -> tuple[str, dict[str, Any]]:
         raise RefusedError from None
     need(isinstance(env, dict) and sorted(env) == ["b", "t", "v"])
     need(isinstance(env["t"], str) and env["t"] in TAGS)
-    # Version 8 changed the heartbeat, 9 the program; the other types are read back to 6.
-    versions = {"heartbeat": (8, 9), "motion_program": (9,)}.get(env["t"], (6, 7, 8, 9))
+    # Version 8 changed the heartbeat, 9 the program and the recognitions; the other types are
+    # read back to 6.
+    versions = {"heartbeat": (8, 9), "motion_program": (9,), "recognitions": (9,)}.get(
+        env["t"], (6, 7, 8, 9)
+    )
     need(type(env["v"]) is int and env["v"] in versions)
     name = TAGS[env["t"]]
     return name, ref_wire_record(name, env["b"])

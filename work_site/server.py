@@ -58,6 +58,7 @@ from work_site.options import DEADMAN_RANGE_S, ServerOptions
 from work_site.outbox import Outbox
 from work_site.pacing import StreamPacer, jpeg_quality
 from work_site.recognition import VisionProcess
+from work_site.vision.fusion import PoseFusion
 from work_site.world import World
 
 log = logging.getLogger("work-site")
@@ -141,6 +142,10 @@ class WorkSiteServer(ProgramIntake):
         """Program ids a stop cancelled before they arrived, with its reason: they never start
         (the last :data:`~work_site.intake.REMEMBERED_CANCELS`)."""
         self._execution_started_s = 0.0
+        self._still_since_s = 0.0
+        """Wall-clock time (s) since which no program has moved anything: vision fuses only
+        frames taken after it."""
+        self._fusion = PoseFusion({o.name: o.model.symmetries for o in scene.objects})
         self._deadman_checked_s = 0.0
         self._stop_replied_s = -math.inf
         self._wrench_S = np.zeros(6)
@@ -339,6 +344,7 @@ class WorkSiteServer(ProgramIntake):
             with self._lock:
                 if self._busy == execution.program.program_id:
                     self._busy = None
+                    self._still_since_s = time.time()
 
     def _publish_robot_state(self, world: World) -> None:
         """Send the arm's state, or skip it while the link asks for fewer (its ``seq`` counts
@@ -456,9 +462,27 @@ class WorkSiteServer(ProgramIntake):
             log.warning("vision failed on frame %d: %s", result.seq, result.error)
         if result.note:
             log.info("vision: %s", result.note)
-        objects = tuple(
-            Recognition(model=name, X_WO=X, score=score) for name, X, score in result.objects
+        # A frame taken while a program may have moved something is reported on its own, and
+        # the tracks start afresh after it.
+        execution = self._execution
+        moving = (execution is not None and not execution.finished) or (
+            result.stamp_s < self._still_since_s
         )
+        if moving:
+            self._fusion.reset()
+        objects = tuple(
+            Recognition(
+                model=f.model,
+                X_WO=f.X_WO,
+                score=f.score,
+                frames=f.frames,
+                spread_m=f.spread_m,
+                spread_rad=f.spread_rad,
+            )
+            for f in self._fusion.add(result.objects)
+        )
+        if moving:
+            self._fusion.reset()
         self._pub_recognitions.put(
             encode(
                 Recognitions(

@@ -3,6 +3,7 @@ file's layout instead), and blocks taken out of the model."""
 
 from __future__ import annotations
 
+import math
 import threading
 
 import viser
@@ -14,6 +15,7 @@ from operator_site.session import ACCEPT_SCORE, OperatorSession
 from operator_site.ui.task_panel import NO_WORKPIECE
 from operator_site.ui.text import plain
 from operator_site.ui.words import short_program_name
+from protocol import Recognition
 
 MODEL_HELP = (
     "On the camera image, the model's blocks are outlined green and blocks vision recognised "
@@ -161,7 +163,7 @@ class ModelPanel:
         lines = [f"frame {recs.seq}, {recs.elapsed_s * 1e3:.0f} ms:"]
         for r in sorted(recs.objects, key=lambda r: r.model):  # in one place frame to frame
             state = AGREEMENT_WORDS[kinds.get(r.model, "new")]
-            lines.append(f"- {plain(r.model)}: score {r.score:.2f} ({state})")
+            lines.append(f"- {plain(r.model)}: score {r.score:.2f}, {_sureness(r)} ({state})")
         self.recognitions_md.content = "\n".join(lines)
         self._show_add_buttons({r.model for r in recs.objects if r.model not in self.model.poses})
 
@@ -206,3 +208,13 @@ class ModelPanel:
             )
         else:
             self.model_md.content = f"{after}, vision agrees with the model."
+
+
+def _sureness(r: Recognition) -> str:
+    """How sure vision is of a recognised pose, in words: one frame's, or the spread of the
+    frames it fuses."""
+    if r.frames <= 1:
+        return "1 frame"
+    return (
+        f"{r.frames} frames within ±{r.spread_m * 1e3:.1f} mm, ±{math.degrees(r.spread_rad):.1f}°"
+    )
