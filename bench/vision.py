@@ -34,9 +34,11 @@ from bench.vision_dataset import (
     write_dataset,
 )
 from bench.vision_evaluate import score_scene
+from bench.vision_fused import FusedRun, fused_scenes
 from models.scene import CameraModel, load_camera, load_scene
 from models.transforms import invert_pose
 from work_site.sensor import CameraConditions, Sensor
+from work_site.vision.fusion import FUSED_FRAMES
 from work_site.vision.index import IndexParams, default_cache_dir
 from work_site.vision.model import planes_in
 from work_site.vision.recognizer import Recognizer, RecognizerParams
@@ -101,17 +103,21 @@ def score(
     rows: list[dict] | None = None,
     conditions: list[dict] | None = None,
     sensors: list[dict | None] | None = None,
+    recognize=None,
 ) -> dict:
     """Recognise every scene and score it; summary metrics (and per-object rows if asked, with
     each scene's ``conditions`` row merged in). With each scene's ``sensors`` (its camera's
-    conditions), also the Cramér–Rao bound of each block's pose (:mod:`bench.vision_crb`)."""
+    conditions), also the Cramér–Rao bound of each block's pose (:mod:`bench.vision_crb`).
+    ``recognize(image, camera, *robot)``: how a scene is recognised (default: the recogniser's
+    one frame; :mod:`bench.vision_fused`'s take a scene's frames)."""
+    recognize = recognize or recognizer.recognize
     models = {m.name: m for m in recognizer.models}
     n_vis = n_vis_hit = tp = fp = 0
     errs, times, cpu, limits = [], [], [], []
     rng = np.random.default_rng(0)
     for k, (image, camera, truth, robot) in enumerate(scenes):
         t0, c0 = time.perf_counter(), time.process_time()
-        found = recognizer.recognize(image, camera, *robot)
+        found = recognize(image, camera, *robot)
         times.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
         sc = score_scene([(r.model, r.X_WO) for r in found], truth, models, camera)
@@ -286,6 +292,7 @@ def run(
     sweeps: bool = True,
     clean: bool = True,
     cache_dir: Path | None = None,
+    fused_frames: int = FUSED_FRAMES,
 ) -> dict:
     """Run the benchmark; write CSV and PNG files into ``out``; return the JSON summary: the
     test set's figures at the top level, the tuning sets' under ``tuning`` and ``clean``."""
@@ -310,6 +317,8 @@ def run(
     _write_csv(out / "vision_conditions.csv", by_condition)
     _plot_conditions(out, by_condition)
     summary["conditions"] = by_condition
+    if fused_frames > 0:
+        summary["fused"] = _fused(recognizer, test_paths, test.supersample, fused_frames)
     print(f"recognising the {tuning.name} set", file=sys.stderr)
     tuning_scenes = _load(tuning_paths)
     summary["tuning"] = score(recognizer, tuning_scenes)
@@ -326,6 +335,32 @@ def run(
         summary["sweeps"] = _sweeps(out, tuning_scenes[:sweep_scenes], tuning.seed, cache_dir)
     (out / "vision.json").write_text(json.dumps(summary, indent=1))
     return summary
+
+
+def _fused(recognizer: Recognizer, paths: list[Path], supersample: int, frames: int) -> dict:
+    """The set's scenes seen ``frames`` times each (:mod:`bench.vision_fused`): the last frame
+    alone and fused with those before, on the same images."""
+    print(f"rendering each scene again, {frames} frames of it", file=sys.stderr)
+    scenes = fused_scenes(paths, supersample, frames)
+    symmetries = {m.name: m.symmetries for m in recognizer.models}
+    keep = (
+        "recall",
+        "precision",
+        "false_positives",
+        "lateral_mm_median",
+        "depth_mm_median",
+        "rotation_deg_median",
+        "rotation_deg_p99",
+    )
+    print("recognising them, one frame and fused", file=sys.stderr)
+    run = FusedRun(recognizer, symmetries)
+    together = score(recognizer, scenes, recognize=run.fused)
+    alone = score(recognizer, scenes, recognize=run.last_frame)
+    return {
+        "frames": frames,
+        "last_frame": {k: alone[k] for k in keep},
+        "fused": {k: together[k] for k in keep},
+    }
 
 
 CONDITION_BINS: dict[str, tuple[float, ...]] = {
@@ -562,6 +597,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-sweeps", action="store_true", help="no sweeps")
     parser.add_argument(
+        "--fused-frames",
+        type=int,
+        default=FUSED_FRAMES,
+        metavar="K",
+        help="also see each test scene K times and score the poses fused over them "
+        f"(0: not; default {FUSED_FRAMES}, the work site's)",
+    )
+    parser.add_argument(
         "--no-clean", action="store_true", help="skip the earlier bench's clean scenes"
     )
 
@@ -572,6 +615,10 @@ def main(args: argparse.Namespace) -> int:
         if not 1 <= n <= 10_000:
             print(f"bench vision: {opt} must be in 1..10000, got {n}", file=sys.stderr)
             return 2
+    if not 0 <= args.fused_frames <= 100:
+        print(f"bench vision: --fused-frames must be in 0..100, got {args.fused_frames}",
+              file=sys.stderr)  # fmt: skip
+        return 2
     summary = run(
         args.out,
         test=dataclasses.replace(TEST_SET, scenes=args.scenes),
@@ -580,6 +627,7 @@ def main(args: argparse.Namespace) -> int:
         data_root=args.data,
         sweeps=not args.no_sweeps,
         clean=not args.no_clean,
+        fused_frames=args.fused_frames,
     )
     print(json.dumps(summary))
     return 0
