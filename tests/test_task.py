@@ -189,13 +189,19 @@ def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) ->
         stamp_s=0.0,
         elapsed_s=0.05,
         objects=(
-            Recognition(model="cube", X_WO=sunk, score=0.9),
+            Recognition(
+                model="cube", X_WO=sunk, score=0.9, frames=4, spread_m=3e-4, spread_rad=0.002
+            ),
             Recognition(model="plank", X_WO=scene.object("plank").X_WO, score=0.8),
             Recognition(model="wedge", X_WO=scene.object("wedge").X_WO, score=0.2),  # too weak
         ),
     )
     page.update()
-    assert "cube: score 0.90 (not in the model)" in page.recognitions_md.content
+    # How sure vision is: the frames its pose fuses and their spread.
+    assert "cube: score 0.90, 4 frames within ±0.3 mm, ±0.1° (not in the model)" in (
+        page.recognitions_md.content
+    )
+    assert "plank: score 0.80, 1 frame (not in the model)" in page.recognitions_md.content
     assert set(page._rec_buttons) == {"cube", "plank", "wedge"}  # one "add" button each
     # What vision sees, see-through in the 3D view: blue, none of it is in the model yet.
     assert set(page.ghosts) == {"cube", "plank", "wedge"}
@@ -211,7 +217,10 @@ def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) ->
     page.update()  # the ghosts recoloured: the model settled the cube 2.1 mm from vision's
     assert tuple(page.ghosts["cube"][1][0].color) == GHOST_RGBS["off"]
     assert tuple(page.ghosts["plank"][1][0].color) == GHOST_RGBS["agrees"]
-    assert "cube: score 0.90 (in the model, **a few mm off**)" in page.recognitions_md.content
+    assert (
+        "cube: score 0.90, 4 frames within ±0.3 mm, ±0.1° (in the model, **a few mm off**)"
+        in page.recognitions_md.content
+    )
     assert page.session.X_WO["cube"][2, 3] == pytest.approx(
         CUBE_HALF + page.session.params.eps_barrier_m, abs=1e-5
     )

@@ -21,7 +21,7 @@ def test_each_scene_is_seen_again_with_fresh_noise_and_scored_alone_and_fused(tm
     paths = write_dataset(tmp_path, 2, seed=5, supersample=1, conditions=CameraConditions())
     scenes = fused_scenes(paths, supersample=1, frames=3)
     stored = cv2.imread(str(tmp_path / json.loads(paths[0].read_text())["image"]), 0)
-    images, camera, truth, robot = scenes[0]
+    images = scenes[0][0]
     assert len(images) == 3 and all(im.shape == stored.shape for im in images)
     assert not np.array_equal(images[0], images[1])  # each frame its own noise...
     # ...about the same scene: the frames differ from the stored image as its noise does.

@@ -433,8 +433,9 @@ def build_program(
 def program_to_json(
     program: MotionProgram, target_bias_m: float = CommandParams.target_bias_m
 ) -> dict:
-    """A readable JSON form of ``program``: poses as position (m) and rotation matrix, contact
-    normals per object, and each target's impedance bias Δp (§VI-B) for reference."""
+    """A readable JSON form of ``program``: poses as position (m) and rotation matrix, what its
+    grasp holds, contact normals per object, and each target's impedance bias Δp (§VI-B) for
+    reference."""
 
     def pose(X: np.ndarray) -> dict:
         X = np.asarray(X)
@@ -461,5 +462,14 @@ def program_to_json(
         "type": program.TYPE,
         "program_id": program.program_id,
         "X_GP": pose(program.X_GP),
+        "holds": [
+            {
+                "name": h.name,
+                "mass_kg": h.mass_kg,
+                "opening_m": h.opening_m,
+                "com_G_m": np.round(h.com_G, 6).tolist(),
+            }
+            for h in program.holds
+        ],
         "commands": commands,
     }
