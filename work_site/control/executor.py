@@ -486,7 +486,7 @@ def expand(
         approach = [MoveTo(first, cmd.speed_mps, limit, approach=True)]
         approach += [MoveTo(X, cmd.speed_mps, limit) for X in then]
         held = program.holds[0] if program.holds else None
-        above = grasp_approach_W(X_WG)[-1]
+        above = [first, *then][-1]  # over the grasp, where the hand withdraws to
         return [
             ForgetPayload(),
             SetFingers(GRIPPER_OPEN_M / 2),
