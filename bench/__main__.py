@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
 
 BENCHMARKS: dict[str, str] = {
@@ -49,8 +50,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _exit(signum: int, _frame) -> None:
+    raise SystemExit(128 + signum)
+
+
 def main(argv: list[str]) -> int:
     """Parse ``argv`` (without the program name): NAME, then NAME's own options; run it."""
+    # A bench stopped by SIGTERM (kill, a job's time limit) unwinds as on Ctrl-C: the work
+    # sites, network namespaces and temporary directories it started go with it.
+    signal.signal(signal.SIGTERM, _exit)
     args = build_parser().parse_args(argv[:1])  # only NAME: its options are its own
     if args.name == "vision":
         # Times are one core's, as at the work site (work_site/recognition.py): numpy's BLAS

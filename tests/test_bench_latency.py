@@ -1,13 +1,20 @@
-"""bench/latency.py's arithmetic: the points from the runs, the grid's option parsing. (The
-benchmark itself runs real processes across network namespaces: ``python -m bench latency``.)"""
+"""bench/latency.py's arithmetic: the points from the runs, the grid's option parsing; and a
+run stopped by SIGTERM leaves nothing behind. (The benchmark itself runs real processes across
+network namespaces: ``python -m bench latency``.)"""
 
 from __future__ import annotations
 
 import argparse
+import signal
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
 from bench import latency
+from deploy import netns
+from tests.conftest import REPO, wait_until
 
 
 def _row(rtt_ms: float, loss: float, seed: int, success: bool, task_s: float | None) -> dict:
@@ -86,3 +93,41 @@ def test_recorded_runs_are_read_back_and_a_later_run_replaces_an_earlier(
     bad.write_text("rtt_ms,loss,seed,success,task_s,execute_s,failure\nfast,0,0,True,1,1,\n")
     with pytest.raises(ValueError, match=r"bad.csv:2: not a latency run"):
         latency.read_rows([bad])
+
+
+def _namespaces() -> set[str]:
+    out = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True, check=True)
+    return {line.split()[0] for line in out.stdout.splitlines() if line.strip()}
+
+
+def _work_sites(logs: Path) -> list[str]:
+    """The pids of work sites journalling into ``logs``."""
+    out = subprocess.run(
+        ["pgrep", "-f", "--", f"work_site serve .*--journal {logs}"], capture_output=True, text=True
+    )
+    return out.stdout.split()
+
+
+@pytest.mark.integration
+def test_a_run_stopped_by_sigterm_takes_its_work_site_and_namespaces_down(tmp_path) -> None:
+    reason = netns.unavailable_reason()
+    if reason is not None:
+        print(f"skipping network-namespace test: {reason}")
+        pytest.skip(f"network namespaces unavailable: {reason}")
+    logs = tmp_path / "logs"
+    before = _namespaces()
+    bench = subprocess.Popen(
+        [sys.executable, "-m", "bench", "latency", "--rtt-ms", "0", "--loss", "0", "--runs", "1",
+         "--out", str(tmp_path), "--logs", str(logs)],
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        # Its link's two namespaces and its work site (whose journal is under ``logs``) up.
+        assert wait_until(lambda: len(_namespaces() - before) == 2 and _work_sites(logs), 60)
+        bench.send_signal(signal.SIGTERM)
+        assert bench.wait(timeout=30) == 128 + signal.SIGTERM
+        assert wait_until(lambda: not _work_sites(logs), 10), _work_sites(logs)
+        assert _namespaces() - before == set()
+    finally:
+        bench.kill()
+        bench.wait()
