@@ -91,3 +91,7 @@ class RecognizerParams:
     # is a support
     free_search: bool = True  # after the table search, look for objects anywhere above the
     # table (on others, leaning), without the table prior
+    track_margin_px: float = 12.0  # tracking looks for an object's lines this far around its
+    # predicted outline: well beyond a still block's frame-to-frame error (a fraction of a
+    # pixel) and the match's widest tolerance, so that a block nudged a few millimetres is
+    # followed too

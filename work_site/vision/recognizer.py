@@ -194,6 +194,8 @@ class Recognizer:
         )  # fmt: skip
         self._robot = RobotParts(load_robot(scene.robot.urdf_path), scene.robot.X_WB)
         self._env_models = [(vision_model(o.model), o.X_WO) for o in scene.objects if o.fixed]
+        self._maps_key: tuple | None = None
+        self._maps: tuple[np.ndarray, np.ndarray] | None = None
         table = [o for o in scene.objects if o.fixed and o.name == "table"]
         if table:
             t = table[0]
@@ -253,13 +255,7 @@ class Recognizer:
         it. Raises ValueError for an unusable image, camera or joint state; an image with
         nothing recognisable gives an empty list.
         """
-        robot = []
-        if robot_q_rad is not None:
-            q = np.asarray(robot_q_rad, dtype=np.float64)
-            if q.shape != (6,) or not np.all(np.isfinite(q)) or not np.isfinite(finger_opening_m):
-                raise ValueError(f"robot joint state must be 6 finite angles, got {q.tolist()}")
-            robot = self._robot.at(q, float(finger_opening_m))
-        f = self._frame(image, camera, robot)
+        f = self._frame(image, camera, self._robot_at(robot_q_rad, finger_opening_m))
         if len(f.strong) < 4:
             return []
         p = self.params
@@ -312,6 +308,67 @@ class Recognizer:
         self._search(free, f, s, resting=False)
         return self._select(s, f) if len(s.candidates) > n_before else accepted
 
+    def track(
+        self,
+        image: np.ndarray,
+        camera: CameraModel,
+        previous: Sequence[tuple[str, np.ndarray]],
+        robot_q_rad: np.ndarray | None = None,
+        finger_opening_m: float = 0.0,
+    ) -> list[Detection]:
+        """The objects ``previous`` ``(model, X_WO)`` (an earlier frame's) found again in
+        ``image``, best score first; those not found are left out (lost).
+
+        Each object's lines are looked for only near its outline predicted from its earlier
+        pose (:attr:`RecognizerParams.track_margin_px`), its pose refitted from there (Lowe's
+        fit, the same prediction of further edges) and the results selected as
+        :meth:`recognize` selects its candidates: the same verification, support and
+        interpenetration tests, so a tracked object is one that full recognition would accept
+        at that pose. Nothing new is searched for: new objects, and what tracking loses, are
+        for :meth:`recognize`. Raises ValueError as :meth:`recognize` does, and for a model it
+        does not know."""
+        check_camera(camera)
+        X_CW = invert_pose(np.asarray(camera.X_WC, dtype=np.float64))
+        K = np.asarray(camera.K, dtype=np.float64)
+        starts: list[tuple[VisionModel, np.ndarray]] = []
+        boxes: list[np.ndarray] = []
+        for name, X_WO in previous:
+            model = self._by_name.get(name)
+            if model is None:
+                raise ValueError(f"no model {name!r} to track (known: {sorted(self._by_name)})")
+            X_CO = X_CW @ np.asarray(X_WO, dtype=np.float64)
+            V_C = transform(X_CO, model.vertices_O)
+            if not np.all(np.isfinite(V_C)) or np.any(V_C[:, 2] <= 0.0):
+                continue  # not wholly in front of the camera: nothing to refit
+            uv = project(V_C, K)
+            m = self.params.track_margin_px
+            boxes.append(np.concatenate([uv.min(0) - m, uv.max(0) + m]))
+            starts.append((model, X_CO))
+        f = self._frame(image, camera, self._robot_at(robot_q_rad, finger_opening_m), rois_px=boxes)
+        if not starts or len(f.strong) < 4:
+            return []
+        p = self.params
+        s = _Search(np.zeros(len(f.segs), dtype=bool), PoseSet(p.same_pose_m, p.same_pose_rad))
+        for model, X_CO in starts:
+            lowest_z = transform(f.X_WC @ X_CO, model.vertices_O)[:, 2].min()
+            resting = bool(lowest_z - self.table_z <= p.table_tol_m)
+            result = fit_and_verify(
+                model, X_CO, f.strong, f.K, f.gx, f.gy, f.occluders_C, p,
+                self._prior(model, f.X_WC, resting),
+            )  # fmt: skip
+            if result is not None:
+                self._add_candidate(model, *result[:3], None, f, s, resting)
+        return self._select(s, f) if s.candidates else []
+
+    def _robot_at(self, robot_q_rad: np.ndarray | None, finger_opening_m: float) -> list:
+        """The arm's links (model, ``X_WL``) at these joint angles; none if not given."""
+        if robot_q_rad is None:
+            return []
+        q = np.asarray(robot_q_rad, dtype=np.float64)
+        if q.shape != (6,) or not np.all(np.isfinite(q)) or not np.isfinite(finger_opening_m):
+            raise ValueError(f"robot joint state must be 6 finite angles, got {q.tolist()}")
+        return self._robot.at(q, float(finger_opening_m))
+
     def _stacked(self, accepted: list[Detection], f: _Frame, s: _Search, junctions: list) -> None:
         """Blocks resting on the objects found: each found object's upward, near horizontal
         hull face is a table at its height, where the junction hypotheses of :mod:`.table` are
@@ -363,9 +420,17 @@ class Recognizer:
         if self.params.max_per_model == 1:
             s.confident.update(r.model for r in accepted)
 
-    def _frame(self, image: np.ndarray, camera: CameraModel, robot: list | None = None) -> _Frame:
+    def _frame(
+        self,
+        image: np.ndarray,
+        camera: CameraModel,
+        robot: list | None = None,
+        rois_px: list[np.ndarray] | None = None,
+    ) -> _Frame:
         """The image checked, undistorted, its gradients and its lines not explained by the
-        fixed environment or the robot (its links' models and poses ``X_WL``)."""
+        fixed environment or the robot (its links' models and poses ``X_WL``). ``rois_px``:
+        boxes ``(u_min, v_min, u_max, v_max)`` to look for lines in (the first pass's only),
+        instead of the whole image."""
         img = check_grey_image(image)
         check_camera(camera)
         if img.shape != (camera.height, camera.width):
@@ -378,9 +443,12 @@ class Recognizer:
         dist = np.asarray(camera.dist, dtype=np.float64)
         if np.any(dist != 0):
             # Straight edges are straight only in an undistorted image.
-            img = cv2.undistort(img, K, dist)
+            img = cv2.remap(img, *self._undistort_maps(K, dist, img.shape), cv2.INTER_LINEAR)
         gx, gy = image_gradients(img)  # for the lines' refinement and every verification
-        segs = detect_lines(img, self.line_params, (gx, gy))
+        if rois_px is None:
+            segs = detect_lines(img, self.line_params, (gx, gy))
+        else:
+            segs = _lines_in(img, (gx, gy), rois_px, self.line_params)
         X_CW = invert_pose(camera.X_WC)
         robot = robot or []
         env_C = Occluders.of_parts(
@@ -391,7 +459,7 @@ class Recognizer:
             K,
         )
         n_first = len(segs)
-        if self.params.faint_lines and n_first:
+        if self.params.faint_lines and n_first and rois_px is None:
             faint = detect_lines(img, FAINT_LINE_PARAMS, (gx, gy))
             # Those the first pass found too are already there.
             _, again = match_segments(segs, faint, FAINT_SAME_LINE_PX, FAINT_SAME_LINE_RAD)
@@ -401,6 +469,19 @@ class Recognizer:
         n_strong = int(np.count_nonzero(kept[:n_first]))
         segs = segs[kept]
         return _Frame(segs, K, camera.X_WC, gx, gy, env_C, t0, n_strong)
+
+    def _undistort_maps(
+        self, K: np.ndarray, dist: np.ndarray, shape: tuple[int, int]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The pixel maps that undistort images of this camera (what ``cv2.undistort``
+        computes on every call), kept for the next frame of the same camera."""
+        key = (K.tobytes(), dist.tobytes(), shape)
+        if self._maps_key != key:
+            self._maps = cv2.initUndistortRectifyMap(
+                K, dist, None, K, (shape[1], shape[0]), cv2.CV_16SC2
+            )
+            self._maps_key = key
+        return self._maps
 
     def _search(
         self, items: list[tuple], f: _Frame, s: _Search, resting: bool = True
@@ -530,8 +611,20 @@ class Recognizer:
         explained = np.zeros(len(segs), dtype=bool)
         if len(segs) == 0:
             return explained
+        lo = np.minimum(segs[:, :2], segs[:, 2:])
+        hi = np.maximum(segs[:, :2], segs[:, 2:])
         for env in env_models:
             X_CO = X_CW @ env[1]
+            V_C = transform(X_CO, env[0].vertices_O)
+            if np.all(V_C[:, 2] > 1e-9):
+                # A line it explains lies within its image's box (within the tolerance):
+                # parts far from every line need no edges projected.
+                uv = project(V_C, K)
+                near = np.all(lo >= uv.min(0) - ENV_MATCH_TOL_PX, axis=1) & np.all(
+                    hi <= uv.max(0) + ENV_MATCH_TOL_PX, axis=1
+                )
+                if not near.any():
+                    continue
             _, proj, _ = visible_edges(env[0], X_CO, K, env_C)
             _, mj = match_segments(proj, segs, ENV_MATCH_TOL_PX, np.deg2rad(3.0))
             explained[mj] = True
@@ -543,3 +636,46 @@ class Recognizer:
         if not resting:
             return None
         return resting_prior(model, self._facets[model.name][0], X_WC, self.table_z, self.params)
+
+
+def _lines_in(
+    img: np.ndarray,
+    gradients: tuple[np.ndarray, np.ndarray],
+    boxes_px: list[np.ndarray],
+    params: LineParams,
+) -> np.ndarray:
+    """The lines of ``img`` inside the boxes ``(u_min, v_min, u_max, v_max)`` (px), each found
+    once: overlapping boxes are merged first, each merged box is searched on its own (with
+    the whole image's gradients, so that a line's refinement at a box's border sees what the
+    whole image's would), and its lines are shifted back to image coordinates."""
+    h, w = img.shape
+    rects = []
+    for b in boxes_px:
+        x0, y0 = max(int(np.floor(b[0])), 0), max(int(np.floor(b[1])), 0)
+        x1, y1 = min(int(np.ceil(b[2])) + 1, w), min(int(np.ceil(b[3])) + 1, h)
+        if x1 > x0 and y1 > y0:
+            rects.append([x0, y0, x1, y1])
+    # Merge overlapping boxes until none overlap; each merge removes one, so this ends.
+    for _ in range(len(rects)):
+        merged = False
+        for i in range(len(rects)):
+            for j in range(i + 1, len(rects)):
+                a, b = rects[i], rects[j]
+                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                    rects[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+                    del rects[j]
+                    merged = True
+                    break
+            if merged:
+                break
+        if not merged:
+            break
+    gx, gy = gradients
+    found = [np.zeros((0, 4))]
+    for x0, y0, x1, y1 in rects:
+        crop = (slice(y0, y1), slice(x0, x1))
+        segs = detect_lines(img[crop], params, (gx[crop], gy[crop]))
+        found.append(segs + np.array([x0, y0, x0, y0], dtype=np.float64))
+    segs = np.vstack(found)
+    lengths = np.hypot(segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1])
+    return segs[np.argsort(-lengths)]
