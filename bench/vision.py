@@ -356,10 +356,28 @@ def _fused(recognizer: Recognizer, paths: list[Path], supersample: int, frames: 
     run = FusedRun(recognizer, symmetries)
     together = score(recognizer, scenes, recognize=run.fused)
     alone = score(recognizer, scenes, recognize=run.last_frame)
+    print("recognising each scene's first frame and tracking the others", file=sys.stderr)
+    tracked = score(recognizer, scenes, recognize=run.tracked)
     return {
         "frames": frames,
         "last_frame": {k: alone[k] for k in keep},
         "fused": {k: together[k] for k in keep},
+        "tracked": {
+            **{k: tracked[k] for k in keep},
+            **_percentiles("ms_per_frame", run.track_s),
+            **_percentiles("cpu_ms_per_frame", run.track_cpu_s),
+        },
+    }
+
+
+def _percentiles(name: str, times_s: list[float]) -> dict[str, float]:
+    """Median, p90 and p99 of ``times_s`` in ms, keyed ``name_median`` and so on."""
+    if not times_s:
+        return {}
+    ms = 1e3 * np.asarray(times_s)
+    return {
+        f"{name}_{q}": float(np.percentile(ms, v))
+        for q, v in (("median", 50), ("p90", 90), ("p99", 99))
     }
 
 

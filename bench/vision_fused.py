@@ -1,14 +1,16 @@
 """Vision's poses fused over frames (:mod:`work_site.vision.fusion`), measured on a dataset's
 scenes: each scene rendered again as it was (its blocks, its camera where it really is, its
 light) and seen through its own sensor ``frames`` times, each time with fresh noise, as the
-work site's camera sees a still scene; each frame recognised and fused with those before, as
-the work site does. Scored: the last frame's recognitions alone, and fused.
+work site's camera sees a still scene; each frame recognised and fused with those before.
+Scored: the last frame's recognitions alone, fused, and fused with the frames after the first
+tracked from it (as the work site does between its full searches).
 """
 
 from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -60,11 +62,28 @@ def fused_scenes(paths: list[Path], supersample: int, frames: int = FUSED_FRAMES
 class FusedRun:
     """Recognise functions for :func:`bench.vision.score` over :func:`fused_scenes`: every
     frame of a scene recognised once and fused in turn (:meth:`fused`: the last frame's fused
-    recognitions); :meth:`last_frame`: that frame's own, from the same run."""
+    recognitions); :meth:`last_frame`: that frame's own, from the same run; :meth:`tracked`:
+    the first frame recognised and the others tracked from it, as the work site does between
+    full searches, fused (each tracking call's wall and CPU time in :attr:`track_s`,
+    :attr:`track_cpu_s`)."""
 
     def __init__(self, recognizer: Recognizer, symmetries: dict[str, np.ndarray]) -> None:
         self.recognizer, self.symmetries = recognizer, symmetries
         self._last: dict[int, list] = {}
+        self.track_s: list[float] = []
+        self.track_cpu_s: list[float] = []
+
+    def tracked(self, images, camera, *robot) -> list:
+        fusion = PoseFusion(self.symmetries)
+        found = self.recognizer.recognize(images[0], camera, *robot)
+        result = fusion.add([(d.model, d.X_WO, d.score) for d in found], searched=True)
+        for image in images[1:]:
+            t0, c0 = time.perf_counter(), time.process_time()
+            found = self.recognizer.track(image, camera, found, *robot)
+            self.track_s.append(time.perf_counter() - t0)
+            self.track_cpu_s.append(time.process_time() - c0)
+            result = fusion.add([(d.model, d.X_WO, d.score) for d in found], searched=False)
+        return [_Found(f.model, f.X_WO) for f in result]
 
     def fused(self, images, camera, *robot) -> list:
         fusion = PoseFusion(self.symmetries)

@@ -33,3 +33,7 @@ def test_each_scene_is_seen_again_with_fresh_noise_and_scored_alone_and_fused(tm
     assert together["scenes"] == alone["scenes"] == 2
     assert together["objects_visible_70"] == alone["objects_visible_70"] > 0
     assert together["recall"] is not None and alone["recall"] is not None
+    # The first frame searched, the others tracked from it: timed, and never more found.
+    tracked = score(recognizer, scenes, recognize=run.tracked)
+    assert len(run.track_s) == len(run.track_cpu_s) == 2 * 2
+    assert tracked["recall"] is not None

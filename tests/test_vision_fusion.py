@@ -108,3 +108,22 @@ def test_only_the_newest_sightings_are_fused() -> None:
     for _ in range(FUSED_FRAMES + 3):
         (fused,) = fusion.add([("wedge", X_TRUE, 0.9)])
     assert fused.frames == FUSED_FRAMES
+
+
+def test_tracked_sightings_refine_a_placement_but_only_searches_confirm_or_forget_it() -> None:
+    """Sightings tracked from the frame before add frames, not searches; a placement tracking
+    lost is not forgotten over tracked frames, only over searches that miss it."""
+    fusion = PoseFusion(SYMMETRIES)
+    (first,) = fusion.add([("cube", X_TRUE, 0.9)])
+    assert (first.frames, first.searches) == (1, 1)
+    for _ in range(3):
+        (tracked,) = fusion.add([("cube", X_TRUE, 0.9)], searched=False)
+    assert (tracked.frames, tracked.searches) == (4, 1)
+    for _ in range(UNSEEN_FRAMES + 2):
+        assert fusion.add([], searched=False) == []
+    (again,) = fusion.add([("cube", X_TRUE, 0.9)])
+    assert (again.frames, again.searches) == (min(5, FUSED_FRAMES), 2)
+    for _ in range(UNSEEN_FRAMES):
+        fusion.add([])
+    (new,) = fusion.add([("cube", X_TRUE, 0.9)], searched=False)
+    assert (new.frames, new.searches) == (1, 0)

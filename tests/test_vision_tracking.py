@@ -11,6 +11,7 @@ from bench.vision_dataset import SceneRenderer
 from bench.vision_evaluate import score_scene
 from models.scene import load_scene
 from models.transforms import make_pose
+from work_site.vision.pose_sets import Detection
 from work_site.vision.recognizer import Recognizer
 
 pytestmark = pytest.mark.slow  # renders its scenes and builds the index: seconds
@@ -73,7 +74,7 @@ def test_tracking_finds_again_what_recognition_found_as_precisely(recognizer, fr
     kept = found_n = compared = 0
     for (first, second), _, _, truth, _, _ in data:
         found = recognizer.recognize(first, camera)
-        tracked = recognizer.track(second, camera, found_poses(found))
+        tracked = recognizer.track(second, camera, found)
         assert {r.model for r in tracked} <= {r.model for r in found}
         kept += len(tracked)
         found_n += len(found)
@@ -98,7 +99,7 @@ def test_tracking_follows_a_block_nudged_between_frames(recognizer, frames) -> N
         found = recognizer.recognize(first, camera)
         if name not in {r.model for r in found}:
             continue  # not found in the first place: nothing to follow
-        tracked = {r.model: r for r in recognizer.track(nudged_image, camera, found_poses(found))}
+        tracked = {r.model: r for r in recognizer.track(nudged_image, camera, found)}
         assert name in tracked, f"{name} nudged by {NUDGE_M * 1e3} mm lost"
         off_m = np.linalg.norm(tracked[name].X_WO[:3, 3] - nudged[name][:3, 3])
         assert off_m < 0.001, f"{name} followed to {off_m * 1e3:.2f} mm from where it went"
@@ -113,7 +114,7 @@ def test_tracking_loses_a_block_taken_away(recognizer, frames) -> None:
         found = recognizer.recognize(first, camera)
         if name not in {r.model for r in found}:
             continue
-        tracked = recognizer.track(gone_image, camera, found_poses(found))
+        tracked = recognizer.track(gone_image, camera, found)
         assert name not in {r.model for r in tracked}
         checked += 1
     assert checked >= 2
@@ -124,9 +125,9 @@ def test_tracking_nothing_or_an_unknown_model(recognizer, frames) -> None:
     image = data[0][0][0]
     assert recognizer.track(image, camera, []) == []
     with pytest.raises(ValueError, match="no model 'teapot'"):
-        recognizer.track(image, camera, [("teapot", np.eye(4))])
+        recognizer.track(image, camera, [Detection("teapot", np.eye(4), 1.0)])
     behind = make_pose(None, camera.X_WC[:3, 3] - 0.5 * camera.X_WC[:3, 2])
-    assert recognizer.track(image, camera, [("cube", behind)]) == []
+    assert recognizer.track(image, camera, [Detection("cube", behind, 1.0)]) == []
 
 
 def test_the_kept_undistortion_maps_undistort_as_opencv_does(recognizer, frames) -> None:

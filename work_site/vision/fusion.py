@@ -10,6 +10,10 @@ outlier among three or more moves it little), with their spread about it. A sigh
 those bounds is another placement (or another block) and starts a track of its own, so a
 block that moved, or a frame that put a block somewhere else, is reported as that frame saw
 it, never averaged with what came before.
+
+A frame's sightings come from a full search or from tracking (refitted from the frame before).
+Tracked sightings refine a pose; they do not confirm it as another search does: a track counts
+the searches that found it (:attr:`Fused.searches`) apart from its sightings.
 """
 
 from __future__ import annotations
@@ -31,14 +35,16 @@ SAME_PLACE_RAD = math.radians(7.5)
 times the operator's default tolerance, well outside one frame's error, well inside the
 distance to another placement or another block."""
 UNSEEN_FRAMES = 3
-"""A track not seen in this many frames in a row is dropped (a block taken away, or a pose
-no frame gives again)."""
+"""A track not seen in this many searched frames in a row is dropped (a block taken away, or a
+pose no frame gives again). Tracked frames do not count: tracking follows only what the frame
+before had, so a placement it lost stays unseen until the next search, whatever is there."""
 
 
 @dataclass(frozen=True)
 class Fused:
     """One block in one frame: the fused pose ``X_WO``, the sightings fused, and their spread
-    about it (RMS distance, m, and RMS angle, rad; 0 for one sighting)."""
+    about it (RMS distance, m, and RMS angle, rad; 0 for one sighting); ``searches``: how many
+    full searches have found this placement since its track began."""
 
     model: str
     X_WO: np.ndarray
@@ -46,6 +52,7 @@ class Fused:
     frames: int
     spread_m: float
     spread_rad: float
+    searches: int
 
 
 class _Track:
@@ -53,6 +60,7 @@ class _Track:
         self.seen: deque[np.ndarray] = deque([X_WO], maxlen=FUSED_FRAMES)
         self.fused = X_WO
         self.unseen = 0
+        self.searches = 0
 
 
 class PoseFusion:
@@ -68,8 +76,11 @@ class PoseFusion:
         """Forget every track: the next frame starts afresh."""
         self._tracks.clear()
 
-    def add(self, objects: Sequence[tuple[str, np.ndarray, float]]) -> list[Fused]:
-        """The frame's ``(model, X_WO, score)`` sightings, each fused with its track."""
+    def add(
+        self, objects: Sequence[tuple[str, np.ndarray, float]], searched: bool = True
+    ) -> list[Fused]:
+        """The frame's ``(model, X_WO, score)`` sightings, each fused with its track;
+        ``searched``: they come from a full search (else from tracking)."""
         out: list[Fused] = []
         matched: set[int] = set()
         for name, X_WO, score in objects:
@@ -94,11 +105,17 @@ class PoseFusion:
                 track.seen.append(X_WO)
                 track.fused = _median_pose(list(track.seen), S)
             track.unseen = -1  # seen in this frame (counted up to 0 below)
+            track.searches += searched
             matched.add(id(track))
             spread_m, spread_rad = _spread(list(track.seen), track.fused, S)
             out.append(
-                Fused(name, track.fused.copy(), float(score), len(track.seen), spread_m, spread_rad)
-            )
+                Fused(
+                    name, track.fused.copy(), float(score), len(track.seen), spread_m, spread_rad,
+                    track.searches,
+                )
+            )  # fmt: skip
+        if not searched:
+            return out
         for name in list(self._tracks):
             kept = []
             for track in self._tracks[name]:

@@ -25,6 +25,7 @@ class Detection:
     length_fraction: float = 0.0
     gradient_fraction: float = 0.0
     matched_segments: tuple[int, ...] = field(default=(), repr=False)
+    resting: bool = True  # found resting on a face on the table (fitted with the table prior)
 
     def __iter__(self):
         """Unpacks as ``(model, X_WO, score)``, the triple the work-site server publishes."""
@@ -255,6 +256,7 @@ def _select_once(
                     length_fraction=v.length_fraction,
                     gradient_fraction=v.gradient_fraction,
                     matched_segments=tuple(rec.matched),
+                    resting=c.resting,
                 ),
             )
         )

@@ -71,6 +71,7 @@ from work_site.vision.verification import (
     Verification,
     fit_and_verify,
     match_segments,
+    verify,
 )
 
 FACE_TOL_M = 1e-9
@@ -312,53 +313,72 @@ class Recognizer:
         self,
         image: np.ndarray,
         camera: CameraModel,
-        previous: Sequence[tuple[str, np.ndarray]],
+        previous: Sequence[Detection],
         robot_q_rad: np.ndarray | None = None,
         finger_opening_m: float = 0.0,
     ) -> list[Detection]:
-        """The objects ``previous`` ``(model, X_WO)`` (an earlier frame's) found again in
-        ``image``, best score first; those not found are left out (lost).
+        """The objects ``previous`` (an earlier frame's detections) found again in ``image``,
+        best score first; those not found are left out (lost).
 
         Each object's lines are looked for only near its outline predicted from its earlier
-        pose (:attr:`RecognizerParams.track_margin_px`), its pose refitted from there (Lowe's
-        fit, the same prediction of further edges) and the results selected as
-        :meth:`recognize` selects its candidates: the same verification, support and
-        interpenetration tests, so a tracked object is one that full recognition would accept
-        at that pose. Nothing new is searched for: new objects, and what tracking loses, are
-        for :meth:`recognize`. Raises ValueError as :meth:`recognize` does, and for a model it
-        does not know."""
+        pose (:attr:`RecognizerParams.track_margin_px`), its pose refitted from there as it
+        was found (Lowe's fit, the same prediction of further edges, with the table prior if
+        it was found resting on the table) and the results selected as :meth:`recognize`
+        selects its candidates: the same verification, support and interpenetration tests, so
+        a tracked object is one that full recognition would accept at that pose. Nothing new
+        is searched for: new objects, and what tracking loses, are for :meth:`recognize`.
+        Raises ValueError as :meth:`recognize` does, and for a model it does not know."""
         check_camera(camera)
         X_CW = invert_pose(np.asarray(camera.X_WC, dtype=np.float64))
         K = np.asarray(camera.K, dtype=np.float64)
-        starts: list[tuple[VisionModel, np.ndarray]] = []
+        starts: list[tuple[VisionModel, np.ndarray, Detection]] = []
         boxes: list[np.ndarray] = []
-        for name, X_WO in previous:
-            model = self._by_name.get(name)
+        for d in previous:
+            model = self._by_name.get(d.model)
             if model is None:
-                raise ValueError(f"no model {name!r} to track (known: {sorted(self._by_name)})")
-            X_CO = X_CW @ np.asarray(X_WO, dtype=np.float64)
+                raise ValueError(f"no model {d.model!r} to track (known: {sorted(self._by_name)})")
+            X_CO = X_CW @ np.asarray(d.X_WO, dtype=np.float64)
             V_C = transform(X_CO, model.vertices_O)
             if not np.all(np.isfinite(V_C)) or np.any(V_C[:, 2] <= 0.0):
                 continue  # not wholly in front of the camera: nothing to refit
             uv = project(V_C, K)
             m = self.params.track_margin_px
             boxes.append(np.concatenate([uv.min(0) - m, uv.max(0) + m]))
-            starts.append((model, X_CO))
+            starts.append((model, X_CO, d))
         f = self._frame(image, camera, self._robot_at(robot_q_rad, finger_opening_m), rois_px=boxes)
         if not starts or len(f.strong) < 4:
             return []
         p = self.params
         s = _Search(np.zeros(len(f.segs), dtype=bool), PoseSet(p.same_pose_m, p.same_pose_rad))
-        for model, X_CO in starts:
-            lowest_z = transform(f.X_WC @ X_CO, model.vertices_O)[:, 2].min()
-            resting = bool(lowest_z - self.table_z <= p.table_tol_m)
+        for model, X_CO, d in starts:
             result = fit_and_verify(
                 model, X_CO, f.strong, f.K, f.gx, f.gy, f.occluders_C, p,
-                self._prior(model, f.X_WC, resting),
+                self._prior(model, f.X_WC, d.resting),
             )  # fmt: skip
             if result is not None:
-                self._add_candidate(model, *result[:3], None, f, s, resting)
-        return self._select(s, f) if s.candidates else []
+                self._add_candidate(model, *result[:3], None, f, s, d.resting)
+        accepted = self._select(s, f) if s.candidates else []
+        if len(accepted) == len(starts):
+            return accepted
+        # Refitting need not return a pose the search accepted (lines matched anew can pull
+        # it off), while a still object is where it was: for each object not found again,
+        # that pose is a candidate too, next to the refitted poses accepted.
+        kept = {id(d.X_WO) for d in accepted}
+        s.candidates = [c for c in s.candidates if id(c.X_WO) in kept]
+        n_before = len(s.candidates)
+        need = (
+            min(p.min_length_fraction, p.candidate_min_length_fraction),
+            min(p.min_score, p.candidate_min_score),
+            0.0,
+        )  # what fit_and_verify asks of a candidate
+        found = {d.model for d in accepted}
+        for model, X_CO, d in starts:
+            if model.name in found and p.max_per_model == 1:
+                continue
+            v = verify(model, X_CO, f.K, f.strong, f.gx, f.gy, f.occluders_C, p, None, need)
+            if v.length_fraction >= need[0] and v.score >= need[1]:
+                self._add_candidate(model, X_CO, d.rms_px, v, None, f, s, d.resting)
+        return self._select(s, f) if len(s.candidates) > n_before else accepted
 
     def _robot_at(self, robot_q_rad: np.ndarray | None, finger_opening_m: float) -> list:
         """The arm's links (model, ``X_WL``) at these joint angles; none if not given."""
@@ -459,8 +479,12 @@ class Recognizer:
             K,
         )
         n_first = len(segs)
-        if self.params.faint_lines and n_first and rois_px is None:
-            faint = detect_lines(img, FAINT_LINE_PARAMS, (gx, gy))
+        if self.params.faint_lines and n_first:
+            faint = (
+                detect_lines(img, FAINT_LINE_PARAMS, (gx, gy))
+                if rois_px is None
+                else _lines_in(img, (gx, gy), rois_px, FAINT_LINE_PARAMS)
+            )
             # Those the first pass found too are already there.
             _, again = match_segments(segs, faint, FAINT_SAME_LINE_PX, FAINT_SAME_LINE_RAD)
             segs = np.vstack([segs, np.delete(faint, again, axis=0)])
