@@ -47,13 +47,15 @@ _RUN_NUMBERS = itertools.count()
 CONNECT_TIMEOUT_S = 60.0
 VISION_TIMEOUT_S = 120.0
 VISION_FRAMES = 3
-"""Recognised frames waited for at most while they come back empty."""
-MIN_FUSED_FRAMES = 3
-"""A block is taken into the model once vision's pose of it fuses this many frames of one
-placement (``Recognition.frames``): their median, which one frame's outlier moves little."""
+"""Searched frames waited for at most while they come back empty."""
+MIN_SEARCHES = 3
+"""A block is taken into the model once this many of vision's full searches have found it in
+one placement (``Recognition.searches``): its pose is then the median of that placement's
+sightings, which one frame's outlier moves little, and not a single search's mistake that
+tracking carried on."""
 WORKPIECE_FRAMES = 8
-"""Recognised frames looked at in all, at most, while none fit for the task's workpiece is
-among them (4 s at the work site's 2 Hz)."""
+"""Searched frames looked at in all, at most, while none fit for the task's workpiece is
+among them (4 s at the work site's 2 Hz); the tracked frames between are read too."""
 FRAME_TIMEOUT_S = 10.0
 """A next recognised frame is waited for at most this long (the work site sends one a 0.5 s)."""
 EXECUTE_TIMEOUT_S = 240.0
@@ -69,14 +71,16 @@ than asked."""
 @dataclass(frozen=True, eq=False)
 class RecognisedModel:
     """The model the scripted operator built from vision: the model, the model editor's
-    corrections, the recognised frames looked at, their vision time summed (s) and the model
-    editor's time for the last build (s)."""
+    corrections, the searched frames looked at, the vision time of every frame looked at
+    summed (s), the model editor's time for the last build (s) and the tracked frames looked
+    at."""
 
     model: WorkSiteModel
     corrections: list[Correction]
     frames: int
     vision_s: float
     model_s: float
+    tracked_frames: int = 0
 
 
 def model_from_frames(
@@ -89,18 +93,20 @@ def model_from_frames(
     trusted: bool = False,
 ) -> RecognisedModel:
     """The model built as a person builds it in the page (``operator``'s, or a new operator
-    session's), who takes a block into the model once vision has seen it in the same place in
-    :data:`MIN_FUSED_FRAMES` frames: a recognition scoring at least
-    :data:`~operator_site.session.ACCEPT_SCORE` whose pose fuses that many frames is
-    accepted, and the model made consistent. Each frame has its own sensor noise: one that
-    mistakes a block for another, or turns it, is not taken at its word. Frames are read until
-    ``ready`` says the model holds what the task needs, ``max_frames`` in all at most.
-    ``trusted``: the frames are the ground truth, each taken at its word."""
+    session's), who takes a block into the model once vision's searches have found it in the
+    same place :data:`MIN_SEARCHES` times: a recognition scoring at least
+    :data:`~operator_site.session.ACCEPT_SCORE` that says so is accepted, and the model made
+    consistent. Each frame has its own sensor noise: one that mistakes a block for another, or
+    turns it, is not taken at its word. Frames are read until ``ready`` says the model holds
+    what the task needs, ``max_frames`` searched frames in all at most (and the tracked frames
+    between). ``trusted``: the frames are the ground truth, each taken at its word."""
     op = operator or OperatorSession(scene)
     corrections: dict[str, Correction] = {}
     n, vision_s, model_s = 0, 0.0, 0.0
+    tracked = 0
     for recs in frames:
-        n += 1
+        n += not recs.tracked
+        tracked += recs.tracked
         vision_s += recs.elapsed_s
         log(f"frame {n}: recognised {[(r.model, round(r.score, 2)) for r in recs.objects]}")
         seen = {}
@@ -110,7 +116,7 @@ def model_from_frames(
         steady = [
             r
             for name, r in seen.items()
-            if name not in op.model.poses and (trusted or r.frames >= MIN_FUSED_FRAMES)
+            if name not in op.model.poses and (trusted or r.searches >= MIN_SEARCHES)
         ]
         if steady:
             t0 = time.monotonic()
@@ -120,9 +126,9 @@ def model_from_frames(
                 log(f"frame {n}: not added to the model: {e}")
             corrections |= {c.name: c for c in op.corrections}
             model_s += time.monotonic() - t0
-        if ready(op.model) or n >= max_frames:
+        if ready(op.model) or (n >= max_frames and not recs.tracked):
             break
-    return RecognisedModel(op.model, list(corrections.values()), n, vision_s, model_s)
+    return RecognisedModel(op.model, list(corrections.values()), n, vision_s, model_s, tracked)
 
 
 ProgramMaker = Callable[[TaskSession, str], Generated]
@@ -228,8 +234,8 @@ def _start_work_site(
 
 def _recognised_frames(link: WorkSiteLink) -> Iterator[Recognitions]:
     """The work site's recognised frames as they arrive: first the first one with objects (or
-    the :data:`VISION_FRAMES`-th if they all come back empty; RuntimeError if none within
-    :data:`VISION_TIMEOUT_S`), then each next one until none comes within
+    the :data:`VISION_FRAMES`-th searched one if they all come back empty; RuntimeError if
+    none within :data:`VISION_TIMEOUT_S`), then each next one until none comes within
     :data:`FRAME_TIMEOUT_S`."""
     seen: list[Recognitions] = []
 
@@ -240,7 +246,8 @@ def _recognised_frames(link: WorkSiteLink) -> Iterator[Recognitions]:
                 seen.append(r)
             if len(seen) <= after:
                 return False
-            return not need_objects or bool(seen[-1].objects) or len(seen) >= VISION_FRAMES
+            searched = sum(not r.tracked for r in seen)
+            return not need_objects or bool(seen[-1].objects) or searched >= VISION_FRAMES
 
         return check
 
@@ -352,6 +359,7 @@ def run_chain(
         model, corrections = rec.model, rec.corrections
         stage_s["vision"], stage_s["model"] = rec.vision_s, rec.model_s
         out["vision_frames"] = rec.frames
+        out["vision_tracked_frames"] = rec.tracked_frames
         stage_s["vision_wait"] = time.monotonic() - t0
         out["recognised"] = sorted(model.poses)
         out["corrections_mm"] = {c.name: round(c.moved_mm, 2) for c in corrections}

@@ -456,6 +456,10 @@ def _field_problem(field: FieldInfo, value: Any) -> str | None:
         if not isinstance(value, str):
             return f"expected str, got {type_name(value)}"
         return None if value in choices else f"must be one of {choices}, got {short_repr(value)}"
+    if base is bool:
+        return (
+            None if isinstance(value, bool | np.bool_) else f"expected bool, got {type_name(value)}"
+        )
     if base is int:
         return _int_problem(meta, value)
     if base is float:

@@ -31,7 +31,7 @@ from ._schema import (
 )
 from .images import DEFAULT_JPEG_QUALITY, ImageEncoding
 
-SCHEMA_VERSION = 9
+SCHEMA_VERSION = 10
 """Version of the wire schema; bump on any incompatible change to a message.
 2: ``CameraFrame`` carries its image's ``encoding`` and ``quality``.
 3: ``ExecutionReport`` carries its number within its program (``seq``).
@@ -39,11 +39,13 @@ SCHEMA_VERSION = 9
 6: ``Stop`` carries the programs it ``cancels``.
 7: ``Heartbeat`` echoes the other side's latest beat (the round trip).
 9: ``MotionProgram`` says what its grasp should hold (``holds``); a ``Recognition`` how many
-frames its pose fuses and how they spread."""
+frames its pose fuses and how they spread.
+10: ``Recognitions`` says whether its frame was searched or ``tracked``; a ``Recognition`` how
+many full ``searches`` found its placement."""
 OLDEST_READ_VERSION = 6
 """The oldest schema version read, for a message type whose body has not changed since (a
 program saved by the version before stays loadable)."""
-BODY_CHANGED_IN: dict[str, int] = {"heartbeat": 8, "motion_program": 9, "recognitions": 9}
+BODY_CHANGED_IN: dict[str, int] = {"heartbeat": 8, "motion_program": 9, "recognitions": 10}
 """The version in which a type's body last changed, where that is after
 :data:`OLDEST_READ_VERSION`: older envelopes of that type are refused (a saved file's are read
 where :data:`FIELDS_ADDED` says what the older body meant)."""
@@ -72,6 +74,8 @@ MAX_IMAGE_SIDE = 4096
 MAX_RECOGNITIONS = 256
 MAX_FUSED_FRAMES = 1000
 """Most sightings one recognised pose may say it fuses."""
+MAX_SEARCHES = 2**31 - 1
+"""Most full searches one recognised placement may say found it (one a second for decades)."""
 MAX_CONTACT_NORMALS = 16
 MAX_CONTACTS = 16
 MAX_COMMANDS = 1000
@@ -162,7 +166,9 @@ class CameraFrame(Message):
 class Recognition(Record):
     """One recognised object (nested in :class:`Recognitions`): model name, pose, score; the
     pose fused over ``frames`` sightings of that placement, which spread about it by
-    ``spread_m`` (RMS distance) and ``spread_rad`` (RMS angle): how sure vision is."""
+    ``spread_m`` (RMS distance) and ``spread_rad`` (RMS angle): how sure vision is; and how
+    many full ``searches`` have found that placement (sightings tracked from the frame before
+    refine a pose but do not confirm it)."""
 
     model: Name
     X_WO: Pose
@@ -170,17 +176,21 @@ class Recognition(Record):
     frames: Annotated[int, Meta(ge=1, le=MAX_FUSED_FRAMES)] = 1
     spread_m: NonNegative = 0.0
     spread_rad: NonNegative = 0.0
+    searches: Annotated[int, Meta(ge=0, le=MAX_SEARCHES)] = 1
 
 
 @dataclass(frozen=True, eq=False)
 class Recognitions(Message):
-    """What vision found in camera frame ``seq``, and how long it took (``elapsed_s``)."""
+    """What vision found in camera frame ``seq``, and how long it took (``elapsed_s``);
+    ``tracked``: the frame's objects were followed from the frame before, not searched for
+    (a tracked frame that lacks a block has not looked for it)."""
 
     TYPE: ClassVar[str] = "recognitions"
     seq: Seq
     stamp_s: NonNegative
     elapsed_s: NonNegative
     objects: Annotated[tuple[Recognition, ...], Meta(max_length=MAX_RECOGNITIONS)]
+    tracked: bool = False
 
 
 # ------------------------------------------------------------------------------ robot state

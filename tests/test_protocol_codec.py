@@ -247,10 +247,11 @@ def random_message(cls: type, seed: int) -> Any:
                 int(rng.integers(1, 6)),
                 float(rng.uniform(0, 1e-3)),
                 float(rng.uniform(0, 0.01)),
+                int(rng.integers(0, 6)),
             )
             for _ in range(rng.integers(0, 4))
         )
-        return Recognitions(seq, stamp, float(rng.uniform()), objects)
+        return Recognitions(seq, stamp, float(rng.uniform()), objects, bool(rng.integers(2)))
     if cls is RobotState:
         q, wrench = rng.normal(size=6), rng.normal(size=6)
         return RobotState(seq, stamp, q, random_pose(rng), float(rng.uniform()), wrench)

@@ -65,12 +65,14 @@ SCHEMA: dict[str, dict[str, tuple[Any, ...]]] = {
         "frames": ("int", 1, 1001),
         "spread_m": NON_NEGATIVE,
         "spread_rad": NON_NEGATIVE,
+        "searches": ("int", 0, 2**31),
     },
     "Recognitions": {
         "seq": SEQ,
         "stamp_s": NON_NEGATIVE,
         "elapsed_s": NON_NEGATIVE,
         "objects": ("records", "Recognition", 0, 256),
+        "tracked": ("bool",),
     },
     "RobotState": {
         "seq": SEQ,
@@ -218,6 +220,9 @@ def ref_wire_record(name: str, body: Any) -> dict[str, Any]:
 
 
 def ref_wire_value(kind: tuple[Any, ...], value: Any, body: dict[str, Any]) -> Any:
+    if kind[0] == "bool":
+        need(type(value) is bool)
+        return value
     if kind[0] == "int":
         need(type(value) is int and kind[1] <= value < kind[2])
         return value
@@ -265,10 +270,10 @@ def ref_decode(payload: bytes) -> tuple[str, dict[str, Any]]:
         raise RefusedError from None
     need(isinstance(env, dict) and sorted(env) == ["b", "t", "v"])
     need(isinstance(env["t"], str) and env["t"] in TAGS)
-    # Version 8 changed the heartbeat, 9 the program and the recognitions; the other types are
-    # read back to 6.
-    versions = {"heartbeat": (8, 9), "motion_program": (9,), "recognitions": (9,)}.get(
-        env["t"], (6, 7, 8, 9)
+    # Version 8 changed the heartbeat, 9 the program, 10 the recognitions; the other types
+    # are read back to 6.
+    versions = {"heartbeat": (8, 9, 10), "motion_program": (9, 10), "recognitions": (10,)}.get(
+        env["t"], (6, 7, 8, 9, 10)
     )
     need(type(env["v"]) is int and env["v"] in versions)
     name = TAGS[env["t"]]
@@ -453,6 +458,9 @@ def test_the_envelope_in_another_key_order_or_with_a_key_twice() -> None:
 
 def ref_python_value(kind: tuple[Any, ...], value: Any) -> Any:
     """What a constructor must make of ``value`` for a field of ``kind``, or RefusedError."""
+    if kind[0] == "bool":
+        need(isinstance(value, bool | np.bool_))
+        return bool(value)
     if kind[0] == "int":
         need(not isinstance(value, bool | np.bool_) and isinstance(value, int | np.integer))
         need(kind[1] <= int(value) < kind[2])

@@ -1,8 +1,9 @@
-"""The scripted operator's use of vision (issue 9): a block goes into the model once three frames
-saw it in the same place, and frames are watched only while the task's workpiece is
-missing. The frames are real protocol records made here, their poses fused as the work site
-fuses them (:class:`~work_site.vision.fusion.PoseFusion`); the whole chain with a real work
-site is tests/test_e2e.py's."""
+"""The scripted operator's use of vision (issue 9): a block goes into the model once three of
+vision's searches found it in the same place (frames tracked between refine it, never confirm
+it), and frames are watched only while the task's workpiece is missing. The frames are real
+protocol records made here, their poses fused as the work site fuses them
+(:class:`~work_site.vision.fusion.PoseFusion`); the whole chain with a real work site is
+tests/test_e2e.py's."""
 
 from __future__ import annotations
 
@@ -24,25 +25,37 @@ def layout() -> dict[str, np.ndarray]:
     return random_layout(load_scene(), 0)
 
 
-def _frames(*seen: tuple[dict[str, np.ndarray], dict[str, float]]) -> list[Recognitions]:
-    """Frames of the blocks ``layout`` has, scoring ``scores``, each fused with those before as
-    the work site does."""
+def _frames(
+    *seen: tuple[dict[str, np.ndarray], dict[str, float]], tracked_between: int = 0
+) -> list[Recognitions]:
+    """Searched frames of the blocks ``layout`` has, scoring ``scores``, each fused with those
+    before as the work site does; after each, ``tracked_between`` frames that track what it
+    found."""
     scene = load_scene()
     fusion = PoseFusion({o.name: o.model.symmetries for o in scene.objects})
-    out = []
-    for seq, (layout, scores) in enumerate(seen, start=1):
-        fused = fusion.add([(n, layout[n], s) for n, s in scores.items()])
-        out.append(
-            Recognitions(
-                seq=seq,
-                stamp_s=float(seq),
-                elapsed_s=0.07,
-                objects=tuple(
-                    Recognition(f.model, f.X_WO, f.score, f.frames, f.spread_m, f.spread_rad)
-                    for f in fused
-                ),
-            )
+    out: list[Recognitions] = []
+
+    def frame(objects: list, tracked: bool) -> Recognitions:
+        fused = fusion.add(objects, searched=not tracked)
+        seq = len(out) + 1
+        return Recognitions(
+            seq=seq,
+            stamp_s=float(seq),
+            elapsed_s=0.01 if tracked else 0.07,
+            objects=tuple(
+                Recognition(
+                    f.model, f.X_WO, f.score, f.frames, f.spread_m, f.spread_rad, f.searches
+                )
+                for f in fused
+            ),
+            tracked=tracked,
         )
+
+    for layout, scores in seen:
+        objects = [(n, layout[n], s) for n, s in scores.items()]
+        out.append(frame(objects, tracked=False))
+        for _ in range(tracked_between):
+            out.append(frame(objects, tracked=True))
     return out
 
 
@@ -134,3 +147,27 @@ def test_the_frames_watched_are_bounded_when_the_workpiece_never_shows(layout) -
 def test_no_frame_gives_an_empty_model() -> None:
     rec = model_from_frames(load_scene(), iter([]), _ready("corner"))
     assert rec.frames == 0 and rec.model.poses == {} and rec.vision_s == 0.0
+
+
+def test_tracked_frames_refine_a_block_but_only_searches_confirm_it(layout) -> None:
+    """A search's block tracked over many frames is not taken until three searches found it;
+    the searched frames are what ``max_frames`` and ``rec.frames`` count."""
+    frames = _frames(
+        (layout, {"cube": 0.9, "plank": 0.8}),
+        (layout, {"cube": 0.9, "plank": 0.8}),
+        (layout, {"cube": 0.9, "plank": 0.8}),
+        tracked_between=4,
+    )
+    taken_after = []
+
+    def ready(model) -> bool:
+        taken_after.append(set(model.poses))
+        return bool(workpiece_candidates("corner", model))
+
+    rec = model_from_frames(load_scene(), iter(frames), ready)
+    assert taken_after[:10] == [set()] * 10  # two searches and the eight tracked frames after
+    assert rec.frames == 3 and set(rec.model.poses) == {"cube", "plank"}
+    assert rec.tracked_frames == 8
+    assert rec.vision_s == pytest.approx(3 * 0.07 + 8 * 0.01)
+    bounded = model_from_frames(load_scene(), iter(frames), _ready("corner"), max_frames=2)
+    assert bounded.frames == 2 and bounded.model.poses == {}

@@ -14,8 +14,8 @@ from models.transforms import R_to_quat_wxyz, invert_pose, so3_log
 from operator_site.link import WorkSiteLink
 from operator_site.task import TaskSession
 from operator_site.ui import NO_WORKPIECE, OperatorPage
-from operator_site.ui.scene_view import FELT_RGB, GHOST_RGBS
-from protocol import make_config
+from operator_site.ui.scene_view import FELT_RGB, GHOST_REDRAW_M, GHOST_RGBS
+from protocol import Recognition, Recognitions, make_config
 from tests.conftest import free_port, wait_until
 
 CUBE_HALF = 0.025
@@ -168,8 +168,29 @@ def test_dragging_into_the_frame_corner_from_the_page(page: OperatorPage) -> Non
     assert tilt_rad < 2 * eps_b / (2 * CUBE_HALF)
 
 
+def test_a_ghost_moves_only_when_vision_moves_it_visibly(page: OperatorPage) -> None:
+    """Tracking sends poses several times a second that differ by hundredths of a millimetre:
+    a ghost is redrawn only for a move beyond GHOST_REDRAW_M (each redraw costs the browser a
+    frame), at once for one beyond it."""
+    X = page.scene.object("cube").X_WO.copy()
+
+    def seen(seq: int, dx_m: float) -> np.ndarray:
+        X_now = X.copy()
+        X_now[0, 3] += dx_m
+        page.link.recognitions = Recognitions(
+            seq=seq, stamp_s=0.0, elapsed_s=0.01,
+            objects=(Recognition(model="cube", X_WO=X_now, score=0.9),),
+            tracked=seq > 1,
+        )  # fmt: skip
+        page.update()
+        return np.asarray(page.ghosts["cube"][0].position)
+
+    first = seen(1, 0.0)
+    assert np.allclose(seen(2, 0.2 * GHOST_REDRAW_M), first)
+    assert np.allclose(seen(3, 2 * GHOST_REDRAW_M), X[:3, 3] + [2 * GHOST_REDRAW_M, 0, 0])
+
+
 def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) -> None:
-    from protocol import Recognition, Recognitions
 
     page.on_select(NO_WORKPIECE)
     for name in list(page.model.poses):
@@ -198,10 +219,14 @@ def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) ->
     )
     page.update()
     # How sure vision is: the frames its pose fuses and their spread.
-    assert "cube: score 0.90, 4 frames within ±0.3 mm, ±0.1° (not in the model)" in (
-        page.recognitions_md.content
+    assert (
+        "cube: score 0.90, 4 frames within ±0.3 mm, ±0.1°, found by 1 search (not in the model)"
+        in page.recognitions_md.content
     )
-    assert "plank: score 0.80, 1 frame (not in the model)" in page.recognitions_md.content
+    assert (
+        "plank: score 0.80, 1 frame, found by 1 search (not in the model)"
+        in page.recognitions_md.content
+    )
     assert set(page._rec_buttons) == {"cube", "plank", "wedge"}  # one "add" button each
     # What vision sees, see-through in the 3D view: blue, none of it is in the model yet.
     assert set(page.ghosts) == {"cube", "plank", "wedge"}
@@ -218,8 +243,8 @@ def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) ->
     assert tuple(page.ghosts["cube"][1][0].color) == GHOST_RGBS["off"]
     assert tuple(page.ghosts["plank"][1][0].color) == GHOST_RGBS["agrees"]
     assert (
-        "cube: score 0.90, 4 frames within ±0.3 mm, ±0.1° (in the model, **a few mm off**)"
-        in page.recognitions_md.content
+        "cube: score 0.90, 4 frames within ±0.3 mm, ±0.1°, found by 1 search (in the model, "
+        "**a few mm off**)" in page.recognitions_md.content
     )
     assert page.session.X_WO["cube"][2, 3] == pytest.approx(
         CUBE_HALF + page.session.params.eps_barrier_m, abs=1e-5

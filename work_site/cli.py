@@ -209,6 +209,13 @@ def add_serve_arguments(parser: argparse.ArgumentParser) -> None:
         "0 turns vision off (default: 1 with the camera, 0 without)",
     )
     parser.add_argument(
+        "--no-vision-tracking",
+        action="store_true",
+        help="recognise frames only at --vision-rate, in full; by default the objects found are "
+        "also followed in every camera frame between (a fraction of the time, poses fused "
+        "over more frames)",
+    )
+    parser.add_argument(
         "--vision-scale",
         type=float,
         default=1.0,
@@ -322,6 +329,7 @@ def serve(args: argparse.Namespace) -> int:
                 DEFAULT_CAMERA_SENSOR, read_noise_grey=args.camera_noise
             ),
             vision_scale=args.vision_scale,
+            vision_tracking=not args.no_vision_tracking,
             vision_index_views=args.vision_index_views,
             vision_rate_hz=(
                 args.vision_rate

@@ -68,6 +68,10 @@ class ServerOptions:
     vision_rate_hz: float = 0.0
     """Frames recognised per second at most (0: no vision). Vision runs in its own process,
     on the newest frame whenever it is idle."""
+    vision_tracking: bool = True
+    """Between two full recognitions (at ``vision_rate_hz``), follow the objects found in
+    every camera frame (:meth:`~work_site.vision.recognizer.Recognizer.track`): poses fused
+    over the camera's rate, for a fraction of a full recognition's time."""
     vision_scale: float = 1.0
     """Vision works on the frame resized by this factor (0.5: 320×240 from 640×480): less time
     per frame, less accuracy (docs/benchmarks.md, vision's resolution sweep)."""

@@ -1,6 +1,7 @@
 """Recognition of the camera's frames in a child process (§IV), so that vision never stalls the
-control loop: the server hands it the newest frame whenever it is idle, at most at the rate it is
-given, and publishes what comes back with the frame's sequence number."""
+control loop: the server hands it the newest frame whenever it is idle, for a full search at
+most at the rate it is given and to track the objects found in the frames between, and
+publishes what comes back with the frame's sequence number."""
 
 from __future__ import annotations
 
@@ -33,6 +34,8 @@ class VisionResult:
     error: str = ""
     note: str = ""
     """Something to log once, such as the camera pose calibrated from the first frame."""
+    tracked: bool = False
+    """The objects were followed from the frame before, not searched for anew."""
 
 
 CALIBRATION_MAX_RMS_PX = 1.0
@@ -83,31 +86,35 @@ def _vision_worker(scene_path: str, scale: float, index_views: int | None, conn)
         return
     conn.send(VisionResult(-1, 0.0, 0.0, ()))  # ready
     camera, note = scene.camera, None
+    previous: list = []  # the last frame's detections, to track
     try:
         while True:
             request = conn.recv()
             if request is None:
                 return
-            seq, stamp_s, image, robot = request
+            seq, stamp_s, image, robot, track = request
             if note is None:  # §IV-B: the camera's pose from the frame, on the first image
                 t0 = time.perf_counter()
                 camera, note = _calibrated(image, scene)
                 note += f" ({time.perf_counter() - t0:.2f} s, once)"
             t0 = time.perf_counter()  # elapsed_s is the recognition's alone
             try:
+                seen, img = camera, image
                 if scale != 1.0:
                     seen = camera.scaled(scale)
                     size = (seen.width, seen.height)
-                    found = recognizer.recognize(
-                        cv2.resize(image, size, interpolation=cv2.INTER_AREA), seen, *robot
-                    )
+                    img = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+                if track:  # nothing found before: nothing to follow, until the next search
+                    found = recognizer.track(img, seen, previous, *robot) if previous else []
                 else:
-                    found = recognizer.recognize(image, camera, *robot)
+                    found = recognizer.recognize(img, seen, *robot)
                 objects = tuple((r.model, r.X_WO, float(r.score)) for r in found)
                 error = ""
             except Exception as e:  # one bad frame must not end vision
-                objects, error = (), f"{type(e).__name__}: {e}"
-            conn.send(VisionResult(seq, stamp_s, time.perf_counter() - t0, objects, error, note))
+                found, objects, error = [], (), f"{type(e).__name__}: {e}"
+            previous = found
+            elapsed_s = time.perf_counter() - t0
+            conn.send(VisionResult(seq, stamp_s, elapsed_s, objects, error, note, bool(track)))
             note = ""
     except (EOFError, KeyboardInterrupt):
         return
@@ -146,13 +153,14 @@ class VisionProcess:
         self.busy = True  # until the worker says it is ready
         self.failed = ""
 
-    def request(self, frame: RenderedFrame) -> bool:
+    def request(self, frame: RenderedFrame, track: bool = False) -> bool:
         """Start recognising a frame (the arm's joints in it known) unless busy (or not
-        ready); True if started."""
+        ready); True if started. ``track``: only follow the objects of the last frame
+        (:meth:`~work_site.vision.recognizer.Recognizer.track`) instead of a full search."""
         if self.busy or not self.ready:
             return False
         robot = (frame.q, frame.finger_opening_m)
-        self._conn.send((frame.seq, frame.stamp_s, frame.image, robot))
+        self._conn.send((frame.seq, frame.stamp_s, frame.image, robot, track))
         self.busy = True
         return True
 

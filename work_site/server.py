@@ -1,7 +1,8 @@
 """The work-site server: steps the world in real time and talks to operator sites over zenoh.
 
 Publishes robot state (≥ 100 Hz), grey camera frames (at the camera's rate), the objects vision
-recognises in them (at ``vision_rate_hz`` or as fast as vision keeps up) and a heartbeat;
+recognises in them (searched for at ``vision_rate_hz`` or as fast as vision keeps up, and
+followed in the frames between) and a heartbeat;
 declares a liveliness token; takes programs, stops and operator heartbeats from the wire, each
 key on its own inbox (``work_site/inbox.py``). Whatever arrives is decoded and validated first,
 and nothing that arrives can stop this loop: programs are checked on a thread of their own, the
@@ -114,7 +115,14 @@ class WorkSiteServer(ProgramIntake):
         self.scene = scene
         self.options = options or ServerOptions()
         self._zenoh_config = zenoh_config
-        self.stats = {"states": 0, "frames": 0, "recognitions": 0, "refused": 0, "late_ticks": 0}
+        self.stats = {
+            "states": 0,
+            "frames": 0,
+            "recognitions": 0,
+            "tracked": 0,
+            "refused": 0,
+            "late_ticks": 0,
+        }
         self._execution: Execution | None = None
         self._reports: collections.OrderedDict[str, list[bytes]] = collections.OrderedDict()
         """Every report sent for each program id received (the newest REMEMBERED_PROGRAMS),
@@ -446,12 +454,16 @@ class WorkSiteServer(ProgramIntake):
         return now, ticks
 
     def _recognize(self, frame: RenderedFrame, elapsed_s: float) -> None:
-        """Hand a new frame to vision if it is idle and its rate allows."""
+        """Hand a new frame to vision if it is idle: for a full search if its rate allows,
+        else (with tracking on) to follow the objects it found."""
         vision = self._vision
-        if vision is None or elapsed_s < self._next_vision_s:
+        if vision is None:
             return
-        if vision.request(frame):
-            self._next_vision_s = elapsed_s + 1.0 / self.options.vision_rate_hz
+        if elapsed_s >= self._next_vision_s:
+            if vision.request(frame):
+                self._next_vision_s = elapsed_s + 1.0 / self.options.vision_rate_hz
+        elif self.options.vision_tracking:
+            vision.request(frame, track=True)
 
     def _publish_recognitions(self) -> None:
         """Publish what vision found in the last frame it finished, if any."""
@@ -462,6 +474,8 @@ class WorkSiteServer(ProgramIntake):
             log.warning("vision failed on frame %d: %s", result.seq, result.error)
         if result.note:
             log.info("vision: %s", result.note)
+        if result.tracked:
+            self.stats["tracked"] += 1
         # A frame taken while a program may have moved something is reported on its own, and
         # the tracks start afresh after it.
         execution = self._execution
@@ -478,8 +492,9 @@ class WorkSiteServer(ProgramIntake):
                 frames=f.frames,
                 spread_m=f.spread_m,
                 spread_rad=f.spread_rad,
+                searches=f.searches,
             )
-            for f in self._fusion.add(result.objects)
+            for f in self._fusion.add(result.objects, searched=not result.tracked)
         )
         if moving:
             self._fusion.reset()
@@ -490,6 +505,7 @@ class WorkSiteServer(ProgramIntake):
                     stamp_s=result.stamp_s,
                     elapsed_s=result.elapsed_s,
                     objects=objects,
+                    tracked=result.tracked,
                 )
             )
         )

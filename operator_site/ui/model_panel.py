@@ -212,9 +212,11 @@ class ModelPanel:
 
 def _sureness(r: Recognition) -> str:
     """How sure vision is of a recognised pose, in words: one frame's, or the spread of the
-    frames it fuses."""
+    frames it fuses; and how many of vision's full searches found it there."""
+    found = f"found by {r.searches} search{'' if r.searches == 1 else 'es'}"
     if r.frames <= 1:
-        return "1 frame"
+        return f"1 frame, {found}"
     return (
-        f"{r.frames} frames within ±{r.spread_m * 1e3:.1f} mm, ±{math.degrees(r.spread_rad):.1f}°"
+        f"{r.frames} frames within ±{r.spread_m * 1e3:.1f} mm, "
+        f"±{math.degrees(r.spread_rad):.1f}°, {found}"
     )

@@ -11,7 +11,7 @@ import viser
 
 from models.robot import RobotModel
 from models.scene import Scene
-from models.transforms import R_to_quat_wxyz
+from models.transforms import R_to_quat_wxyz, so3_log
 from operator_site.model_editor import WorkSiteModel
 from operator_site.session import disagreement
 from operator_site.task import TaskSession
@@ -36,6 +36,11 @@ BLOCK_RGBS = (
 """The movable blocks' colours in the 3D view, one each in the scene's order (the camera sees
 them all the same wood): which block is which at a glance."""
 GHOST_OPACITY = 0.35
+GHOST_REDRAW_M = 2.5e-4
+GHOST_REDRAW_RAD = math.radians(0.25)
+"""A ghost is moved only when vision's pose of it moves farther than these: less is under a
+pixel at the page's framing, and every change to the 3D view costs the browser a redrawn
+frame (vision sends several a second while it tracks)."""
 GHOST_RGBS = {
     "agrees": (60, 190, 80),
     "off": (240, 150, 30),
@@ -177,6 +182,7 @@ class SceneView:
         # block or behind the fingers.
         self.vision_root = scene.add_frame("/vision", show_axes=False)
         self.ghosts: dict[str, tuple] = {}
+        self._ghost_shown: dict[str, tuple[np.ndarray, str]] = {}  # each ghost's pose and kind
         self.dragger = scene.add_transform_controls(
             "/dragger", scale=GIZMO_PX, fixed=True, depth_test=False, visible=False
         )
@@ -338,11 +344,25 @@ class SceneView:
                     for k, part in enumerate(known[r.model].parts)
                 ]
                 self.ghosts[tag] = (frame, meshes)
+                self._ghost_shown.pop(tag, None)
             frame, meshes = self.ghosts[tag]
-            set_pose(frame, r.X_WO)
-            for mesh in meshes:
-                mesh.color = GHOST_RGBS[kind]
+            shown = self._ghost_shown.get(tag)
+            if shown is None or not _within(shown[0], r.X_WO, GHOST_REDRAW_M, GHOST_REDRAW_RAD):
+                set_pose(frame, r.X_WO)
+                shown = (np.array(r.X_WO), shown[1] if shown else None)
+            if shown[1] != kind:
+                for mesh in meshes:
+                    mesh.color = GHOST_RGBS[kind]
+            self._ghost_shown[tag] = (shown[0], kind)
         for tag in [t for t in self.ghosts if t not in seen]:
             frame, _ = self.ghosts.pop(tag)
+            self._ghost_shown.pop(tag, None)
             frame.remove()
         return seen
+
+
+def _within(X_a: np.ndarray, X_b: np.ndarray, distance_m: float, angle_rad: float) -> bool:
+    """Whether two poses are within ``distance_m`` and ``angle_rad`` of each other."""
+    if np.linalg.norm(X_a[:3, 3] - X_b[:3, 3]) > distance_m:
+        return False
+    return float(np.linalg.norm(so3_log(X_a[:3, :3].T @ X_b[:3, :3]))) <= angle_rad
