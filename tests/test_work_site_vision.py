@@ -65,3 +65,47 @@ def test_the_vision_process_searches_then_tracks_what_it_found() -> None:
             assert np.linalg.norm(X_WO[:3, 3] - found[name][:3, 3]) < 0.001, name
     finally:
         vision.close()
+
+
+class _Vision:
+    """Records what the server asks of vision (a stand-in for the child process, whose own
+    test is above); never busy."""
+
+    def __init__(self) -> None:
+        self.asked: list[str] = []
+
+    def request(self, frame: RenderedFrame, track: bool = False) -> bool:
+        self.asked.append("track" if track else "search")
+        return True
+
+
+class _Execution:
+    def __init__(self, finished: bool) -> None:
+        self.finished = finished
+
+
+def test_the_server_searches_at_its_rate_and_tracks_between_while_nothing_runs() -> None:
+    from protocol import make_config
+    from work_site.options import ServerOptions
+    from work_site.server import WorkSiteServer
+
+    server = WorkSiteServer(load_scene(), make_config(), ServerOptions(vision_rate_hz=1.0))
+    server._vision = vision = _Vision()
+    server._next_vision_s = 0.0  # as serve() starts it
+    frame = RenderedFrame(0, 0.0, np.zeros((2, 2), np.uint8), b"", np.zeros(6), 0.0)
+    for t_s in (0.0, 0.2, 0.4):
+        server._recognize(frame, t_s)
+    server._execution = _Execution(finished=False)  # a program moves things: searches only
+    for t_s in (0.6, 0.8, 1.0, 1.2):
+        server._recognize(frame, t_s)
+    server._execution = _Execution(finished=True)
+    server._recognize(frame, 1.4)
+    assert vision.asked == ["search", "track", "track", "search", "track"]
+    untracked = WorkSiteServer(
+        load_scene(), make_config(), ServerOptions(vision_rate_hz=1.0, vision_tracking=False)
+    )
+    untracked._vision = vision = _Vision()
+    untracked._next_vision_s = 0.0
+    for t_s in (0.0, 0.2, 0.4, 1.0):
+        untracked._recognize(frame, t_s)
+    assert vision.asked == ["search", "search"]

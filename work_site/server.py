@@ -339,7 +339,7 @@ class WorkSiteServer(ProgramIntake):
 
     def _control_tick(self) -> None:
         """One control period: the running program's, or the controller's holding."""
-        if self._execution is not None and not self._execution.finished:
+        if self._running():
             self._execution.tick()
         else:
             self._controller.tick()
@@ -455,15 +455,23 @@ class WorkSiteServer(ProgramIntake):
 
     def _recognize(self, frame: RenderedFrame, elapsed_s: float) -> None:
         """Hand a new frame to vision if it is idle: for a full search if its rate allows,
-        else (with tracking on) to follow the objects it found."""
+        else (with tracking on, and no program running) to follow the objects it found."""
         vision = self._vision
         if vision is None:
             return
         if elapsed_s >= self._next_vision_s:
             if vision.request(frame):
                 self._next_vision_s = elapsed_s + 1.0 / self.options.vision_rate_hz
-        elif self.options.vision_tracking:
+        elif self.options.vision_tracking and not self._running():
+            # Tracking serves the poses fused while the scene holds still; while a program
+            # moves things nothing is fused, and the cores are the control loop's and the
+            # operator's heartbeats' to share.
             vision.request(frame, track=True)
+
+    def _running(self) -> bool:
+        """Whether a program is under way."""
+        execution = self._execution
+        return execution is not None and not execution.finished
 
     def _publish_recognitions(self) -> None:
         """Publish what vision found in the last frame it finished, if any."""
@@ -478,10 +486,7 @@ class WorkSiteServer(ProgramIntake):
             self.stats["tracked"] += 1
         # A frame taken while a program may have moved something is reported on its own, and
         # the tracks start afresh after it.
-        execution = self._execution
-        moving = (execution is not None and not execution.finished) or (
-            result.stamp_s < self._still_since_s
-        )
+        moving = self._running() or result.stamp_s < self._still_since_s
         if moving:
             self._fusion.reset()
         objects = tuple(
@@ -534,7 +539,7 @@ class WorkSiteServer(ProgramIntake):
         else:
             log.error("internal fault in the control loop (%s); arm held", error)
         try:
-            if self._execution is not None and not self._execution.finished:
+            if self._running():
                 self._execution.stop(f"work-site fault: {kind}: {error}")
             else:
                 self._controller.stop()
@@ -575,7 +580,7 @@ class WorkSiteServer(ProgramIntake):
             self._last_stop_reason = msg.reason
             if msg.cancels:
                 self._cancel_ahead(msg.cancels, msg.reason)
-            if self._execution is not None and not self._execution.finished:
+            if self._running():
                 self._execution.stop(f"stop: {msg.reason}")  # its report is the reply
             else:
                 self._controller.stop(ease=True)
