@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import random
 import socket
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -302,22 +303,52 @@ def link_endpoints(endpoints: Sequence[str], single_link: bool = False) -> tuple
     return used, f"split where possible; one link for all priorities: {'; '.join(unsplit)}"
 
 
+LISTEN_PORTS_LOWEST = 10000
+"""The lowest port :func:`free_port_pair` draws (below: well-known and registered services)."""
+EPHEMERAL_RANGE_FILE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+"""Linux's range of ports given to outgoing connections."""
+
+
 def free_port_pair(host: str = "127.0.0.1", tries: int = 100) -> int:
     """A TCP port on ``host`` such that nothing listens on it nor on the next one right now (a
-    split site listens on both, :func:`derive_split`); RuntimeError after ``tries`` draws."""
+    split site listens on both, :func:`derive_split`); RuntimeError after ``tries`` draws.
+
+    Drawn below the kernel's ephemeral range where it is known: a port checked free there can
+    still be taken by another process's outgoing connection before our listener binds it."""
+    lo, hi = _listen_range()
+    rng = random.Random()
     for _ in range(tries):
-        with socket.socket() as first:
-            first.bind((host, 0))
-            port = int(first.getsockname()[1])
+        if hi > lo:
+            port = rng.randrange(lo, hi)
+        else:  # no room below the ephemeral range: let the kernel choose
+            with socket.socket() as probe:
+                probe.bind((host, 0))
+                port = int(probe.getsockname()[1])
             if port >= 65535:
                 continue
-            with socket.socket() as second:
-                try:
-                    second.bind((host, port + 1))
-                except OSError:
-                    continue
-        return port
+        if _bindable(host, port) and _bindable(host, port + 1):
+            return port
     raise RuntimeError(f"no two free consecutive TCP ports on {host} in {tries} tries")
+
+
+def _listen_range() -> tuple[int, int]:
+    """``[lo, hi)`` for the first port of a pair: from :data:`LISTEN_PORTS_LOWEST` up to the
+    ephemeral range's start less one (its pair's second port stays below it); an empty range
+    where the ephemeral range is not known."""
+    try:
+        first = int(EPHEMERAL_RANGE_FILE.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 0, 0
+    return LISTEN_PORTS_LOWEST, first - 1
+
+
+def _bindable(host: str, port: int) -> bool:
+    with socket.socket() as s:
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+    return True
 
 
 SECURE_PROTOCOLS = ("tls", "quic")

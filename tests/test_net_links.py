@@ -24,7 +24,10 @@ from protocol import (
     make_config,
 )
 from protocol.session import (
+    EPHEMERAL_RANGE_FILE,
+    LISTEN_PORTS_LOWEST,
     derive_split,
+    free_port_pair,
     link_endpoints,
     operator_site_config,
     split_endpoints,
@@ -99,6 +102,22 @@ def test_several_endpoints_are_each_split_and_single_link_uses_them_as_given() -
     assert link_endpoints(["tcp/127.0.0.1:7447"], single_link=True)[0] == ["tcp/127.0.0.1:7447"]
     with pytest.raises(ProtocolError, match="expected a sequence"):
         link_endpoints("tcp/127.0.0.1:7447")  # type: ignore[arg-type]
+
+
+def test_a_port_pair_for_listening_is_free_and_below_the_ephemeral_range() -> None:
+    """Drawn where no other process's outgoing connection is given a port: one found free
+    in the ephemeral range can be taken before the listener binds it (seen in the suite)."""
+    import socket
+
+    if not EPHEMERAL_RANGE_FILE.exists():
+        pytest.skip(f"no {EPHEMERAL_RANGE_FILE}: the kernel chooses the ports")
+    first_ephemeral = int(EPHEMERAL_RANGE_FILE.read_text().split()[0])
+    for _ in range(20):
+        port = free_port_pair()
+        assert LISTEN_PORTS_LOWEST <= port and port + 1 < first_ephemeral
+        for p in (port, port + 1):
+            with socket.socket() as s:
+                s.bind(("127.0.0.1", p))  # free: binds
 
 
 def test_max_links_is_raised_only_for_prio_endpoints() -> None:
