@@ -449,8 +449,8 @@ class Recognizer:
     ) -> _Frame:
         """The image checked, undistorted, its gradients and its lines not explained by the
         fixed environment or the robot (its links' models and poses ``X_WL``). ``rois_px``:
-        boxes ``(u_min, v_min, u_max, v_max)`` to look for lines in (the first pass's only),
-        instead of the whole image."""
+        boxes ``(u_min, v_min, u_max, v_max)`` to look for lines in (both passes), instead of
+        the whole image."""
         img = check_grey_image(image)
         check_camera(camera)
         if img.shape != (camera.height, camera.width):
