@@ -3,6 +3,8 @@ next from their poses there, followed when they move a little, and lost when the
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -144,3 +146,28 @@ def test_the_kept_undistortion_maps_undistort_as_opencv_does(recognizer, frames)
 
 def found_poses(found) -> list[tuple[str, np.ndarray]]:
     return [(r.model, r.X_WO) for r in found]
+
+
+def test_a_frame_worked_out_in_boxes_is_the_whole_frame_there(recognizer, frames) -> None:
+    """Tracking undistorts and differentiates the image only in its boxes: there, the same
+    values as the whole image's (zero elsewhere); and the faint pass added later (as tracking
+    does when an object is not found without it) gives the lines found at once."""
+    data, camera = frames
+    image = data[0][0][0]
+    camera = dataclasses.replace(camera, dist=np.array([-0.02, 0.03, 0.001, -0.001, 0.0]))
+    K, dist = np.asarray(camera.K), camera.dist
+    h, w = image.shape
+    rects = [(w // 4, h // 4, w // 2 + 60, h // 2 + 60), (w - 220, h - 160, w, h)]  # a corner
+    img_all, (gx_all, gy_all) = recognizer._undistorted(image, K, dist, None)
+    img_in, (gx_in, gy_in) = recognizer._undistorted(image, K, dist, rects)
+    inside = np.zeros(image.shape, bool)
+    for x0, y0, x1, y1 in rects:
+        inside[y0:y1, x0:x1] = True
+    for whole, part in ((img_all, img_in), (gx_all, gx_in), (gy_all, gy_in)):
+        assert np.array_equal(whole[inside], part[inside])
+        assert not part[~inside].any()
+    boxes = [np.array(r, dtype=np.float64) for r in rects]
+    at_once = recognizer._frame(image, camera, rois_px=boxes)
+    later = Recognizer._with_faint(recognizer._frame(image, camera, rois_px=boxes, faint=False))
+    assert 0 < at_once.n_strong == later.n_strong < len(later.segs)
+    assert np.array_equal(at_once.segs, later.segs)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -106,14 +106,23 @@ class _Frame:
     X_WC: np.ndarray  # (4, 4)
     gx: np.ndarray  # (h, w) image gradient
     gy: np.ndarray
-    occluders_C: Occluders  # the fixed environment, in C
+    env: _EnvView  # the fixed environment and the robot, as this camera sees them
     t0: float  # time.perf_counter() at the start, for the time budget
     n_strong: int  # segs[:n_strong] are the first pass's lines, from which hypotheses come
     # and are fitted and verified; the faint pass's after them only weigh in the selection
+    img: np.ndarray  # the image undistorted, for a later line pass
+    first_px: np.ndarray  # the first pass's lines before the environment's were set aside
+    rects: list[tuple[int, int, int, int]] | None  # where lines were looked for (None: all);
+    # the image and its gradients are zero outside
 
     @property
     def strong(self) -> np.ndarray:
         return self.segs[: self.n_strong]
+
+    @property
+    def occluders_C(self) -> Occluders:
+        """The fixed environment and the robot's parts, in C."""
+        return self.env.occluders_C
 
 
 @dataclass(eq=False)
@@ -124,6 +133,48 @@ class _Search:
     tested: PoseSet
     candidates: list[Candidate] = field(default_factory=list)
     confident: set[str] = field(default_factory=set)  # models found with a confident score
+
+
+class _EnvView:
+    """The fixed environment and the robot seen from one camera pose: their parts as occluders
+    in C and, worked out when first needed, each model's visible edges in the image."""
+
+    def __init__(
+        self, occluders_C: Occluders, K: np.ndarray, models_C: list[tuple[VisionModel, np.ndarray]]
+    ) -> None:
+        self.occluders_C, self._K, self._models_C = occluders_C, K, models_C
+        self._boxes_px: list[np.ndarray | None] = []
+        for model, X_CO in models_C:
+            V_C = transform(X_CO, model.vertices_O)
+            if np.all(V_C[:, 2] > 1e-9):
+                uv = project(V_C, K)
+                self._boxes_px.append(np.concatenate([uv.min(0), uv.max(0)]))
+            else:  # reaches behind the camera: no image box to cull by
+                self._boxes_px.append(None)
+        self._edges_px: dict[int, np.ndarray] = {}
+
+    def explained(self, segs: np.ndarray) -> np.ndarray:
+        """Which image segments (bool, one per row of ``segs``) the models' projected edges
+        explain: set aside, since the frame's many corners would otherwise flood the
+        hypotheses, and the robot's fingers look like a plank."""
+        explained = np.zeros(len(segs), dtype=bool)
+        if len(segs) == 0:
+            return explained
+        lo = np.minimum(segs[:, :2], segs[:, 2:]) + ENV_MATCH_TOL_PX
+        hi = np.maximum(segs[:, :2], segs[:, 2:]) - ENV_MATCH_TOL_PX
+        for k, (model, X_CO) in enumerate(self._models_C):
+            box = self._boxes_px[k]
+            # A line a model explains lies within its image's box (within the tolerance):
+            # models far from every line need no edges projected.
+            if box is not None and not np.any(
+                np.all(lo >= box[:2], axis=1) & np.all(hi <= box[2:], axis=1)
+            ):
+                continue
+            if k not in self._edges_px:
+                self._edges_px[k] = visible_edges(model, X_CO, self._K, self.occluders_C)[1]
+            _, mj = match_segments(self._edges_px[k], segs, ENV_MATCH_TOL_PX, np.deg2rad(3.0))
+            explained[mj] = True
+        return explained
 
 
 class Recognizer:
@@ -196,6 +247,8 @@ class Recognizer:
         self._robot = RobotParts(load_robot(scene.robot.urdf_path), scene.robot.X_WB)
         self._env_models = [(vision_model(o.model), o.X_WO) for o in scene.objects if o.fixed]
         self._maps_key: tuple | None = None
+        self._env_key: tuple | None = None
+        self._env: _EnvView | None = None
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
         table = [o for o in scene.objects if o.fixed and o.name == "table"]
         if table:
@@ -345,7 +398,11 @@ class Recognizer:
             m = self.params.track_margin_px
             boxes.append(np.concatenate([uv.min(0) - m, uv.max(0) + m]))
             starts.append((model, X_CO, d))
-        f = self._frame(image, camera, self._robot_at(robot_q_rad, finger_opening_m), rois_px=boxes)
+        # The faint line pass only weighs in the selection (poses are fitted to the first
+        # pass's lines): it is needed only where an object is not found without it.
+        f = self._frame(
+            image, camera, self._robot_at(robot_q_rad, finger_opening_m), boxes, faint=False
+        )
         if not starts or len(f.strong) < 4:
             return []
         p = self.params
@@ -360,6 +417,12 @@ class Recognizer:
         accepted = self._select(s, f) if s.candidates else []
         if len(accepted) == len(starts):
             return accepted
+        if self.params.faint_lines:
+            f = self._with_faint(f)
+            s.claimed = np.concatenate([s.claimed, np.zeros(len(f.segs) - len(s.claimed), bool)])
+            accepted = self._select(s, f) if s.candidates else []
+            if len(accepted) == len(starts):
+                return accepted
         # Refitting need not return a pose the search accepted (lines matched anew can pull
         # it off), while a still object is where it was: for each object not found again,
         # that pose is a candidate too, next to the refitted poses accepted.
@@ -446,11 +509,13 @@ class Recognizer:
         camera: CameraModel,
         robot: list | None = None,
         rois_px: list[np.ndarray] | None = None,
+        faint: bool = True,
     ) -> _Frame:
         """The image checked, undistorted, its gradients and its lines not explained by the
         fixed environment or the robot (its links' models and poses ``X_WL``). ``rois_px``:
         boxes ``(u_min, v_min, u_max, v_max)`` to look for lines in (both passes), instead of
-        the whole image."""
+        the whole image; ``faint``: the faint pass too (if :attr:`RecognizerParams.faint_lines`),
+        else only the first (:meth:`_with_faint` adds it)."""
         img = check_grey_image(image)
         check_camera(camera)
         if img.shape != (camera.height, camera.width):
@@ -461,38 +526,82 @@ class Recognizer:
         t0 = time.perf_counter()
         K = np.asarray(camera.K, dtype=np.float64)
         dist = np.asarray(camera.dist, dtype=np.float64)
-        if np.any(dist != 0):
-            # Straight edges are straight only in an undistorted image.
-            img = cv2.remap(img, *self._undistort_maps(K, dist, img.shape), cv2.INTER_LINEAR)
-        gx, gy = image_gradients(img)  # for the lines' refinement and every verification
-        if rois_px is None:
-            segs = detect_lines(img, self.line_params, (gx, gy))
+        rects = None if rois_px is None else _merged_rects(rois_px, img.shape)
+        img, (gx, gy) = self._undistorted(img, K, dist, rects)
+        if rects is None:
+            first = detect_lines(img, self.line_params, (gx, gy))
         else:
-            segs = _lines_in(img, (gx, gy), rois_px, self.line_params)
-        X_CW = invert_pose(camera.X_WC)
-        robot = robot or []
-        env_C = Occluders.of_parts(
-            [transform(X_CW, V) for _, _, parts, _ in self.environment for V, _ in parts]
-            + [transform(X_CW @ X, V) for m, X in robot for V in m.parts_vertices_O],
-            [planes_in(X_CW @ X_WO, P) for _, X_WO, _, planes in self.environment for P in planes]
-            + [planes_in(X_CW @ X, P) for m, X in robot for P in m.planes_O],
-            K,
-        )
-        n_first = len(segs)
-        if self.params.faint_lines and n_first:
-            faint = (
-                detect_lines(img, FAINT_LINE_PARAMS, (gx, gy))
-                if rois_px is None
-                else _lines_in(img, (gx, gy), rois_px, FAINT_LINE_PARAMS)
+            first = _lines_in(img, (gx, gy), rects, self.line_params)
+        env = self._env_view(K, np.asarray(camera.X_WC, dtype=np.float64), robot or [])
+        segs = first
+        if faint and self.params.faint_lines and len(first):
+            segs = np.vstack([first, _faint_lines(img, (gx, gy), rects, first)])
+        # Both passes' lines at once: each environment edge is projected once a view.
+        kept = ~env.explained(segs)
+        n_strong = int(np.count_nonzero(kept[: len(first)]))
+        return _Frame(segs[kept], K, camera.X_WC, gx, gy, env, t0, n_strong, img, first, rects)
+
+    @staticmethod
+    def _with_faint(f: _Frame) -> _Frame:
+        """``f`` with the faint pass's lines added after its own, as :meth:`_frame` would
+        have found them."""
+        faint = _faint_lines(f.img, (f.gx, f.gy), f.rects, f.first_px)
+        faint = faint[~f.env.explained(faint)]
+        return replace(f, segs=np.vstack([f.segs, faint]))
+
+    def _env_view(self, K: np.ndarray, X_WC: np.ndarray, robot: list) -> _EnvView:
+        """The fixed environment and the robot as this camera sees them, kept for the next
+        frame seen from the same place with the robot in the same pose (a still scene's
+        frames all are)."""
+        key = (K.tobytes(), X_WC.tobytes(), tuple((id(m), X.tobytes()) for m, X in robot))
+        if self._env_key != key:
+            X_CW = invert_pose(X_WC)
+            env_C = Occluders.of_parts(
+                [transform(X_CW, V) for _, _, parts, _ in self.environment for V, _ in parts]
+                + [transform(X_CW @ X, V) for m, X in robot for V in m.parts_vertices_O],
+                [planes_in(X_CW @ X_WO, P)
+                 for _, X_WO, _, planes in self.environment for P in planes]
+                + [planes_in(X_CW @ X, P) for m, X in robot for P in m.planes_O],
+                K,
+            )  # fmt: skip
+            self._env = _EnvView(
+                env_C, K, [(m, X_CW @ X_WO) for m, X_WO in [*self._env_models, *robot]]
             )
-            # Those the first pass found too are already there.
-            _, again = match_segments(segs, faint, FAINT_SAME_LINE_PX, FAINT_SAME_LINE_RAD)
-            segs = np.vstack([segs, np.delete(faint, again, axis=0)])
-        # Both passes' lines at once: the environment's edges are projected once a frame.
-        kept = ~self._explained_by(segs, X_CW, K, env_C, [*self._env_models, *robot])
-        n_strong = int(np.count_nonzero(kept[:n_first]))
-        segs = segs[kept]
-        return _Frame(segs, K, camera.X_WC, gx, gy, env_C, t0, n_strong)
+            self._env_key = key
+        return self._env
+
+    def _undistorted(
+        self,
+        img: np.ndarray,
+        K: np.ndarray,
+        dist: np.ndarray,
+        rects: list[tuple[int, int, int, int]] | None,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """The image undistorted (straight edges are straight only then) and its gradients
+        (for the lines' refinement and every verification): in the whole image, or only in
+        ``rects`` ``(x0, y0, x1, y1)`` with zeros elsewhere (the same values there as the
+        whole image's: each rectangle is worked on with a pixel's border for the gradient)."""
+        maps = self._undistort_maps(K, dist, img.shape) if np.any(dist != 0) else None
+        if rects is None:
+            if maps is not None:
+                img = cv2.remap(img, *maps, cv2.INTER_LINEAR)
+            return img, image_gradients(img)
+        h, w = img.shape
+        out = np.zeros_like(img)
+        gx, gy = np.zeros(img.shape, np.float32), np.zeros(img.shape, np.float32)
+        for x0, y0, x1, y1 in rects:
+            X0, Y0, X1, Y1 = max(x0 - 1, 0), max(y0 - 1, 0), min(x1 + 1, w), min(y1 + 1, h)
+            crop = (slice(Y0, Y1), slice(X0, X1))
+            part = (
+                img[crop]
+                if maps is None
+                else cv2.remap(img, maps[0][crop], maps[1][crop], cv2.INTER_LINEAR)
+            )
+            px, py = image_gradients(part)
+            inner = (slice(y0 - Y0, y1 - Y0), slice(x0 - X0, x1 - X0))
+            keep = (slice(y0, y1), slice(x0, x1))
+            out[keep], gx[keep], gy[keep] = part[inner], px[inner], py[inner]
+        return out, (gx, gy)
 
     def _undistort_maps(
         self, K: np.ndarray, dist: np.ndarray, shape: tuple[int, int]
@@ -628,32 +737,6 @@ class Recognizer:
             self.max_height_m,
         )  # fmt: skip
 
-    def _explained_by(self, segs, X_CW, K, env_C, env_models) -> np.ndarray:
-        """Which image segments (bool, one per row of ``segs``) the projected edges of
-        ``env_models`` (model, ``X_WO``) explain: set aside, since the frame's many corners
-        would otherwise flood the hypotheses, and the robot's fingers look like a plank."""
-        explained = np.zeros(len(segs), dtype=bool)
-        if len(segs) == 0:
-            return explained
-        lo = np.minimum(segs[:, :2], segs[:, 2:])
-        hi = np.maximum(segs[:, :2], segs[:, 2:])
-        for env in env_models:
-            X_CO = X_CW @ env[1]
-            V_C = transform(X_CO, env[0].vertices_O)
-            if np.all(V_C[:, 2] > 1e-9):
-                # A line it explains lies within its image's box (within the tolerance):
-                # parts far from every line need no edges projected.
-                uv = project(V_C, K)
-                near = np.all(lo >= uv.min(0) - ENV_MATCH_TOL_PX, axis=1) & np.all(
-                    hi <= uv.max(0) + ENV_MATCH_TOL_PX, axis=1
-                )
-                if not near.any():
-                    continue
-            _, proj, _ = visible_edges(env[0], X_CO, K, env_C)
-            _, mj = match_segments(proj, segs, ENV_MATCH_TOL_PX, np.deg2rad(3.0))
-            explained[mj] = True
-        return explained
-
     def _prior(self, model: VisionModel, X_WC: np.ndarray, resting: bool = True):
         """The fits' soft prior that ``model`` rests on a face on the table (None if off, or
         not ``resting``)."""
@@ -662,17 +745,12 @@ class Recognizer:
         return resting_prior(model, self._facets[model.name][0], X_WC, self.table_z, self.params)
 
 
-def _lines_in(
-    img: np.ndarray,
-    gradients: tuple[np.ndarray, np.ndarray],
-    boxes_px: list[np.ndarray],
-    params: LineParams,
-) -> np.ndarray:
-    """The lines of ``img`` inside the boxes ``(u_min, v_min, u_max, v_max)`` (px), each found
-    once: overlapping boxes are merged first, each merged box is searched on its own (with
-    the whole image's gradients, so that a line's refinement at a box's border sees what the
-    whole image's would), and its lines are shifted back to image coordinates."""
-    h, w = img.shape
+def _merged_rects(
+    boxes_px: list[np.ndarray], shape: tuple[int, int]
+) -> list[tuple[int, int, int, int]]:
+    """The boxes ``(u_min, v_min, u_max, v_max)`` (px) as whole-pixel rectangles ``(x0, y0,
+    x1, y1)`` (ends excluded) inside an image of ``shape``, those that overlap merged."""
+    h, w = shape
     rects = []
     for b in boxes_px:
         x0, y0 = max(int(np.floor(b[0])), 0), max(int(np.floor(b[1])), 0)
@@ -694,6 +772,19 @@ def _lines_in(
                 break
         if not merged:
             break
+    return [(x0, y0, x1, y1) for x0, y0, x1, y1 in rects]
+
+
+def _lines_in(
+    img: np.ndarray,
+    gradients: tuple[np.ndarray, np.ndarray],
+    rects: list[tuple[int, int, int, int]],
+    params: LineParams,
+) -> np.ndarray:
+    """The lines of ``img`` in the rectangles ``(x0, y0, x1, y1)`` (:func:`_merged_rects`),
+    each searched on its own (with the whole image's gradients, so that a line's refinement
+    at a rectangle's border sees what the whole image's would), and shifted back to image
+    coordinates."""
     gx, gy = gradients
     found = [np.zeros((0, 4))]
     for x0, y0, x1, y1 in rects:
@@ -703,3 +794,20 @@ def _lines_in(
     segs = np.vstack(found)
     lengths = np.hypot(segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1])
     return segs[np.argsort(-lengths)]
+
+
+def _faint_lines(
+    img: np.ndarray,
+    gradients: tuple[np.ndarray, np.ndarray],
+    rects: list[tuple[int, int, int, int]] | None,
+    first_px: np.ndarray,
+) -> np.ndarray:
+    """The faint pass's lines (:data:`FAINT_LINE_PARAMS`) in ``rects`` (else the whole
+    image), less those the first pass found too (``first_px``)."""
+    faint = (
+        detect_lines(img, FAINT_LINE_PARAMS, gradients)
+        if rects is None
+        else _lines_in(img, gradients, rects, FAINT_LINE_PARAMS)
+    )
+    _, again = match_segments(first_px, faint, FAINT_SAME_LINE_PX, FAINT_SAME_LINE_RAD)
+    return np.delete(faint, again, axis=0)
