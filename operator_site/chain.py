@@ -1,6 +1,7 @@
 """The whole chain against a work site, for any task: connect (or start a work site on
 loopback), build the model from vision as a person would, let the task's operator demonstrate,
-make the program, send it, follow it, and judge the block's true final pose.
+make the program, send it, follow it, see with vision where the block ended
+(:mod:`operator_site.placement`), and judge the block's true final pose.
 
 The scripted rehearsed tasks (:mod:`operator_site.scripted`) and task files
 (:mod:`operator_site.runner`) differ only in their :class:`ChainTask`: the operator's drag and
@@ -29,6 +30,7 @@ from models.scene import Scene, load_scene
 from operator_site.failures import RunError
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import Correction, WorkSiteModel
+from operator_site.placement import check_placement
 from operator_site.program import Generated
 from operator_site.session import (
     ACCEPT_SCORE,
@@ -232,6 +234,21 @@ def _start_work_site(
         return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
 
 
+def _frames_after(link: WorkSiteLink, after_s: float) -> Iterator[Recognitions]:
+    """Vision's frames taken after ``after_s`` (the work site's clock, s) as they arrive, until
+    none comes within :data:`FRAME_TIMEOUT_S`."""
+    last = -1
+
+    def fresh() -> bool:
+        r = link.recognitions
+        return r is not None and r.seq != last and r.stamp_s > after_s
+
+    while _wait(fresh, link, FRAME_TIMEOUT_S):
+        recs = link.recognitions
+        last = recs.seq
+        yield recs
+
+
 def _recognised_frames(link: WorkSiteLink) -> Iterator[Recognitions]:
     """The work site's recognised frames as they arrive: first the first one with objects (or
     the :data:`VISION_FRAMES`-th searched one if they all come back empty; RuntimeError if
@@ -422,6 +439,17 @@ def run_chain(
         out["contacts_verified_objects"] = sorted(verified_objects)
 
         kind = "goal_missed"
+        check = None
+        if reports[-1].status == "done" and not oracle:
+            # What the operator can know without the truth: where vision sees the block now.
+            t0 = time.monotonic()
+            check = check_placement(
+                workpiece, goal, model.symmetries(workpiece),
+                _frames_after(link, reports[-1].stamp_s),
+            )  # fmt: skip
+            stage_s["vision_check"] = time.monotonic() - t0
+            out["vision_check"] = check.to_json()
+            log(check.sentence())
         X_truth = {o.name: o.X_WO for o in truth.latest_after(time.time() + 0.3).objects}
         if workpiece not in X_truth:
             raise ValueError(f"the work site's ground truth has no {workpiece!r}")
@@ -433,11 +461,16 @@ def run_chain(
         out |= judgement.extra or {}
         missing = sorted(set(judgement.goal_contacts) - verified_objects)
         contacts_ok = out["contacts_verified"] >= out["contacts_required"] and not missing
-        out["success"] = bool(reports[-1].status == "done" and judgement.within and contacts_ok)
+        moved = check is not None and check.verdict == "moved"
+        out["success"] = bool(
+            reports[-1].status == "done" and judgement.within and contacts_ok and not moved
+        )
         if reports[-1].status == "refused":
             out["failure"] = _failure("program_refused", out["execution"])
         elif reports[-1].status != "done":
             out["failure"] = _failure("execution_failed", out["execution"])
+        elif moved:
+            out["failure"] = _failure("goal_missed", f"the program ended, but {check.sentence()}")
         elif not judgement.within:
             off = f"{out['final_error_mm']:.2f} mm, {out['final_error_deg']:.2f}°"
             out["failure"] = _failure("goal_missed", f"the block ended {off} from the goal")

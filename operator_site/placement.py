@@ -1,0 +1,104 @@
+"""Whether vision sees the block where the program put it, once the work site says "done".
+
+The work site verifies a program's contacts by force before it releases the block, but not
+what happens after: a block can tip or turn as the fingers open, or be dragged as they leave.
+Vision then tells, as far as it can: a block seen where the program put it (within the bounds
+by which vision's fusion calls two sightings one placement) is there; a block found
+elsewhere by more than one search has moved, and the run did not do its task, whatever the
+program's report says. A block vision does not find again proves nothing either way.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from operator_site.taskfile import pose_error
+from protocol import Recognitions
+
+PLACED_M = 0.0075
+PLACED_RAD = math.radians(7.5)
+"""A block seen this close to its goal (both bounds) is where the program put it: the bounds by
+which the work site's vision calls two sightings one placement, well outside one frame's error
+and well inside a block that tipped, turned or was dragged."""
+MOVED_SEARCHES = 2
+"""Searches that must find the block in one placement away from its goal before it is called
+moved: one search's mistake (a block taken for another, turned) is not taken at its word."""
+CHECK_FRAMES = 4
+"""Searched frames looked at, at most, for the block (2 s at the scripted work site's rate)."""
+
+VERDICTS = ("placed", "moved", "unsure", "unseen")
+
+
+@dataclass(frozen=True)
+class PlacementCheck:
+    """What vision saw of ``block`` after the program: ``verdict`` one of :data:`VERDICTS`
+    (placed: where the program put it; moved: found elsewhere by :data:`MOVED_SEARCHES`
+    searches; unsure: found elsewhere by fewer; unseen: not found), the pose seen against the
+    goal (m, rad; None if unseen) and the searched frames looked at."""
+
+    block: str
+    verdict: str
+    error_m: float | None
+    error_rad: float | None
+    frames: int
+
+    def sentence(self) -> str:
+        """The check in words, for the operator."""
+        if self.error_m is None or self.error_rad is None:
+            return (
+                f"vision did not find the {self.block} after the program ({self.frames} searches)"
+            )
+        off = f"{self.error_m * 1e3:.1f} mm, {math.degrees(self.error_rad):.1f}°"
+        if self.verdict == "placed":
+            return f"vision sees the {self.block} where the program put it ({off} off)"
+        sure = "" if self.verdict == "moved" else ", not confirmed by another search"
+        return f"vision sees the {self.block} {off} from where the program put it{sure}"
+
+    def to_json(self) -> dict:
+        return {
+            "block": self.block,
+            "verdict": self.verdict,
+            "error_mm": None if self.error_m is None else round(self.error_m * 1e3, 2),
+            "error_deg": None if self.error_rad is None else round(math.degrees(self.error_rad), 2),
+            "frames": self.frames,
+        }
+
+
+def check_placement(
+    block: str,
+    X_goal_WO: np.ndarray,
+    symmetries: Sequence[np.ndarray],
+    frames: Iterable[Recognitions],
+    max_frames: int = CHECK_FRAMES,
+) -> PlacementCheck:
+    """Read vision's frames taken after the program (searched ones; tracked ones are passed
+    over) until ``block`` is seen within vision's same-placement bounds of ``X_goal_WO``
+    (placed), or seen away from it by :data:`MOVED_SEARCHES` searches (moved), or
+    ``max_frames`` searched frames have come (unsure if it was seen away, else unseen)."""
+    n = 0
+    away: tuple[float, float] | None = None
+    for recs in frames:
+        if recs.tracked:
+            continue
+        n += 1
+        errors = sorted(
+            (pose_error(X_goal_WO, r.X_WO, symmetries), r.searches)
+            for r in recs.objects
+            if r.model == block
+        )
+        for (error_m, error_rad), searches in errors:
+            if error_m <= PLACED_M and error_rad <= PLACED_RAD:
+                return PlacementCheck(block, "placed", error_m, error_rad, n)
+            if searches >= MOVED_SEARCHES:
+                return PlacementCheck(block, "moved", error_m, error_rad, n)
+        if errors:
+            away = errors[0][0]
+        if n >= max_frames:
+            break
+    if away is not None:
+        return PlacementCheck(block, "unsure", *away, n)
+    return PlacementCheck(block, "unseen", None, None, n)
