@@ -82,6 +82,10 @@ def summarise(file: str, workpiece: str, rows: list[dict]) -> dict:
             for r in rows
             if not r.get("success")
         },
+        # Vision's check of where the block ended, after each run the work site called done.
+        "vision_checks": dict(
+            Counter(r["vision_check"]["verdict"] for r in rows if r.get("vision_check"))
+        ),
         "final_error_mm_median": _stat(err_mm, np.median),
         "final_error_mm_max": _stat(err_mm, np.max),
         "final_error_deg_median": _stat(err_deg, np.median),
@@ -196,6 +200,9 @@ def write_summaries(out_dir: Path, rows_path: Path) -> list[dict]:
         "computation_s",
         "failure_kind",
         "failure_message",
+        "vision_verdict",
+        "vision_error_mm",
+        "vision_error_deg",
         "tree",
     ]
     with (out_dir / "tasks.csv").open("w", newline="") as f:
@@ -204,12 +211,16 @@ def write_summaries(out_dir: Path, rows_path: Path) -> list[dict]:
         for rows in rows_by_file.values():
             for r in rows:
                 failure = r.get("failure") or {}
+                check = r.get("vision_check") or {}
                 writer.writerow(
                     r
                     | {
                         "computation_s": r.get("stage_s", {}).get("computation"),
                         "failure_kind": failure.get("kind"),
                         "failure_message": failure.get("message"),
+                        "vision_verdict": check.get("verdict"),
+                        "vision_error_mm": check.get("error_mm"),
+                        "vision_error_deg": check.get("error_deg"),
                     }
                 )
     passed_path = out_dir / PASSED_OVER_FILE

@@ -37,6 +37,19 @@ def test_summary_counts_successes_and_failure_kinds() -> None:
     assert s["final_error_mm_median"] == pytest.approx(0.2)
     assert s["final_error_mm_max"] == pytest.approx(0.3)
     assert s["computation_s_max"] == pytest.approx(0.6)
+    assert s["vision_checks"] == {}
+
+
+def test_summary_counts_visions_verdicts_after_the_runs_called_done() -> None:
+    def check(verdict: str) -> dict:
+        return {"vision_check": {"block": "cube", "verdict": verdict, "frames": 1}}
+
+    rows = [_row(0, True) | check("placed"), _row(1, False, "goal_missed") | check("moved"),
+            _row(2, True) | check("placed"), _row(3, False, "execution_failed")]  # fmt: skip
+    assert tasks.summarise("cube-corner.json", "cube", rows)["vision_checks"] == {
+        "placed": 2,
+        "moved": 1,
+    }
 
 
 def test_a_malformed_task_file_is_refused_before_any_run(tmp_path: Path, capsys) -> None:
