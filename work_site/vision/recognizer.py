@@ -247,9 +247,9 @@ class Recognizer:
         self._robot = RobotParts(load_robot(scene.robot.urdf_path), scene.robot.X_WB)
         self._env_models = [(vision_model(o.model), o.X_WO) for o in scene.objects if o.fixed]
         self._maps_key: tuple | None = None
+        self._maps: tuple[np.ndarray, np.ndarray] | None = None
         self._env_key: tuple | None = None
         self._env: _EnvView | None = None
-        self._maps: tuple[np.ndarray, np.ndarray] | None = None
         table = [o for o in scene.objects if o.fixed and o.name == "table"]
         if table:
             t = table[0]
@@ -782,9 +782,7 @@ def _lines_in(
     params: LineParams,
 ) -> np.ndarray:
     """The lines of ``img`` in the rectangles ``(x0, y0, x1, y1)`` (:func:`_merged_rects`),
-    each searched on its own (with the whole image's gradients, so that a line's refinement
-    at a rectangle's border sees what the whole image's would), and shifted back to image
-    coordinates."""
+    each searched on its own and its lines shifted back to image coordinates."""
     gx, gy = gradients
     found = [np.zeros((0, 4))]
     for x0, y0, x1, y1 in rects:
