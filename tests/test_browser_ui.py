@@ -45,8 +45,10 @@ def test_a_first_task_as_a_person_does_it(work_site, tmp_path: Path) -> None:
         said.first.wait_for(timeout=30_000)
         tab.get_by_role("button", name="load a task").click()
         tab.get_by_text("no such file").first.wait_for(timeout=30_000)
-    log = ws.log()
-    assert timings.marks["outcome"].endswith(": done"), (timings.marks, log[-2000:])
+    if not timings.marks["outcome"].endswith(": done"):
+        # The work site's log says why (a failure's assertion message is cut short).
+        print(f"marks: {timings.marks}\nthe work site's log, last lines:\n{ws.log()[-4000:]}")
+    assert timings.marks["outcome"].endswith(": done"), timings.marks["outcome"]
     # Each block accepted into the model is named in the 3D view.
     assert timings.marks["labels_shown"] == timings.marks["blocks_accepted"] > 0
     # The drag moved the target a whole number of millimetres (snapping) along the table's x
