@@ -148,7 +148,7 @@ class OperatorSession:
         self.corrections: list[Correction] = []
         """What making the model consistent last changed."""
         self._programs_made = 0
-        self._sent: set[str] = set()
+        self._sent: dict[str, MotionProgram] = {}  # by id, as sent
 
     def _default_reference(self) -> str:
         """The frame, if the scene has one; else its first fixed object (the table)."""
@@ -369,7 +369,7 @@ class OperatorSession:
             raise RuntimeError("no work site to send to")
         if program.program_id in self._sent:
             program = self.renamed(program)
-        self._sent.add(program.program_id)
+        self._sent[program.program_id] = program
         self.link.send_program(program)
         return program
 
@@ -396,6 +396,16 @@ class OperatorSession:
             continues=program.program_id,
         )
         return self.send(resumed)
+
+    def released(self, program_id: str) -> tuple[str, np.ndarray] | None:
+        """The block that program ``program_id`` (sent from this session) carries and the
+        pose ``X_WO`` it lets go of it at; None for a program not sent from here, or one that
+        carries nothing it names (a recovery's release)."""
+        program = self._sent.get(program_id)
+        if program is None or not program.holds:
+            return None
+        releases = [c.X_WP for c in program.commands if c.kind in ("release", "open_gripper")]
+        return (program.holds[0].name, releases[-1]) if releases else None
 
     def outcome(self, program_id: str) -> ExecutionReport | None:
         """The whole-program report that ended ``program_id`` (done, failed, refused, stopped),

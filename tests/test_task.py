@@ -487,3 +487,62 @@ def test_after_a_program_the_page_offers_an_update_and_an_update_answers_it(page
     vision(3, 4.0, 0.0)
     page._offer_update()  # comes after the answer: it is not to replace it
     assert page.model_md.content.startswith("updated from vision:"), page.model_md.content
+
+
+def test_a_block_seen_off_where_a_done_program_put_it_is_said_not_done(page) -> None:
+    """ "done" says the commands were; the page says when vision sees the block elsewhere."""
+    from protocol import (
+        ExecutionReport,
+        HeldBlock,
+        MotionCommand,
+        MotionProgram,
+        Recognition,
+        Recognitions,
+    )
+
+    page.link.send_program = lambda _program: None  # no work site here
+    start = page.scene.object("wedge").X_WO
+    goal = start.copy()
+    goal[0, 3] += 0.1
+
+    def sent_and_done(k: int) -> str:
+        program = page.op.send(
+            MotionProgram(
+                program_id=f"wedge-1795000000-{k}",
+                X_GP=np.eye(4),
+                commands=(
+                    MotionCommand("guarded_grasp", start, 0.05, 10.0, ()),
+                    MotionCommand("release", goal, 0.0, 10.0, ()),
+                ),
+                holds=(HeldBlock("wedge", 0.1, 0.05, np.zeros(3)),),
+            )
+        )
+        page.link.status.reports.append(
+            ExecutionReport(program_id=program.program_id, command_index=-1, status="done",
+                            wrench_S=np.zeros(6), message="program complete", stamp_s=k,
+                            seq=3)
+        )  # fmt: skip
+        return program.program_id
+
+    def vision(seq: int, X_WO: np.ndarray) -> None:
+        page.link.recognitions = Recognitions(
+            seq=seq, stamp_s=seq + 0.5, elapsed_s=0.05,
+            objects=(Recognition(model="wedge", X_WO=X_WO, score=0.9),),
+        )  # fmt: skip
+
+    sent_and_done(1)
+    c, s = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    turned = goal.copy()
+    turned[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ goal[:3, :3]
+    turned[1, 3] += 0.02
+    vision(1, turned)
+    page._offer_update()
+    assert (
+        "after wedge #1, vision sees the wedge 20.0 mm, 30.0° from where the program put it, not "
+        "confirmed by another search: the task may not be done" in shown(page.model_md.content)
+    )
+    sent_and_done(2)
+    vision(2, goal)  # where the program put it
+    page._offer_update()
+    assert "may not be done" not in page.model_md.content
+    assert "after wedge #2" in shown(page.model_md.content)

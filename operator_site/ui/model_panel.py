@@ -11,6 +11,7 @@ import viser
 from models.scene import Scene
 from operator_site.link import WorkSiteLink
 from operator_site.model_editor import WorkSiteModel
+from operator_site.placement import check_placement
 from operator_site.session import ACCEPT_SCORE, OperatorSession
 from operator_site.ui.task_panel import NO_WORKPIECE
 from operator_site.ui.text import plain
@@ -201,7 +202,20 @@ class ModelPanel:
         kinds = self._ghost_kinds(recs.objects)  # as drawn for this frame: not drawn again
         moved = sorted(t for t, (_, k) in kinds.items() if k in ("off", "far", "new"))
         after = f"after {short_program_name(ended.program_id)}"
-        if moved:
+        # The block the program put down, against where it put it: "done" says only that the
+        # commands were (operator_site.placement).
+        placed = self.op.released(ended.program_id) if ended.status == "done" else None
+        check = (
+            check_placement(placed[0], placed[1], self.model.symmetries(placed[0]), [recs], 1)
+            if placed is not None
+            else None
+        )
+        if check is not None and check.verdict in ("moved", "unsure"):
+            self.model_md.content = (
+                f"**{after}, {plain(check.sentence())}: the task may not be done.** Look at the "
+                "camera image; *update the model from vision* to try again from where it is."
+            )
+        elif moved:
             self.model_md.content = (
                 f"**{after}, vision sees {plain(', '.join(moved))} away from the model**: "
                 "*update the model from vision* to work on from where they are."
