@@ -59,6 +59,7 @@ class PlacementCheck:
         return f"vision sees the {self.block} {off} from where the program put it{sure}"
 
     def to_json(self) -> dict:
+        """The check as a run's result carries it (``vision_check``: mm and degrees)."""
         return {
             "block": self.block,
             "verdict": self.verdict,
