@@ -49,3 +49,5 @@ def test_a_scripted_task_succeeds_end_to_end(task: str, seed: int) -> None:
     assert result["final_error_mm"] <= 1.5 and result["final_error_deg"] <= 1.5
     assert result["contacts_verified"] >= result["contacts_required"] > 0
     assert result["time_scale"] == TIME_SCALE and result["time_scale_achieved"] > 0.0
+    # Vision looked at the block once the program was done: where the program put it.
+    assert result["vision_check"]["verdict"] == "placed", result["vision_check"]

@@ -348,6 +348,10 @@ def test_the_corner_task_file_succeeds_end_to_end() -> None:
     assert np.array(result["final_X_WO"]).shape == (4, 4)
     assert np.array(result["reference_X_WO"]).shape == (4, 4)
     assert result["commands"] > 0 and result["stage_s"]["execute"] > 0
+    # Vision looked at the cube once the program was done: where the program put it.
+    check = result["vision_check"]
+    assert check["block"] == "cube" and check["verdict"] == "placed", check
+    assert check["error_mm"] <= 1.5 and check["frames"] >= 1
 
 
 def test_the_end_is_judged_on_the_references_true_pose(scene) -> None:
