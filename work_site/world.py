@@ -31,6 +31,11 @@ FINGER_JOINTS = ("finger_left", "finger_right")
 FLANGE_LINK = "flange"
 ARM_MAX_FORCE_N = 300.0
 FINGER_MAX_FORCE_N = 40.0
+FINGER_SPEED_MPS = 0.05
+"""The fastest each finger moves (m/s), as a parallel gripper's drive does. Unlimited, the
+fingers spring open within a few 1 ms steps: a pad that lets go a step before the other leaves
+the whole grip on the block for that step, and a block gripped a fraction of a degree askew
+is thrown centimetres from where it was set down."""
 FINGER_COUPLING_MAX_FORCE_N = 200.0
 FINGER_LOCK_MAX_FORCE_N = 200.0
 MOVABLE_MASS_RANGE_KG = (0.005, 1.0)
@@ -332,6 +337,7 @@ class World:
             p.POSITION_CONTROL,
             targetPosition=self.finger_target_m,
             force=FINGER_MAX_FORCE_N,
+            maxVelocity=FINGER_SPEED_MPS,
             physicsClientId=self.cid,
         )
         if self.fingers_locked:
