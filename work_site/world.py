@@ -7,6 +7,7 @@ quaternions are converted here and nowhere else.
 
 from __future__ import annotations
 
+import math
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,11 +32,13 @@ FINGER_JOINTS = ("finger_left", "finger_right")
 FLANGE_LINK = "flange"
 ARM_MAX_FORCE_N = 300.0
 FINGER_MAX_FORCE_N = 40.0
-FINGER_SPEED_MPS = 0.05
-"""The fastest each finger moves (m/s), as a parallel gripper's drive does. Unlimited, the
+FINGER_OPEN_SPEED_MPS = 0.05
+"""The fastest each finger opens (m/s), as a parallel gripper's drive does. Unlimited, the
 fingers spring open within a few 1 ms steps: a pad that lets go a step before the other leaves
 the whole grip on the block for that step, and a block gripped a fraction of a degree askew
-is thrown centimetres from where it was set down."""
+is thrown centimetres from where it was set down. Closing and squeezing are the motor's force
+limit's alone (limited too, the slower grasp held blocks otherwise, and a cube pressed onto the
+L-block's step dragged it along the upright)."""
 FINGER_COUPLING_MAX_FORCE_N = 200.0
 FINGER_LOCK_MAX_FORCE_N = 200.0
 MOVABLE_MASS_RANGE_KG = (0.005, 1.0)
@@ -148,12 +151,12 @@ class World:
         self.robot = self._load_robot()
 
     def _create_body(self, obj: SceneObject, tmp: Path) -> int:
-        check_object_mass(obj)
         """A pybullet body whose collision shape is the model's convex parts, exactly.
 
         With polyhedral (SAT) features pybullet clips the polyhedra themselves and leaves out
         the collision margin, so the parts are not shrunk by it.
         """
+        check_object_mass(obj)
         model = obj.model
         collision_files, visual_files = [], []
         for k, part in enumerate(model.parts):
@@ -331,13 +334,18 @@ class World:
             physicsClientId=self.cid,
         )
         # One motor drives the left finger; the gear constraint mirrors it on the right.
+        # pybullet keeps a motor's speed limit until it is given another: inf lifts it.
+        left = self.finger_joints[0]
+        opening = (
+            self.finger_target_m > p.getJointState(self.robot, left, physicsClientId=self.cid)[0]
+        )
         p.setJointMotorControl2(
             self.robot,
-            self.finger_joints[0],
+            left,
             p.POSITION_CONTROL,
             targetPosition=self.finger_target_m,
             force=FINGER_MAX_FORCE_N,
-            maxVelocity=FINGER_SPEED_MPS,
+            maxVelocity=FINGER_OPEN_SPEED_MPS if opening else math.inf,
             physicsClientId=self.cid,
         )
         if self.fingers_locked:
