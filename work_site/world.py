@@ -36,9 +36,9 @@ FINGER_OPEN_SPEED_MPS = 0.05
 """The fastest each finger opens (m/s), as a parallel gripper's drive does. Unlimited, the
 fingers spring open within a few 1 ms steps: a pad that lets go a step before the other leaves
 the whole grip on the block for that step, and a block gripped a fraction of a degree askew
-is thrown centimetres from where it was set down. Closing and squeezing are the motor's force
-limit's alone (limited too, the slower grasp held blocks otherwise, and a cube pressed onto the
-L-block's step dragged it along the upright)."""
+is thrown centimetres from where it was set down. Closing and squeezing are left to the force
+limit: limited as well, the slower grasp changed how a held cube pressed the L-block it was set
+on, dragging the L-block along (docs/tuning.md)."""
 FINGER_COUPLING_MAX_FORCE_N = 200.0
 FINGER_LOCK_MAX_FORCE_N = 200.0
 MOVABLE_MASS_RANGE_KG = (0.005, 1.0)
