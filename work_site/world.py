@@ -263,6 +263,7 @@ class World:
         self._gear = gear
         self.robot = robot
         self.fingers_locked = False
+        self._fingers_opening = False
         self.unlock_fingers()
         for finger in self.finger_joints:
             p.changeDynamics(
@@ -339,6 +340,17 @@ class World:
         opening = (
             self.finger_target_m > p.getJointState(self.robot, left, physicsClientId=self.cid)[0]
         )
+        if opening != self._fingers_opening:
+            # Opening pads let go with pybullet's velocity-level friction: their anchors
+            # would hand the shear they hold back to the block as they leave it.
+            for finger in self.finger_joints:
+                p.changeDynamics(
+                    self.robot,
+                    finger,
+                    frictionAnchor=FINGER_PAD_FRICTION_ANCHOR and not opening,
+                    physicsClientId=self.cid,
+                )
+            self._fingers_opening = opening
         p.setJointMotorControl2(
             self.robot,
             left,
