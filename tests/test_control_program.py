@@ -449,7 +449,8 @@ def test_a_wedge_gripped_askew_stays_where_it_is_let_go(askew_deg: float) -> Non
     """A program the product made for wedge-wall.json on layout 0 (a served run's, saved), run
     with the real wedge turned a fraction of a degree from where vision had it: the pads then
     grip it unevenly, and opening them must leave it where the program let go of it (fingers
-    that sprang open within a few steps threw it 7–17 mm and 3–9° off in these two)."""
+    that sprang open within a few steps, their pads' friction anchors handing the grip's shear
+    back to the block, threw it 7–17 mm and 3–9° off in these two)."""
     from models.layout import random_layout
     from operator_site.session import load_program
     from operator_site.taskfile import pose_error

@@ -48,9 +48,9 @@ FINGER_PAD_FRICTION = 2.0
 """Rubber finger pads: pybullet multiplies it with the wood's default 0.5, at which a carried
 block slides in the grip."""
 FINGER_PAD_FRICTION_ANCHOR = True
-"""pybullet's friction anchors on the pads (positional friction correction): without them its
-velocity-level friction lets the held cube creep about the grip axis under loads far below the
-slip torque."""
+"""pybullet's friction anchors on the pads (positional friction correction) while the fingers
+close and hold: without them its velocity-level friction lets the held cube creep about the
+grip axis under loads far below the slip torque. Off while the fingers open."""
 SERVO_POSITION_GAIN = 0.3
 """pybullet's joint servo gain (its default is 0.1): higher tracks the TCP line more closely, but
 a servo that closes its whole error in one 1 ms step rings against the stiff contacts, and the
