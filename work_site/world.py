@@ -51,6 +51,10 @@ FINGER_PAD_FRICTION_ANCHOR = True
 """pybullet's friction anchors on the pads (positional friction correction) while the fingers
 close and hold: without them its velocity-level friction lets the held cube creep about the
 grip axis under loads far below the slip torque. Off while the fingers open."""
+BLOCK_FRICTION_ANCHOR = True
+"""The same for the movable blocks' contacts: without them a block resting on the table turns
+by itself, the wedge (its weight off its base's centre) about half a degree a minute, and the
+world drifts from what vision saw while the operator plans."""
 SERVO_POSITION_GAIN = 0.3
 """pybullet's joint servo gain (its default is 0.1): higher tracks the TCP line more closely, but
 a servo that closes its whole error in one 1 ms step rings against the stiff contacts, and the
@@ -193,7 +197,11 @@ class World:
         )
         if not obj.fixed:
             p.changeDynamics(
-                body, -1, localInertiaDiagonal=moments.tolist(), physicsClientId=self.cid
+                body,
+                -1,
+                localInertiaDiagonal=moments.tolist(),
+                frictionAnchor=BLOCK_FRICTION_ANCHOR,
+                physicsClientId=self.cid,
             )
         else:
             p.changeDynamics(
