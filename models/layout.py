@@ -3,7 +3,9 @@ camera is from its calibrated model."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 
 import cv2
 import numpy as np
@@ -55,6 +57,17 @@ def _image_hull_px(scene: Scene, name: str, X_WO: np.ndarray) -> tuple[np.ndarra
     slack_px = focal_px * (CAMERA_TURN_RAD + CAMERA_SHIFT_M / float(p_C[:, 2].min()))
     hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2).astype(np.float64)
     return hull, slack_px
+
+
+def laid_out(scene: Scene, X_WO: Mapping[str, np.ndarray]) -> Scene:
+    """``scene`` with the objects named in ``X_WO`` at those poses (a layout)."""
+    return dataclasses.replace(
+        scene,
+        objects=tuple(
+            dataclasses.replace(o, X_WO=X_WO[o.name]) if o.name in X_WO else o
+            for o in scene.objects
+        ),
+    )
 
 
 def random_layout(scene: Scene, seed: int) -> dict[str, np.ndarray]:

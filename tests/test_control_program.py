@@ -451,7 +451,7 @@ def test_a_wedge_gripped_askew_stays_where_it_is_let_go(askew_deg: float) -> Non
     grip it unevenly, and opening them must leave it where the program let go of it (fingers
     that sprang open within a few steps, their pads' friction anchors handing the grip's shear
     back to the block, threw it 7–17 mm and 3–9° off in these two)."""
-    from models.layout import random_layout
+    from models.layout import laid_out, random_layout
     from operator_site.session import load_program
     from operator_site.taskfile import pose_error
 
@@ -459,13 +459,7 @@ def test_a_wedge_gripped_askew_stays_where_it_is_let_go(askew_deg: float) -> Non
     layout = random_layout(scene, 0)
     R = rpy_to_R(np.array([0.0, 0.0, np.deg2rad(askew_deg)]))
     layout["wedge"] = make_pose(R @ layout["wedge"][:3, :3], layout["wedge"][:3, 3])
-    scene = dataclasses.replace(
-        scene,
-        objects=tuple(
-            dataclasses.replace(o, X_WO=layout[o.name]) if o.name in layout else o
-            for o in scene.objects
-        ),
-    )
+    scene = laid_out(scene, layout)
     program = load_program(Path(__file__).parent / "data" / "wedge-wall-seed0.msgpack")
     world = World(scene)
     try:

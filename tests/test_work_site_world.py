@@ -9,7 +9,7 @@ import numpy as np
 import pybullet as p
 import pytest
 
-from models.layout import LAYOUT_REGION_W, random_layout
+from models.layout import LAYOUT_REGION_W, laid_out, random_layout
 from models.robot import HOME_Q, load_robot
 from models.scene import load_scene
 from work_site.camera import opengl_matrices, render_grey
@@ -48,14 +48,7 @@ def test_every_block_laid_out_at_random_stays_put_while_the_operator_plans() -> 
     """Half a minute at rest, the arm holding home: a block at rest does not creep (the wedge
     turned 0.3° in that time on layout 0 before the blocks' friction anchors)."""
     scene = load_scene()
-    layout = random_layout(scene, 0)
-    scene = replace(
-        scene,
-        objects=tuple(
-            replace(o, X_WO=layout[o.name]) if o.name in layout else o for o in scene.objects
-        ),
-    )
-    w = World(scene)
+    w = World(laid_out(scene, random_layout(scene, 0)))
     try:
         w.step(1000)  # settled onto the table
         before = w.object_poses()

@@ -19,7 +19,7 @@ from pathlib import Path
 import zenoh
 
 from models.errors import ModelError
-from models.layout import perturbed_camera_pose, random_layout
+from models.layout import laid_out, perturbed_camera_pose, random_layout
 from models.scene import DEFAULT_SCENE, load_scene
 from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError, make_config
 from protocol.images import DEFAULT_JPEG_QUALITY, parse_image_encoding
@@ -295,14 +295,7 @@ def serve(args: argparse.Namespace) -> int:
         check_scene(scene)
         camera_X_WC = None
         if args.seed is not None:
-            layout = random_layout(scene, args.seed)
-            scene = dataclasses.replace(
-                scene,
-                objects=tuple(
-                    dataclasses.replace(o, X_WO=layout[o.name]) if o.name in layout else o
-                    for o in scene.objects
-                ),
-            )
+            scene = laid_out(scene, random_layout(scene, args.seed))
         camera_seed = args.camera_seed if args.camera_seed is not None else args.seed
         if camera_seed is not None:
             X_WC = perturbed_camera_pose(scene.camera.X_WC, camera_seed)

@@ -53,7 +53,7 @@ close and hold: without them its velocity-level friction lets the held cube cree
 grip axis under loads far below the slip torque. Off while the fingers open."""
 BLOCK_FRICTION_ANCHOR = True
 """The same for the movable blocks' contacts: without them a block resting on the table turns
-by itself, the wedge (its weight off its base's centre) about half a degree a minute, and the
+by itself, the wedge (its weight off its base's centre) over half a degree a minute, and the
 world drifts from what vision saw while the operator plans."""
 SERVO_POSITION_GAIN = 0.3
 """pybullet's joint servo gain (its default is 0.1): higher tracks the TCP line more closely, but
