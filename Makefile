@@ -26,14 +26,15 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/operator-site demo
 
-# The browser test needs Debian's chromium: installed here when we are root, else the test
-# is skipped and says why.
+# The browser test needs Debian's chromium (and Mesa's llvmpipe, which draws its 3D view):
+# installed here when we are root, else the test is skipped and says why.
 browser:
 	@if [ ! -x $(CHROMIUM) ]; then \
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	    echo "make: installing Debian's chromium for the browser test"; \
-	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium \
-	      >/dev/null) || echo "make: could not install chromium: the browser test will skip"; \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+	      chromium libgl1-mesa-dri >/dev/null) \
+	      || echo "make: could not install chromium: the browser test will skip"; \
 	  else echo "make: no $(CHROMIUM) and not root: the browser test will skip"; fi; \
 	fi
 

@@ -15,6 +15,7 @@ The flow is :func:`first_task`, which the browser test runs too (``tests/test_br
 from __future__ import annotations
 
 import argparse
+import glob
 import json
 import math
 import re
@@ -196,6 +197,41 @@ def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None
         time.sleep(0.05)
 
 
+WAIT_TEXT_JS = """([source, timeoutMs]) => new Promise((resolve, reject) => {
+  const re = new RegExp(source, "m");
+  let done = false, queued = false;
+  const finish = (ok) => { done = true; seen.disconnect(); clearTimeout(timer);
+    ok ? resolve() : reject(new Error(`not within ${timeoutMs} ms`)); };
+  const check = () => {
+    queued = false;
+    if (!done && re.test(document.body.innerText)) finish(true);
+  };
+  const seen = new MutationObserver(() => {
+    if (!queued) { queued = true; queueMicrotask(check); }
+  });
+  const timer = setTimeout(() => done || finish(false), timeoutMs);
+  seen.observe(document.body, {subtree: true, childList: true, characterData: true});
+  check();
+})"""
+"""Resolves once a line of the page's rendered text matches a regular expression, looked at
+on every change of the page's text (Playwright's own waits look every half second once the
+first few looks fail: up to half a second of the harness counted as the page's)."""
+
+
+def wait_text(tab, pattern: str | re.Pattern, timeout_s: float) -> None:
+    """Wait until a line of ``tab``'s rendered text matches ``pattern`` (a string: contains
+    it); TimeoutError naming it after ``timeout_s``."""
+    from playwright.sync_api import Error as PlaywrightError
+
+    source = pattern.pattern if isinstance(pattern, re.Pattern) else re.escape(pattern)
+    try:
+        tab.evaluate(WAIT_TEXT_JS, [source, timeout_s * 1e3])
+    except PlaywrightError as e:
+        if "not within" not in str(e):
+            raise
+        raise TimeoutError(f"the page's text {source!r}: not within {timeout_s:g} s") from None
+
+
 def first_task(
     tab,
     page,
@@ -210,21 +246,19 @@ def first_task(
     the timings. Raises (TimeoutError, AssertionError) at the first step that does not come."""
     t = Timings()
     now = time.monotonic
-    tab.get_by_text("work site: connected").wait_for(timeout=60_000)
+    wait_text(tab, "work site: connected", 60)
     start = now()
     t.marks["connected_at_s"] = start
     shot(tab, out, "1_loaded", t, stem)
     # Vision's recognitions: listed, outlined on the camera image, see-through in 3D. As a
     # person would, wait until the block to move is among them (vision misses a block in some
     # frames).
-    tab.get_by_text(re.compile(rf"^{re.escape(workpiece)}: score \d")).first.wait_for(
-        timeout=180_000
-    )
+    wait_text(tab, re.compile(rf"^{re.escape(workpiece)}: score \d"), 180)
     t.add("vision_wait_s", now() - start)
     shot(tab, out, "2_recognised", t, stem)
     mark = now()
     tab.get_by_role("button", name="accept the recognised blocks").click()
-    tab.get_by_text(re.compile(r"^model: \d+ blocks")).wait_for(timeout=30_000)
+    wait_text(tab, re.compile(r"^model: \d+ blocks"), 30)
     t.add("operator_s", now() - mark)
     t.marks["accept_s"] = now() - mark
     for _ in range(ACCEPT_TRIES):
@@ -255,7 +289,7 @@ def first_task(
     # Pick the block with a click in the 3D view, look from above, drag the gizmo's x arrow.
     mark = now()
     click_block(tab, page, workpiece)
-    tab.get_by_text(f"dragging {workpiece}").wait_for(timeout=30_000)
+    wait_text(tab, f"dragging {workpiece}", 30)
     t.marks["pick_s"] = now() - mark
     step = now()
     tab.get_by_role("button", name="from above").click()
@@ -278,14 +312,14 @@ def first_task(
     shot(tab, out, "3_dragged", t, stem)
     mark = now()
     tab.get_by_role("button", name="make the robot program").click()
-    tab.get_by_text(re.compile(r"\d+ commands; path")).first.wait_for(timeout=120_000)
+    wait_text(tab, re.compile(r"\d+ commands; path"), 120)
     t.add("program_s", now() - mark)
     shot(tab, out, "4_program", t, stem)
     mark = now()
     tab.get_by_role("button", name="send it to the robot").click()
     t.add("operator_s", now() - mark)
     mark = now()
-    tab.get_by_text("checked and accepted by the work site").first.wait_for(timeout=60_000)
+    wait_text(tab, "checked and accepted by the work site", 60)
     # The log's newest line (its first) is in view without scrolling.
     t.marks["log_in_view"] = float(
         tab.get_by_text("checked and accepted by the work site").first.evaluate(
@@ -293,20 +327,20 @@ def first_task(
             " return r.top >= 0 && r.top + 20 <= window.innerHeight ? 1 : 0; }"
         )
     )
+    wait_text(tab, ENDED, 300)
     ended = tab.get_by_text(ENDED).first
-    ended.wait_for(timeout=300_000)
     t.add("robot_s", now() - mark)
     t.marks["outcome"] = ended.inner_text()
     shot(tab, out, "5_done", t, stem)
     # After the run, the page says what vision sees now; the operator takes it into the model.
     mark = now()
     # (Not the help text's "what vision sees": the offer after the program.)
-    tab.get_by_text(re.compile(r"after .+, vision (sees|agrees)")).first.wait_for(timeout=120_000)
+    wait_text(tab, re.compile(r"after .+, vision (sees|agrees)"), 120)
     t.add("vision_wait_s", now() - mark)
     mark = now()
     tab.get_by_role("button", name="update the model from vision").click()
     # The page always answers: updated, or why not.
-    tab.get_by_text(re.compile(r"updated from vision")).first.wait_for(timeout=60_000)
+    wait_text(tab, "updated from vision", 60)
     if not page.model_md.content.startswith("updated from vision:"):
         raise AssertionError(f"update from vision: {page.model_md.content}")
     t.add("operator_s", now() - mark)
@@ -316,12 +350,24 @@ def first_task(
 
 
 CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_FLAGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    "--use-gl=swiftshader", "--enable-unsafe-swiftshader",
-]  # fmt: skip
-"""Debian's Chromium, headless, software WebGL, nothing fetched from outside."""
+MESA_SOFTWARE_GL = "/usr/lib/*/dri/swrast_dri.so"
+"""Mesa's llvmpipe (Debian's libgl1-mesa-dri, which chromium recommends)."""
+
+
+def chromium_flags() -> list[str]:
+    """Debian's Chromium, headless, nothing fetched from outside, WebGL drawn in software:
+    by Mesa's llvmpipe where it is installed, composited in Chromium's GPU process as with a
+    graphics card; else by SwiftShader with the GPU process off, which reads every changed
+    frame of the 3D view back for a software compositor (slower: docs/benchmarks.md)."""
+    flags = [
+        "--headless", "--no-sandbox", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    ]  # fmt: skip
+    if glob.glob(MESA_SOFTWARE_GL):
+        return [*flags, "--use-gl=angle", "--use-angle=gl-egl", "--ignore-gpu-blocklist"]
+    return [*flags, "--disable-gpu", "--use-gl=swiftshader", "--enable-unsafe-swiftshader"]
+
+
 PARTS = ("vision_wait_s", "operator_s", "program_s", "robot_s", "page_s", "load_s")
 """``load_s``: the page's address opened to "work site: connected", within ``page_s``."""
 STEPS = ("accept_s", "pick_s", "drag_s", "from_above_click_s", "view_settle_s", "aim_s",
@@ -363,7 +409,7 @@ def page_address(page, dpr: float | None = None) -> str:
 def chromium_tab(pw, page=None) -> Iterator:
     """A tab of Debian's headless Chromium (``pw``: a started sync Playwright), showing
     ``page`` if given (else blank); the browser closed on exit."""
-    browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
+    browser = pw.chromium.launch(executable_path=CHROMIUM, args=chromium_flags())
     try:
         tab = browser.new_page(viewport=VIEWPORT)
         if page is not None:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.ui import CHROMIUM, CHROMIUM_FLAGS
+from bench.ui import CHROMIUM, chromium_flags
 from tests.conftest import REPO, free_port, wait_until
 
 pytestmark = [pytest.mark.browser, pytest.mark.integration]
@@ -68,7 +68,7 @@ def test_page_shows_scene_camera_and_connected_status(tmp_path: Path) -> None:
     try:
         assert wait_until(lambda: "open http://" in log_path.read_text(), 60), log_path.read_text()
         with playwright.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=chromium_flags())
             try:
                 page = browser.new_page(viewport={"width": 1400, "height": 900})
                 page.goto(f"http://127.0.0.1:{http_port}/")

@@ -17,7 +17,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from bench.ui import CHROMIUM, CHROMIUM_FLAGS
+from bench.ui import CHROMIUM, chromium_flags
 from models.scene import load_scene
 from operator_site.link import WorkSiteLink
 from operator_site.ui import OperatorPage
@@ -125,7 +125,7 @@ def test_markup_from_the_wire_and_files_is_shown_as_text(work_site, tmp_path: Pa
         page.on_load(str(task_file))
         assert "window.__pwned=3" not in page.task_md.content  # escaped at the source
         with playwright.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=chromium_flags())
             try:
                 tab = browser.new_page(viewport={"width": 1400, "height": 1400})
                 requests: list[str] = []

@@ -219,7 +219,7 @@ def test_serve_beyond_loopback_prints_a_url_with_a_new_token() -> None:
 @pytest.mark.integration
 @pytest.mark.browser
 def test_in_chromium_the_printed_url_or_the_typed_token_gives_control() -> None:
-    from tests.test_browser import CHROMIUM, CHROMIUM_FLAGS
+    from tests.test_browser import CHROMIUM, chromium_flags
 
     if not os.access(CHROMIUM, os.X_OK):
         print(f"skipping: {CHROMIUM} is missing (`make test` installs Debian's chromium as root)")
@@ -234,7 +234,7 @@ def test_in_chromium_the_printed_url_or_the_typed_token_gives_control() -> None:
     port = page.server.get_port()
     try:
         with playwright.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_FLAGS)
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=chromium_flags())
             try:
                 # The bare address: read only, and says how to get control.
                 tab = browser.new_page(viewport={"width": 1400, "height": 900})
