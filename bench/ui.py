@@ -101,30 +101,28 @@ def gizmo_grip_px(page, camera, box: dict, axis: int, gizmo_px: float) -> tuple[
     raise ValueError(f"the gizmo's axis {axis} is covered by other objects on the screen")
 
 
-def settled_camera(client, timeout_s: float = 20.0, still_s: float = 0.5):
-    """The client's camera once it has stopped changing (the page's first view is animated
-    into place): at once if the browser last reported it ``still_s`` ago or more, else once
-    it has reported the same view for ``still_s``."""
-    if time.time() - client.camera.update_timestamp >= still_s:  # viser stamps by time.time
-        return client.camera
-    last, since = None, time.monotonic()
+def settled_camera(client, after: float = 0.0, timeout_s: float = 20.0, still_s: float = 0.5):
+    """The client's camera once it has stopped changing: the browser reports its view on every
+    change, so once its last report, made after ``after`` (a ``time.time()``: a view asked of
+    the page then is not taken from the reports before it), is ``still_s`` old."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        now = (tuple(client.camera.position), tuple(client.camera.wxyz), client.camera.fov)
-        if now != last:
-            last, since = now, time.monotonic()
-        elif time.monotonic() - since >= still_s:
+        reported = client.camera.update_timestamp  # viser stamps by time.time
+        if reported > after and time.time() - reported >= still_s:
             return client.camera
-        time.sleep(0.05)
-    raise TimeoutError(f"the page's camera kept moving for {timeout_s:g} s")
+        time.sleep(0.02)
+    raise TimeoutError(f"the page's camera kept moving or was not reported for {timeout_s:g} s")
 
 
-def drag_gizmo(tab, page, axis: int, shift_m: float, gizmo_px: float) -> dict[str, float]:
+def drag_gizmo(
+    tab, page, axis: int, shift_m: float, gizmo_px: float, view_asked: float = 0.0
+) -> dict[str, float]:
     """Drag the gizmo's ``axis`` arrow with the mouse so that the block's target moves about
-    ``shift_m`` along it; how long (s) the view took to settle first and the mouse took."""
+    ``shift_m`` along it, in the view the browser reports after ``view_asked`` (a
+    ``time.time()``); how long (s) the view took to settle first and the mouse took."""
     client = next(iter(page.server.get_clients().values()))
     start = time.monotonic()
-    camera = settled_camera(client)
+    camera = settled_camera(client, after=view_asked)
     settled = time.monotonic()
     box = tab.locator("canvas").first.bounding_box()
     u, v = gizmo_grip_px(page, camera, box, axis, gizmo_px)
@@ -292,10 +290,11 @@ def first_task(
     wait_text(tab, f"dragging {workpiece}", 30)
     t.marks["pick_s"] = now() - mark
     step = now()
+    view_asked = time.time()
     tab.get_by_role("button", name="from above").click()
     t.marks["from_above_click_s"] = now() - step
     start_W = page.session.X_WO[workpiece][:3, 3].copy()
-    t.marks.update(drag_gizmo(tab, page, 0, shift_m, gizmo_px))
+    t.marks.update(drag_gizmo(tab, page, 0, shift_m, gizmo_px, view_asked))
     t.marks["drag_s"] = now() - step
     step = now()
     wait_for(
