@@ -33,13 +33,19 @@ def _rot_z(yaw: float) -> np.ndarray:
 
 def test_rest_corners_are_right_angles_of_boxes_on_the_table(setup) -> None:
     _, models, corners = setup
-    cube = corners.model == 0
+    cube = (corners.model == 0) & corners.level
     # A cube rests on any of its 6 faces with 8 corners on top and bottom, 2 orders each: up
     # to its 24 symmetries only a top and a bottom corner are left, in both orders.
     assert np.count_nonzero(cube) == 6 * 8 * 2 // 24
     np.testing.assert_allclose(np.abs(corners.turn[cube]), np.pi / 2, atol=1e-9)
     assert set(np.round(corners.corner[cube, 2], 9)) == {0.0, 0.05}
-    hexp = corners.model == 3
+    # With its vertical edge: each of the two horizontal edges of a top and a bottom corner,
+    # the vertical edge going down and up.
+    mixed = (corners.model == 0) & ~corners.level
+    assert np.count_nonzero(mixed) == 4 and np.isnan(corners.turn[mixed]).all()
+    top = corners.corner[mixed, 2] > 0.01
+    np.testing.assert_allclose(corners.second[mixed, 2], np.where(top, -1.0, 1.0))
+    hexp = (corners.model == 3) & corners.level
     # The hexagon's corners turn by 120° when it stands on its end.
     assert np.any(np.isclose(np.abs(corners.turn[hexp]), 2 * np.pi / 3, atol=1e-9))
     # Every resting rotation puts the model's lowest point on the table.
@@ -62,7 +68,7 @@ def test_back_projection_lands_on_the_plane(setup) -> None:
 def test_a_junction_of_two_exact_top_edges_gives_the_pose(setup, mi) -> None:
     camera, models, corners = setup
     m = models[mi]
-    k = np.flatnonzero((corners.model == mi) & (corners.corner[:, 2] > 0.01))[0]
+    k = np.flatnonzero((corners.model == mi) & corners.level & (corners.corner[:, 2] > 0.01))[0]
     R_WO = _rot_z(0.7) @ corners.R_WO0[k]
     X_WO = make_pose(R_WO, [0.45, 0.03, corners.lift_m[k]])
     X_CW = invert_pose(camera.X_WC)
@@ -85,6 +91,44 @@ def test_a_junction_of_two_exact_top_edges_gives_the_pose(setup, mi) -> None:
         R = X[:3, :3].T @ X_WO[:3, :3]
         best = min(best, min(np.linalg.norm(R @ S - np.eye(3)) for S in m.symmetries))
     assert best < 1e-6
+
+
+@pytest.mark.parametrize("mi", [0, 1, 2, 3])
+def test_a_junction_of_a_top_edge_and_a_sloping_or_upright_edge_gives_the_pose(setup, mi):
+    """Only one edge horizontal: it gives the yaw, the other's image direction is checked."""
+    camera, models, corners = setup
+    m = models[mi]
+    X_CW = invert_pose(camera.X_WC)
+    for k in np.flatnonzero((corners.model == mi) & ~corners.level):
+        R_WO = _rot_z(0.7) @ corners.R_WO0[k]
+        X_WO = make_pose(R_WO, [0.45, 0.03, corners.lift_m[k]])
+        c_O = corners.R_WO0[k].T @ (corners.corner[k] - [0, 0, corners.lift_m[k]])
+        c_W = transform(X_WO, c_O[None])[0]
+        first = _rot_z(0.7) @ [np.cos(corners.heading[k]), np.sin(corners.heading[k]), 0.0]
+        second = _rot_z(0.7) @ corners.second[k]
+        # The model's two edges leaving that corner those ways, projected exactly.
+        E_W = transform(X_WO, m.edges_O)
+        two = []
+        for want in (first, second):
+            for e in E_W:
+                for end in (0, 1):
+                    d = e[1 - end] - e[end]
+                    if np.linalg.norm(e[end] - c_W) < 1e-9 and d @ want > 0.999 * np.linalg.norm(d):
+                        two.append(e if end == 0 else e[::-1])
+        segs = project(transform(X_CW, np.array(two)), camera.K).reshape(-1, 4)
+        uv_c = project(transform(X_CW, c_W[None]), camera.K)[0]
+        # The junction's lines in either order: either may be the horizontal one.
+        for order in ((0, 1), (1, 0)):
+            s2 = segs[list(order)]
+            junctions = [(0, 0, 1, 0, uv_c)]
+            mod, poses, _ = table_hypotheses(corners, junctions, s2, camera.K, camera.X_WC, 0.0)
+            best = np.inf
+            for X in poses[mod == mi]:
+                if np.linalg.norm(X[:3, 3] - X_WO[:3, 3]) > 1e-6:
+                    continue
+                R = X[:3, :3].T @ X_WO[:3, :3]
+                best = min(best, min(np.linalg.norm(R @ S - np.eye(3)) for S in m.symmetries))
+            assert best < 1e-6, (k, order)
 
 
 def test_batch_support_prefers_the_true_pose(setup) -> None:

@@ -222,7 +222,14 @@ def table_stream(
             p.gradient_min, p.gradient_angle_rad, coarse_min=p.table_coarse_min,
         )  # fmt: skip
     order = np.argsort(-score, kind="stable")
-    order = order[score[order] >= p.quick_support_min][: p.max_table_hypotheses]
+    order = order[score[order] >= p.quick_support_min]
+    # Many junctions of one block give the same pose: count each pose once against the cap.
+    new = np.zeros(len(order), dtype=bool)
+    same = PoseSet(p.same_pose_m, p.same_pose_rad)
+    for mi, m in enumerate(models):
+        of_m = np.flatnonzero(mod[order] == mi)
+        new[of_m] = same.add_new(m, X_CO[order[of_m]])
+    order = order[new][: p.max_table_hypotheses]
     return [(models[int(mod[i])], pairs[i], X_CO[i]) for i in order]
 
 

@@ -11,6 +11,11 @@ then gives the yaw. So one junction of two lines yields a complete pose, with no
 iterative fit, and it needs no third and fourth line: this finds blocks whose faces are shaded
 almost alike, where chains of four connected lines are rare.
 
+Where only one of the two edges is horizontal (a top corner's vertical edge, a wedge's sloping
+face meeting its ridge), the horizontal one alone gives the yaw, and the other edge's image
+line must point where that pose projects it: the same one-junction pose, for the corners
+whose second horizontal edge is faint or hidden.
+
 All candidate poses are scored at once (vectorised over candidates, edges and sample points) by
 the image gradient along their predicted edges, the cheap early rejection before the full test.
 """
@@ -23,6 +28,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from models.transforms import invert_pose
 from work_site.vision.model import VisionModel, hull_facets
 
 HEIGHT_TOL_M = 1e-6
@@ -33,13 +39,17 @@ SUPPORT_OFFSETS_PX = (-1.5, 0.0, 1.5)
 
 @dataclass(frozen=True)
 class RestCorners:
-    """Every corner of two horizontal edges of every model in every resting orientation.
+    """Every corner of a horizontal edge and another edge of every model in every resting
+    orientation.
 
     ``model`` (c,) index into the models; ``R_WO0`` (c, 3, 3) the resting rotation at yaw 0;
     ``lift_m`` (c,) height of O's origin above the table at rest; ``corner`` (c, 3) the corner
     in the rest frame (O rotated by ``R_WO0``, z measured from the table); ``heading`` (c,) the
-    yaw (rad) of the first edge leaving the corner; ``turn`` (c,) the signed angle (rad, about
-    +z) from the first edge to the second. Both orders of each pair of edges are listed.
+    yaw (rad) of the first edge, horizontal, leaving the corner; ``second`` (c, 3) the unit
+    direction of the second edge leaving it, in the rest frame; ``level`` (c,) whether the
+    second edge is horizontal too; ``turn`` (c,) then the signed angle (rad, about +z) from
+    the first edge to the second (NaN otherwise). Both orders of each pair of horizontal edges
+    are listed.
     """
 
     model: np.ndarray
@@ -47,6 +57,8 @@ class RestCorners:
     lift_m: np.ndarray
     corner: np.ndarray
     heading: np.ndarray
+    second: np.ndarray
+    level: np.ndarray
     turn: np.ndarray
 
 
@@ -76,48 +88,55 @@ def rest_corners(models: Sequence[VisionModel], coms_O: Sequence[np.ndarray]) ->
         for R0 in rest_rotations(m.vertices_O, np.asarray(com, dtype=np.float64)):
             lift = -float((m.vertices_O @ R0.T)[:, 2].min())
             E = m.edges_O @ R0.T + np.array([0.0, 0.0, lift])  # (e, 2, 3) rest frame
-            horiz = np.flatnonzero(np.abs(E[:, 0, 2] - E[:, 1, 2]) < 1e-9)
-            for i in horiz:
-                for j in horiz:
-                    if i == j:
-                        continue
-                    for ei in (0, 1):
-                        v = E[i, ei]
-                        d = np.linalg.norm(E[j] - v, axis=1)
-                        if d.min() > 1e-9:
+            horiz = np.abs(E[:, 0, 2] - E[:, 1, 2]) < 1e-9
+            # Two horizontal edges first, then a horizontal and another.
+            for level in (True, False):
+                for i in np.flatnonzero(horiz):
+                    for j in np.flatnonzero(horiz == level):
+                        if i == j:
                             continue
-                        a = E[i, 1 - ei] - v
-                        b = E[j, 1 - int(np.argmin(d))] - v
-                        heading = np.arctan2(a[1], a[0])
-                        turn = _wrap(np.arctan2(b[1], b[0]) - heading)
-                        if abs(np.sin(turn)) < 0.1:
-                            continue  # collinear edges make no corner
-                        if not _known(rows, mi, m.symmetries, R0, v, heading, turn):
-                            rows.append((mi, R0, lift, v, heading, turn))
+                        for ei in (0, 1):
+                            v = E[i, ei]
+                            d = np.linalg.norm(E[j] - v, axis=1)
+                            if d.min() > 1e-9:
+                                continue
+                            a = E[i, 1 - ei] - v
+                            b = E[j, 1 - int(np.argmin(d))] - v
+                            b = b / np.linalg.norm(b)
+                            heading = np.arctan2(a[1], a[0])
+                            turn = _wrap(np.arctan2(b[1], b[0]) - heading) if level else np.nan
+                            if level and abs(np.sin(turn)) < 0.1:
+                                continue  # collinear edges make no corner
+                            if not _known(rows, mi, m.symmetries, R0, v, heading, b):
+                                rows.append((mi, R0, lift, v, heading, b, turn))
     if not rows:
         return RestCorners(
             np.zeros(0, int), np.zeros((0, 3, 3)), np.zeros(0), np.zeros((0, 3)),
-            np.zeros(0), np.zeros(0),
+            np.zeros(0), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0),
         )  # fmt: skip
+    turn = np.array([r[6] for r in rows])
     return RestCorners(
         model=np.array([r[0] for r in rows], dtype=np.int64),
         R_WO0=np.array([r[1] for r in rows]),
         lift_m=np.array([r[2] for r in rows]),
         corner=np.array([r[3] for r in rows]),
         heading=np.array([r[4] for r in rows]),
-        turn=np.array([r[5] for r in rows]),
+        second=np.array([r[5] for r in rows]),
+        level=~np.isnan(turn),
+        turn=turn,
     )
 
 
-def _known(rows, mi, symmetries, R0, v, heading, turn) -> bool:
+def _known(rows, mi, symmetries, R0, v, heading, second) -> bool:
     """Whether a listed corner of model ``mi`` gives the same poses as this one, up to the
     model's symmetries: from any junction both give ``R = Rz(ψ)·A`` and ``t = P − Rz(ψ)·w`` with
     ``A = Rz(−heading)·R0`` and ``w = Rz(−heading)·v``, so they agree when the ``w`` and the
-    turns agree and the ``A`` differ by a symmetry."""
+    second edges (turned likewise) agree and the ``A`` differ by a symmetry."""
     A = _rz(-heading) @ R0
     w = _rz(-heading) @ v
-    for mj, R1, _, v1, h1, t1 in rows:
-        if mj != mi or abs(_wrap(t1 - turn)) > 1e-9:
+    b = _rz(-heading) @ second
+    for mj, R1, _, v1, h1, b1, _ in rows:
+        if mj != mi or np.linalg.norm(_rz(-h1) @ b1 - b) > 1e-9:
             continue
         if np.linalg.norm(_rz(-h1) @ v1 - w) > 1e-9:
             continue
@@ -172,39 +191,76 @@ def table_hypotheses(
     far_a = ends[a, 1 - np.array([j[1] for j in junctions])]
     far_b = ends[b, 1 - np.array([j[3] for j in junctions])]
     models, poses, pairs = [], [], []
+
+    def add(c: np.ndarray, yaw: np.ndarray, P: np.ndarray, pair: np.ndarray) -> None:
+        """The poses of corners ``c`` at image junctions cast to ``P`` (n, 3), turned by
+        ``yaw`` (n,); ``pair`` (n, 2) the junctions' segments."""
+        cs, sn = np.cos(yaw), np.sin(yaw)
+        Rz = np.zeros((len(c), 3, 3))
+        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = cs, -sn, sn, cs
+        Rz[:, 2, 2] = 1.0
+        X_WO = np.tile(np.eye(4), (len(c), 1, 1))
+        X_WO[:, :3, :3] = Rz @ corners.R_WO0[c]
+        rot_v = np.einsum("nij,nj->ni", Rz, corners.corner[c])
+        X_WO[:, 0, 3] = P[:, 0] - rot_v[:, 0]
+        X_WO[:, 1, 3] = P[:, 1] - rot_v[:, 1]
+        X_WO[:, 2, 3] = table_z + corners.lift_m[c]
+        models.append(corners.model[c])
+        poses.append(X_WO)
+        pairs.append(pair)
+
+    X_CW = invert_pose(X_WC)
+    R_CW, t_CW = X_CW[:3, :3], X_CW[:3, 3]
+    cos_tol = np.cos(angle_tol_rad)
     heights = np.unique(np.round(corners.corner[:, 2] / HEIGHT_TOL_M).astype(np.int64))
     for hk in heights:
         h = hk * HEIGHT_TOL_M
-        sel = np.flatnonzero(np.abs(corners.corner[:, 2] - h) < 2 * HEIGHT_TOL_M)
+        at_h = np.abs(corners.corner[:, 2] - h) < 2 * HEIGHT_TOL_M
         P, ok0 = back_project_to_plane(X, K, X_WC, table_z + h)
         Pa, ok1 = back_project_to_plane(far_a, K, X_WC, table_z + h)
         Pb, ok2 = back_project_to_plane(far_b, K, X_WC, table_z + h)
         ok = ok0 & ok1 & ok2
         da, db = Pa - P, Pb - P
         psi_a = np.arctan2(da[:, 1], da[:, 0])
-        turn = _wrap(np.arctan2(db[:, 1], db[:, 0]) - psi_a)  # (n,)
+        psi_b = np.arctan2(db[:, 1], db[:, 0])
+        turn = _wrap(psi_b - psi_a)  # (n,)
         # (junction, corner) pairs whose angles agree
+        sel = np.flatnonzero(at_h & corners.level)
         diff = np.abs(_wrap(turn[:, None] - corners.turn[sel][None, :]))
         ji, ck = np.nonzero((diff < angle_tol_rad) & ok[:, None])
-        if len(ji) == 0:
+        if len(ji):
+            c = sel[ck]
+            # Bisect the angle error: the yaw that best aligns both edges.
+            yaw = psi_a[ji] - corners.heading[c] + 0.5 * _wrap(turn[ji] - corners.turn[c])
+            add(c, yaw, P[ji], np.column_stack([a[ji], b[ji]]))
+        # One horizontal edge: either line may be it; the other must lie along the second
+        # edge's image at the pose the first gives.
+        sel = np.flatnonzero(at_h & ~corners.level)
+        if len(sel) == 0:
             continue
-        c = sel[ck]
-        # Bisect the angle error: the yaw that best aligns both edges.
-        yaw = psi_a[ji] - corners.heading[c] + 0.5 * _wrap(turn[ji] - corners.turn[c])
-        cs, sn = np.cos(yaw), np.sin(yaw)
-        Rz = np.zeros((len(c), 3, 3))
-        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = cs, -sn, sn, cs
-        Rz[:, 2, 2] = 1.0
-        v = corners.corner[c]
-        X_WO = np.tile(np.eye(4), (len(c), 1, 1))
-        X_WO[:, :3, :3] = Rz @ corners.R_WO0[c]
-        rot_v = np.einsum("nij,nj->ni", Rz, v)
-        X_WO[:, 0, 3] = P[ji, 0] - rot_v[:, 0]
-        X_WO[:, 1, 3] = P[ji, 1] - rot_v[:, 1]
-        X_WO[:, 2, 3] = table_z + corners.lift_m[c]
-        models.append(corners.model[c])
-        poses.append(X_WO)
-        pairs.append(np.column_stack([a[ji], b[ji]]))
+        # The second edge's image direction leaving the junction: d/ds of P + s·d projected,
+        # d = Rz(ψ)·e, which is cos ψ·A + sin ψ·B + C in the camera's frame.
+        e = corners.second[sel]
+        A = np.column_stack([e[:, 0], e[:, 1], np.zeros(len(e))]) @ R_CW.T
+        B = np.column_stack([-e[:, 1], e[:, 0], np.zeros(len(e))]) @ R_CW.T
+        C = e[:, 2:3] * R_CW[:, 2]
+        P_C = P @ R_CW.T + t_CW
+        for psi, far, first, other in ((psi_a, far_b, a, b), (psi_b, far_a, b, a)):
+            seen = far - X
+            yaw = psi[:, None] - corners.heading[sel][None, :]  # (n, m)
+            cs, sn = np.cos(yaw), np.sin(yaw)
+            d_C = [cs * A[:, k] + sn * B[:, k] + C[:, k] for k in range(3)]
+            # Times z² > 0: the direction, not the length, is compared.
+            dx = d_C[0] * P_C[:, 2:3] - P_C[:, 0:1] * d_C[2]
+            dy = d_C[1] * P_C[:, 2:3] - P_C[:, 1:2] * d_C[2]
+            du = K[0, 0] * dx + K[0, 1] * dy
+            dv = K[1, 1] * dy
+            along = du * seen[:, 0:1] + dv * seen[:, 1:2]
+            size = np.hypot(du, dv) * np.linalg.norm(seen, axis=1, keepdims=True)
+            agree = (along > cos_tol * size) & (size > 0) & ok[:, None] & (P_C[:, 2:3] > 0)
+            ji, ck = np.nonzero(agree)
+            if len(ji):
+                add(sel[ck], yaw[ji, ck], P[ji], np.column_stack([first[ji], other[ji]]))
     if not models:
         return np.zeros(0, int), np.zeros((0, 4, 4)), np.zeros((0, 2), int)
     return np.concatenate(models), np.concatenate(poses), np.vstack(pairs)
