@@ -180,3 +180,39 @@ def test_coarse_to_fine_support_is_exact_where_it_samples_in_full(setup) -> None
     assert 10 < in_full.sum() < len(poses) - 10
     np.testing.assert_array_equal(staged[in_full], full[in_full])
     assert np.all(staged[~in_full] < 0.3)
+
+
+def test_the_table_stream_counts_each_pose_once_against_its_cap(setup) -> None:
+    """Every corner of a cube seen gives its pose again: with a cap of 3, the stream holds 3
+    different poses, the cube's true one first."""
+    import cv2
+
+    from work_site.vision.hypotheses import table_stream
+    from work_site.vision.index import GroupParams
+    from work_site.vision.params import RecognizerParams
+    from work_site.vision.pose_sets import PoseSet
+
+    camera, models, corners = setup
+    m = models[0]
+    X_CO = invert_pose(camera.X_WC) @ make_pose(_rot_z(0.3), [0.45, 0.0, 0.025])
+    img = np.zeros((camera.height, camera.width), np.uint8)
+    segs = project(transform(X_CO, m.edges_O), camera.K)
+    for a, b in segs:
+        cv2.line(img, tuple(np.round(a).astype(int)), tuple(np.round(b).astype(int)), 255, 1)
+    f = img.astype(np.float32)
+    gx, gy = cv2.Scharr(f, cv2.CV_32F, 1, 0), cv2.Scharr(f, cv2.CV_32F, 0, 1)
+    p = RecognizerParams(max_table_hypotheses=3)
+    items = table_stream(
+        corners, models, GroupParams(), 0.0, segs.reshape(-1, 4), camera.K, camera.X_WC,
+        gx, gy, p,
+    )  # fmt: skip
+    assert len(items) == 3
+    same = PoseSet(p.same_pose_m, p.same_pose_rad)
+    for model, _, X in items:
+        assert not same.seen(model, X)
+        same.add(model, X)
+    model, _, X = items[0]
+    assert model is m
+    R = X[:3, :3].T @ X_CO[:3, :3]
+    assert np.linalg.norm(X[:3, 3] - X_CO[:3, 3]) < 1e-3
+    assert min(np.linalg.norm(R @ S - np.eye(3)) for S in m.symmetries) < 1e-2

@@ -202,7 +202,7 @@ def table_stream(
     junctions: list | None = None,
 ) -> list[tuple]:
     """Table hypotheses ``(model, junction's two segments, X_CO)``, best supported first,
-    only those with enough cheap support (see :mod:`work_site.vision.table`)."""
+    only those with enough cheap support (see :mod:`work_site.vision.table`), each pose once."""
     p = params
     if not p.table_hypotheses:
         return []
@@ -223,13 +223,25 @@ def table_stream(
         )  # fmt: skip
     order = np.argsort(-score, kind="stable")
     order = order[score[order] >= p.quick_support_min]
-    # Many junctions of one block give the same pose: count each pose once against the cap.
-    new = np.zeros(len(order), dtype=bool)
+    # Many junctions of one block give the same pose: count each pose once against the cap,
+    # looking at the best supported a cap's worth at a time.
+    cap = p.max_table_hypotheses
+    if cap < 1:
+        return []
     same = PoseSet(p.same_pose_m, p.same_pose_rad)
-    for mi, m in enumerate(models):
-        of_m = np.flatnonzero(mod[order] == mi)
-        new[of_m] = same.add_new(m, X_CO[order[of_m]])
-    order = order[new][: p.max_table_hypotheses]
+    kept: list[np.ndarray] = []
+    n_kept = 0
+    for start in range(0, len(order), cap):
+        chunk = order[start : start + cap]
+        new = np.zeros(len(chunk), dtype=bool)
+        for mi in np.unique(mod[chunk]):
+            of_m = np.flatnonzero(mod[chunk] == mi)
+            new[of_m] = same.add_new(models[int(mi)], X_CO[chunk[of_m]])
+        kept.append(chunk[new])
+        n_kept += int(new.sum())
+        if n_kept >= cap:
+            break
+    order = np.concatenate(kept)[:cap] if kept else order
     return [(models[int(mod[i])], pairs[i], X_CO[i]) for i in order]
 
 
