@@ -26,6 +26,18 @@ def setup():
     return scene.camera, models, corners
 
 
+def _rotation_error_at(poses: np.ndarray, X_WO: np.ndarray, model) -> float:
+    """The least rotation error (Frobenius, up to ``model``'s symmetries) of those ``poses``
+    at ``X_WO``'s position; inf when none is there."""
+    best = np.inf
+    for X in poses:
+        if np.linalg.norm(X[:3, 3] - X_WO[:3, 3]) > 1e-6:
+            continue
+        R = X[:3, :3].T @ X_WO[:3, :3]
+        best = min(best, min(np.linalg.norm(R @ S - np.eye(3)) for S in model.symmetries))
+    return best
+
+
 def _rot_z(yaw: float) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -84,13 +96,7 @@ def test_a_junction_of_two_exact_top_edges_gives_the_pose(setup, mi) -> None:
     junctions = [(0, ends[0], 1, ends[1], uv_c)]
     mod, poses, pairs = table_hypotheses(corners, junctions, segs, camera.K, camera.X_WC, 0.0)
     assert len(mod) > 0 and np.all(pairs == [0, 1])
-    best = np.inf
-    for X in poses[mod == mi]:
-        if np.linalg.norm(X[:3, 3] - X_WO[:3, 3]) > 1e-6:
-            continue
-        R = X[:3, :3].T @ X_WO[:3, :3]
-        best = min(best, min(np.linalg.norm(R @ S - np.eye(3)) for S in m.symmetries))
-    assert best < 1e-6
+    assert _rotation_error_at(poses[mod == mi], X_WO, m) < 1e-6
 
 
 @pytest.mark.parametrize("mi", [0, 1, 2, 3])
@@ -122,13 +128,7 @@ def test_a_junction_of_a_top_edge_and_a_sloping_or_upright_edge_gives_the_pose(s
             s2 = segs[list(order)]
             junctions = [(0, 0, 1, 0, uv_c)]
             mod, poses, _ = table_hypotheses(corners, junctions, s2, camera.K, camera.X_WC, 0.0)
-            best = np.inf
-            for X in poses[mod == mi]:
-                if np.linalg.norm(X[:3, 3] - X_WO[:3, 3]) > 1e-6:
-                    continue
-                R = X[:3, :3].T @ X_WO[:3, :3]
-                best = min(best, min(np.linalg.norm(R @ S - np.eye(3)) for S in m.symmetries))
-            assert best < 1e-6, (k, order)
+            assert _rotation_error_at(poses[mod == mi], X_WO, m) < 1e-6, (k, order)
 
 
 def test_batch_support_prefers_the_true_pose(setup) -> None:
