@@ -38,6 +38,19 @@ def _rotation_error_at(poses: np.ndarray, X_WO: np.ndarray, model) -> float:
     return best
 
 
+def _drawn_edges(camera, model, X_CO: np.ndarray):
+    """Every edge of ``model`` at ``X_CO`` projected (e, 2, 2) px, drawn one pixel wide into
+    a black image, and that image's gradients (gx, gy)."""
+    import cv2
+
+    img = np.zeros((camera.height, camera.width), np.uint8)
+    uv = project(transform(X_CO, model.edges_O), camera.K)
+    for a, b in uv:
+        cv2.line(img, tuple(np.round(a).astype(int)), tuple(np.round(b).astype(int)), 255, 1)
+    f = img.astype(np.float32)
+    return uv, cv2.Scharr(f, cv2.CV_32F, 1, 0), cv2.Scharr(f, cv2.CV_32F, 0, 1)
+
+
 def _rot_z(yaw: float) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -133,18 +146,12 @@ def test_a_junction_of_a_top_edge_and_a_sloping_or_upright_edge_gives_the_pose(s
 
 def test_batch_support_prefers_the_true_pose(setup) -> None:
     camera, models, _ = setup
-    import cv2
 
     m = models[0]
     X_WO = make_pose(_rot_z(0.3), [0.45, 0.0, 0.025])
     X_CO = invert_pose(camera.X_WC) @ X_WO
     # Draw the cube's visible outline and inner edges into an image, then take gradients.
-    img = np.zeros((camera.height, camera.width), np.uint8)
-    uv = project(transform(X_CO, m.edges_O), camera.K)
-    for a, b in uv:
-        cv2.line(img, tuple(np.round(a).astype(int)), tuple(np.round(b).astype(int)), 255, 1)
-    f = img.astype(np.float32)
-    gx, gy = cv2.Scharr(f, cv2.CV_32F, 1, 0), cv2.Scharr(f, cv2.CV_32F, 0, 1)
+    _, gx, gy = _drawn_edges(camera, m, X_CO)
     shifted = X_CO.copy()
     shifted[0, 3] += 0.02
     s = batch_support(m, m.edge_faces, np.array([X_CO, shifted]), camera.K, gx, gy, 60.0, 0.35)
@@ -155,18 +162,12 @@ def test_coarse_to_fine_support_is_exact_where_it_samples_in_full(setup) -> None
     """With ``coarse_min``, poses whose support at 2 of 6 points per edge reaches it get exactly
     the full support; the others get that coarse support, below ``coarse_min``."""
     camera, models, _ = setup
-    import cv2
 
     m = models[1]
     rng = np.random.default_rng(21)
     X_WO = make_pose(_rot_z(0.7), [0.40, 0.05, 0.0125])
     X_CO = invert_pose(camera.X_WC) @ X_WO
-    img = np.zeros((camera.height, camera.width), np.uint8)
-    uv = project(transform(X_CO, m.edges_O), camera.K)
-    for a, b in uv:
-        cv2.line(img, tuple(np.round(a).astype(int)), tuple(np.round(b).astype(int)), 255, 1)
-    f = img.astype(np.float32)
-    gx, gy = cv2.Scharr(f, cv2.CV_32F, 1, 0), cv2.Scharr(f, cv2.CV_32F, 0, 1)
+    _, gx, gy = _drawn_edges(camera, m, X_CO)
     poses = []
     for _ in range(300):  # from the true pose to far off, so both branches are taken
         X = X_CO.copy()
@@ -185,7 +186,6 @@ def test_coarse_to_fine_support_is_exact_where_it_samples_in_full(setup) -> None
 def test_the_table_stream_counts_each_pose_once_against_its_cap(setup) -> None:
     """Every corner of a cube seen gives its pose again: with a cap of 3, the stream holds 3
     different poses, the cube's true one first."""
-    import cv2
 
     from work_site.vision.hypotheses import table_stream
     from work_site.vision.index import GroupParams
@@ -195,12 +195,7 @@ def test_the_table_stream_counts_each_pose_once_against_its_cap(setup) -> None:
     camera, models, corners = setup
     m = models[0]
     X_CO = invert_pose(camera.X_WC) @ make_pose(_rot_z(0.3), [0.45, 0.0, 0.025])
-    img = np.zeros((camera.height, camera.width), np.uint8)
-    segs = project(transform(X_CO, m.edges_O), camera.K)
-    for a, b in segs:
-        cv2.line(img, tuple(np.round(a).astype(int)), tuple(np.round(b).astype(int)), 255, 1)
-    f = img.astype(np.float32)
-    gx, gy = cv2.Scharr(f, cv2.CV_32F, 1, 0), cv2.Scharr(f, cv2.CV_32F, 0, 1)
+    segs, gx, gy = _drawn_edges(camera, m, X_CO)
     p = RecognizerParams(max_table_hypotheses=3)
     items = table_stream(
         corners, models, GroupParams(), 0.0, segs.reshape(-1, 4), camera.K, camera.X_WC,
