@@ -62,6 +62,7 @@ def send(server: WorkSiteServer, program: MotionProgram) -> list[tuple]:
     before = len(server._pub_report.reports)
     server._take_program(program)
     server._start_ready()
+    assert server._journal.sync(10.0)  # reports go out once they are on file
     return [
         (r.program_id, r.command_index, r.status, r.message)
         for r in server._pub_report.reports[before:]
@@ -79,6 +80,7 @@ def test_an_id_resent_after_10000_others_never_runs(tmp_path, world, monkeypatch
         server._execution.stop("done with it")
         server._release_finished()
         server._execution = None
+        assert server._journal.sync(10.0)  # its "stopped" sent before the next program's
         unsafe = MotionCommand(
             kind="move", X_WP=np.eye(4), speed_mps=0.05, force_limit_n=10.0, contacts=()
         )
@@ -187,3 +189,25 @@ def test_a_program_named_as_the_work_sites_own_answers_is_refused(
         assert [r[2] for r in send(server, one_move_program("fine"))] == ["accepted"]
     finally:
         server._journal.close()
+
+
+def test_a_report_is_sent_only_once_it_is_on_file(tmp_path) -> None:
+    """A work site killed after sending a report must find it in its journal on restart (else
+    it could run a program it said it had received): each report's sending waits for its line."""
+    path = tmp_path / "programs.jsonl"
+    writer = journal.JournalWriter(path)
+    lines_when_sent: list[int] = []
+    for seq in range(3):
+        payload = encode(
+            ExecutionReport(
+                program_id="p", command_index=-1, status="accepted", wrench_S=np.zeros(6),
+                message="", stamp_s=0.0, seq=seq,
+            )
+        )  # fmt: skip
+        writer.append(
+            "p", payload, lambda: lines_when_sent.append(len(path.read_text().splitlines()))
+        )
+    assert writer.sync(10.0)
+    writer.close()
+    assert len(lines_when_sent) == 3
+    assert all(n >= k + 1 for k, n in enumerate(lines_when_sent)), lines_when_sent

@@ -34,11 +34,13 @@ def run_until(server, done) -> None:
     for _ in range(MOVE_TICKS_MAX):
         server._control_tick()
         if done():
+            assert server._journal.sync(10.0)  # its reports sent, as they go once on file
             return
     raise AssertionError("the program did not get there")
 
 
 def reports_of(server, pid: str) -> list[tuple]:
+    assert server._journal.sync(10.0)  # reports go out once they are on file
     return [
         (r.command_index, r.status, r.message)
         for r in server._pub_report.reports

@@ -157,10 +157,13 @@ programs' reports."""
 
 class JournalWriter:
     """Appends :func:`journal_line`s to ``path`` on its own thread; :meth:`append` never
-    blocks. Past ``compact_after_lines`` report lines (default :data:`COMPACT_AFTER_LINES`) it
-    rewrites the file from ``ids`` (the work site's append-only list of ids received) and
-    ``snapshot``, taken with ``lock`` held:
-    the lock under which the work site appends, so that the rewrite holds every report queued
+    blocks. Each line's ``then`` (the report's sending) is called once the line is written
+    and flushed to the operating system, where a crash of the work site cannot lose it: a
+    report the operators saw is one a restarted work site knows (a program it said it
+    received is never run again). Past ``compact_after_lines`` report lines (default
+    :data:`COMPACT_AFTER_LINES`) it rewrites the file from ``ids`` (the work site's append-only
+    list of ids received) and ``snapshot``, taken with ``lock`` held: the lock under which the
+    work site appends, so that the rewrite holds every report queued
     so far exactly once. :meth:`close` writes what is queued and closes the file."""
 
     def __init__(
@@ -178,49 +181,76 @@ class JournalWriter:
         self._compact_after = compact_after_lines or COMPACT_AFTER_LINES
         self.rewrites = 0
         self._file = path.open("a")
-        self._queue: queue.SimpleQueue[str | None] = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[tuple[str, Callable[[], None] | None] | None] = (
+            queue.SimpleQueue()
+        )
         self._thread = threading.Thread(target=self._run, name="journal", daemon=True)
         self._thread.start()
 
-    def append(self, program_id: str, payload: bytes) -> None:
-        self._queue.put(journal_line(program_id, payload))
+    def append(
+        self, program_id: str, payload: bytes, then: Callable[[], None] | None = None
+    ) -> None:
+        """Journal report ``payload`` of ``program_id``; ``then`` once it is on file."""
+        self._queue.put((journal_line(program_id, payload), then))
+
+    def sync(self, timeout_s: float) -> bool:
+        """Wait (at most ``timeout_s``) until everything appended so far is on file and sent
+        on; whether it is."""
+        done = threading.Event()
+        self._queue.put(("", done.set))
+        return done.wait(timeout_s)
 
     def _run(self) -> None:
         closing = False
         while not closing:
-            lines = [self._queue.get()]
+            items = [self._queue.get()]
             for _ in range(WRITE_BATCH - 1):  # whatever else is queued, in one flush
                 try:
-                    lines.append(self._queue.get_nowait())
+                    items.append(self._queue.get_nowait())
                 except queue.Empty:
                     break
-            if None in lines:
+            if None in items:
                 closing = True
-                lines = [line for line in lines if line is not None]
+            entries = [item for item in items if item is not None]
             try:
-                self._file.writelines(lines)
+                self._file.writelines(line for line, _ in entries)
                 self._file.flush()
-                self._lines += len(lines)
-                if self._lines > self._compact_after and self._snapshot is not None:
-                    closing = self._compact() or closing
+                self._lines += sum(1 for line, _ in entries if line)  # "": a sync
             except OSError:
+                # Not journaled: the reports still go out (holding them would hide the
+                # robot's state from the operators); the log says why a restart may not know.
                 log.exception("could not write the program journal %s", self.path)
+            _call_each(then for _, then in entries)
+            if self._lines > self._compact_after and self._snapshot is not None:
+                try:
+                    closing = self._compact() or closing
+                except OSError:
+                    log.exception("could not rewrite the program journal %s", self.path)
 
     def _compact(self) -> bool:
         """Rewrite the file from a snapshot; whether a close was queued meanwhile."""
         closing = False
+        dropped: list[Callable[[], None] | None] = []
         with self._lock:
-            # Everything queued now is in the snapshot: drop it rather than write it twice.
+            # Everything queued now is in the snapshot: drop it rather than write it twice
+            # (its reports are sent once the rewrite holds them).
             for _ in range(self._queue.qsize() + 1):
                 try:
-                    closing = self._queue.get_nowait() is None or closing
+                    item = self._queue.get_nowait()
                 except queue.Empty:
                     break
+                if item is None:
+                    closing = True
+                else:
+                    dropped.append(item[1])
             n_ids, reports = self._snapshot()
         ids = self._ids[:n_ids]  # append-only: its prefix is stable without the lock
-        self._file.close()
-        write_journal(self.path, ids, reports)
-        self._file = self.path.open("a")
+        try:
+            self._file.close()
+            write_journal(self.path, ids, reports)
+            self._file = self.path.open("a")
+        finally:
+            _call_each(dropped)
         self._lines = sum(len(p) for _, p in reports)
         self.rewrites += 1
         log.info("program journal compacted: %d ids, %d programs' reports", len(ids), len(reports))
@@ -231,3 +261,14 @@ class JournalWriter:
             self._queue.put(None)
             self._thread.join()
         self._file.close()
+
+
+def _call_each(callbacks: Iterable[Callable[[], None] | None]) -> None:
+    """Call each callback given, in order; one that raises is logged and the rest still run."""
+    for then in callbacks:
+        if then is None:
+            continue
+        try:
+            then()
+        except Exception:
+            log.exception("a journaled report could not be sent")

@@ -18,6 +18,7 @@ import math
 import sys
 import threading
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +57,7 @@ from work_site.intake import (
 from work_site.journal import JournalWriter, journal_line, load_journal
 from work_site.lease import ControlLease
 from work_site.options import DEADMAN_RANGE_S, ServerOptions
-from work_site.outbox import Outbox
+from work_site.outbox import CLOSE_DRAIN_S, Outbox
 from work_site.pacing import StreamPacer, jpeg_quality
 from work_site.recognition import VisionProcess
 from work_site.vision.fusion import PoseFusion
@@ -293,6 +294,8 @@ class WorkSiteServer(ProgramIntake):
         finally:
             checking_done.set()
             checker.join()
+            if self._journal is not None:  # its reports go out once on file
+                self._journal.sync(CLOSE_DRAIN_S)
             self._pub_report.close()
             inbox_program.undeclare()
             inbox_stop.undeclare()
@@ -567,9 +570,11 @@ class WorkSiteServer(ProgramIntake):
             )
             if program_id in self._reports:
                 self._reports[program_id].append(payload)
-                if self._journal is not None:
-                    self._journal.append(program_id, payload)
-            self._pub_report.put(payload)
+            if program_id in self._reports and self._journal is not None:
+                # Sent once on file: a restart then knows every report the operators saw.
+                self._journal.append(program_id, payload, partial(self._pub_report.put, payload))
+            else:
+                self._pub_report.put(payload)
         log.info("program %s command %d: %s %s", program_id, command_index, status, message)
 
     def _handle_stops(self, stops: list[Stop]) -> None:
