@@ -211,3 +211,16 @@ def test_a_report_is_sent_only_once_it_is_on_file(tmp_path) -> None:
     writer.close()
     assert len(lines_when_sent) == 3
     assert all(n >= k + 1 for k, n in enumerate(lines_when_sent)), lines_when_sent
+
+
+def test_reports_still_go_out_when_the_journal_cannot_be_written(tmp_path) -> None:
+    """A journal that fails (its file closed under it, as after a failed rewrite) logs why and
+    still sends each report: the operators must keep seeing the robot's state."""
+    writer = journal.JournalWriter(tmp_path / "programs.jsonl")
+    writer._file.close()
+    sent: list[int] = []
+    writer.append("p", b"\x00", lambda: sent.append(1))
+    assert writer.sync(10.0)
+    assert sent == [1]
+    writer._queue.put(None)
+    writer._thread.join()

@@ -216,7 +216,7 @@ class JournalWriter:
                 self._file.writelines(line for line, _ in entries)
                 self._file.flush()
                 self._lines += sum(1 for line, _ in entries if line)  # "": a sync
-            except OSError:
+            except (OSError, ValueError):  # ValueError: the file closed by a failed rewrite
                 # Not journaled: the reports still go out (holding them would hide the
                 # robot's state from the operators); the log says why a restart may not know.
                 log.exception("could not write the program journal %s", self.path)
@@ -248,9 +248,9 @@ class JournalWriter:
         try:
             self._file.close()
             write_journal(self.path, ids, reports)
-            self._file = self.path.open("a")
         finally:
             _call_each(dropped)
+            self._file = self.path.open("a")
         self._lines = sum(len(p) for _, p in reports)
         self.rewrites += 1
         log.info("program journal compacted: %d ids, %d programs' reports", len(ids), len(reports))
