@@ -222,5 +222,4 @@ def test_reports_still_go_out_when_the_journal_cannot_be_written(tmp_path) -> No
     writer.append("p", b"\x00", lambda: sent.append(1))
     assert writer.sync(10.0)
     assert sent == [1]
-    writer._queue.put(None)
-    writer._thread.join()
+    writer.close()

@@ -568,9 +568,10 @@ class WorkSiteServer(ProgramIntake):
                     seq=len(self._reports.get(program_id, ())),
                 )
             )
-            if program_id in self._reports:
-                self._reports[program_id].append(payload)
-            if program_id in self._reports and self._journal is not None:
+            remembered = self._reports.get(program_id)
+            if remembered is not None:
+                remembered.append(payload)
+            if remembered is not None and self._journal is not None:
                 # Sent once on file: a restart then knows every report the operators saw.
                 self._journal.append(program_id, payload, partial(self._pub_report.put, payload))
             else:
