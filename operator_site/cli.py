@@ -12,6 +12,7 @@ operator-site recover resume --program program.msgpack         # go on after a s
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import re
 import signal
@@ -594,4 +595,7 @@ def run_task_file(args: argparse.Namespace) -> int:
 
 def run() -> None:
     """Console-script entry point."""
+    # `kill -USR1 <pid>` prints every thread's stack to stderr: what a site that does not stop
+    # or answer is doing, without a debugger.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     sys.exit(main(sys.argv[1:]))

@@ -133,11 +133,14 @@ class HeartbeatProcess:
             return None
         self._starts += 1
         try:
+            # A process group of its own: a Ctrl-C in the terminal never reaches it, not even
+            # while it imports (before it can ignore SIGINT); the parent's end ends it.
             proc = subprocess.Popen(
                 [sys.executable, "-m", "operator_site.heartbeats"],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 text=True,
+                start_new_session=True,
             )
             proc.stdin.write(self._setup + "\n")
             proc.stdin.flush()
@@ -199,13 +202,13 @@ def _serve(setup: dict, stdin) -> int:
         parent_gone.set()
 
     threading.Thread(target=listen, name="parent", daemon=True).start()
-    deadline_s = time.monotonic() + SEE_WORK_SITE_S
-    while not work_site.drain(seen) and time.monotonic() < deadline_s:
-        if parent_gone.wait(0.01):
-            break
-    print("ready", flush=True)
-    seq, frozen_said = SEQ_OFFSET, False
-    try:
+    try:  # the session closed on every way out: one left to the finalizers can hang the exit
+        deadline_s = time.monotonic() + SEE_WORK_SITE_S
+        while not work_site.drain(seen) and time.monotonic() < deadline_s:
+            if parent_gone.wait(0.01):
+                return 0  # no one to say "ready" to
+        print("ready", flush=True)
+        seq, frozen_said = SEQ_OFFSET, False
         while not parent_gone.wait(HEARTBEAT_PERIOD_S):
             work_site.drain(seen)
             if work_site.lost:
@@ -233,8 +236,8 @@ def _serve(setup: dict, stdin) -> int:
 
 
 def main() -> int:
-    # A Ctrl-C in the terminal reaches the whole process group: the parent decides, and its
-    # end (the pipe's end of file) is what ends this process.
+    # The parent decides, and its end (the pipe's end of file) is what ends this process: a
+    # SIGINT sent to it (started by hand in a terminal) is ignored.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s heartbeats %(message)s")
     first = sys.stdin.readline()

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import signal
 import subprocess
+import tempfile
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -19,12 +23,50 @@ from protocol.session import free_port_pair
 
 REPO = Path(__file__).resolve().parents[1]
 
+# Work sites started by the tests keep their program journals (``work_site.cli.default_journal``)
+# here, not in the user's state directory: two runs of the suite, or a test and a demo, never
+# share a site's journal and the ids it remembers.
+_STATE_HOME = tempfile.TemporaryDirectory(prefix="telerobot-tests-state-")
+os.environ["XDG_STATE_HOME"] = _STATE_HOME.name
+
 FAST_TIER = os.environ.get("TELEROBOT_TESTS") == "fast"
 """``make test-fast`` sets ``TELEROBOT_TESTS=fast``: property tests then draw a tenth of their
 examples (:func:`examples`), for a quick look; ``make test`` draws them all."""
 EXTREMES_TIER = os.environ.get("TELEROBOT_TESTS") == "extremes"
 """``make test-extremes`` sets ``TELEROBOT_TESTS=extremes``: property tests draw 25 times their
 examples (5,000 for the 200 of the extremes tests), a nightly-sized run."""
+
+
+def stop_like_ctrl_c(
+    proc: subprocess.Popen, timeout_s: float = 30.0, log_path: Path | None = None
+) -> tuple[str, str]:
+    """SIGINT to ``proc``'s process group (what Ctrl-C in its terminal does; it was started
+    with ``start_new_session``) and wait for it to end; its (stdout, stderr) where they were
+    pipes ("" where not). One that lingers past ``timeout_s`` is asked for its threads' stacks
+    (SIGUSR1: the sites' faulthandler), killed, and fails the test with what it printed (the
+    end of ``log_path`` if its output went there)."""
+    os.killpg(proc.pid, signal.SIGINT)
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGUSR1)
+            time.sleep(STACK_DUMP_WAIT_S)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        logged = "" if log_path is None else log_path.read_text()[-LOG_TAIL_CHARS:]
+        pytest.fail(
+            f"{proc.args} did not end within {timeout_s} s of SIGINT; it printed (its stacks "
+            f"last):\n{out or ''}\n{err or ''}\n{logged}"
+        )
+    return out or "", err or ""
+
+
+STACK_DUMP_WAIT_S = 1.0
+"""How long a process that did not stop is given to print its stacks before it is killed."""
+LOG_TAIL_CHARS = 6000
+"""How much of a process's log a failing test shows."""
 
 
 def examples(n: int) -> int:

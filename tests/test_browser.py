@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from bench.ui import CHROMIUM, chromium_flags
-from tests.conftest import REPO, free_port, wait_until
+from tests.conftest import LOG_TAIL_CHARS, REPO, free_port, stop_like_ctrl_c, wait_until
 
 pytestmark = [pytest.mark.browser, pytest.mark.integration]
 
@@ -113,11 +112,10 @@ def test_page_shows_scene_camera_and_connected_status(tmp_path: Path) -> None:
                 assert page.get_by_role("button", name="STOP the robot").is_visible()
             finally:
                 browser.close()
+    except BaseException:
+        # What the two sites said is what explains a page that never got there.
+        print(f"--- {log_path} ---\n{log_path.read_text()[-LOG_TAIL_CHARS:]}")
+        raise
     finally:
-        os.killpg(proc.pid, signal.SIGINT)
-        try:
-            proc.wait(timeout=30)
-        finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
+        stop_like_ctrl_c(proc, log_path=log_path)
     assert "work site stopped (exit code 0)" in log_path.read_text()

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -14,7 +13,7 @@ import pytest
 
 from operator_site.link import WorkSiteLink
 from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, make_config
-from tests.conftest import REPO, free_port, wait_until
+from tests.conftest import REPO, free_port, stop_like_ctrl_c, wait_until
 
 pytestmark = pytest.mark.integration  # starts the CLIs as processes
 
@@ -111,12 +110,7 @@ def test_make_demo_serves_the_page_and_ctrl_c_stops_both(tmp_path: Path) -> None
     finally:
         if link is not None:
             link.close()
-        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in the terminal does
-        try:
-            proc.wait(timeout=30)
-        finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
+        stop_like_ctrl_c(proc, log_path=log_path)
     text = log_path.read_text()
     assert "work site stopped (exit code 0)" in text, text
     time.sleep(0.5)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import re
-import signal
 import subprocess
 import sys
 import time
@@ -21,7 +20,7 @@ from operator_site.link import WorkSiteLink
 from operator_site.ui import OperatorPage
 from operator_site.ui.access import PageAccess, is_loopback_host, new_token, page_url
 from protocol import Stop, decode, key, make_config
-from tests.conftest import REPO, free_port, wait_until
+from tests.conftest import REPO, free_port, stop_like_ctrl_c, wait_until
 
 TOKEN = "correct-horse-battery"
 MINE = "mine-0123456789ab"
@@ -211,8 +210,7 @@ def test_serve_beyond_loopback_prints_a_url_with_a_new_token() -> None:
         m = re.search(rf":{port}/\?websocket=ws://\S+:{port}/\?token=([\w-]+) ", line)
         assert m is not None and len(m.group(1)) >= 32, line
     finally:
-        os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=30)
+        _, err = stop_like_ctrl_c(proc)
     assert "warning" in err and "plain HTTP" in err
 
 

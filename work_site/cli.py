@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import faulthandler
 import logging
 import os
 import signal
@@ -392,4 +393,7 @@ def main(argv: list[str]) -> int:
 
 def run() -> None:
     """Console-script entry point."""
+    # `kill -USR1 <pid>` prints every thread's stack to stderr: what a site that does not stop
+    # or answer is doing, without a debugger.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     sys.exit(main(sys.argv[1:]))
