@@ -11,8 +11,11 @@ import pytest
 from bench.vision_dataset import SceneRenderer
 from bench.vision_evaluate import score_scene
 from models.scene import load_scene
-from models.transforms import make_pose
+from models.transforms import invert_pose, make_pose
+from work_site.vision.model import Occluders, planes_in, transform
+from work_site.vision.pose_sets import Candidate, _verified_among
 from work_site.vision.recognizer import Recognizer
+from work_site.vision.verification import verify
 
 N_SCENES = 6
 
@@ -190,3 +193,39 @@ def test_the_arm_in_view_is_set_aside_when_vision_knows_its_joints(recognizer) -
     assert [r.model for r in found] == ["cube"], [(r.model, r.score) for r in found]
     with pytest.raises(ValueError, match="6 finite angles"):
         recognizer.recognize(image, camera, np.zeros(5))
+
+
+def test_the_selection_reuses_a_verification_only_where_nothing_changed(recognizer, scenes):
+    """A candidate's own verification stands in the selection when no other candidate can
+    hide it and the lines are the same; otherwise it is verified again, as it would be."""
+    data, _, camera = scenes
+    image, _ = data[0]
+    found = recognizer.recognize(image, camera)
+    assert found
+    f = recognizer._frame(image, camera)
+    p = recognizer.params
+    model = next(m for m in recognizer.models if m.name == found[0].model)
+    X_CO = invert_pose(f.X_WC) @ found[0].X_WO
+    v = verify(model, X_CO, f.K, f.strong, f.gx, f.gy, f.occluders_C, p)
+    c = Candidate(model, X_CO, found[0].X_WO, 0.0, v, [], None, True, f.strong)
+
+    def fresh(segs, others):
+        return verify(model, X_CO, f.K, segs, f.gx, f.gy, f.occluders_C + others, p)
+
+    far = Occluders.joined([])
+    assert _verified_among(c, f.strong.copy(), f.K, f.gx, f.gy, f.occluders_C, far, p) is v
+    assert fresh(f.strong, far) == v
+    # The same block moved halfway towards the camera covers it: verified again.
+    X_near = X_CO.copy()
+    X_near[:3, 3] *= 0.5
+    cover = Occluders.of_parts(
+        [transform(X_near, V) for V in model.parts_vertices_O],
+        [planes_in(X_near, P) for P in model.planes_O],
+        f.K,
+    )
+    again = _verified_among(c, f.strong, f.K, f.gx, f.gy, f.occluders_C, cover, p)
+    assert again is not v and again == fresh(f.strong, cover)
+    assert again.length_fraction < v.length_fraction
+    # More lines (the faint pass's): verified again.
+    more = np.vstack([f.strong, f.strong[:1] + 0.5])
+    assert _verified_among(c, more, f.K, f.gx, f.gy, f.occluders_C, far, p) is not v

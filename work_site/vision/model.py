@@ -142,10 +142,19 @@ class Occluders:
                 boxes[k] = [*uv.min(0), *uv.max(0)]
         return Occluders(list(planes_C), boxes)
 
-    def __add__(self, other: list[np.ndarray]) -> Occluders:
-        """These and more parts whose images are not known."""
+    def __add__(self, other: list[np.ndarray] | Occluders) -> Occluders:
+        """These and more parts: ``other``'s, or parts whose images are not known."""
+        if isinstance(other, Occluders):
+            return Occluders(self.planes + other.planes, np.vstack([self.boxes_px, other.boxes_px]))
         extra = np.tile([-np.inf, -np.inf, np.inf, np.inf], (len(other), 1))
         return Occluders(self.planes + list(other), np.vstack([self.boxes_px, extra]))
+
+    @staticmethod
+    def joined(parts: list[Occluders]) -> Occluders:
+        """The parts of all of ``parts``, in order."""
+        planes = [q for o in parts for q in o.planes]
+        boxes = np.vstack([o.boxes_px for o in parts]) if parts else np.zeros((0, 4))
+        return Occluders(planes, boxes)
 
     def relevant(self, points_C: np.ndarray, K: np.ndarray) -> list[np.ndarray]:
         """The parts that may hide some point of the convex hull of ``points_C`` (n, 3): a

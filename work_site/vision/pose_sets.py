@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from work_site.vision.model import VisionModel, planes_in
+from work_site.vision.model import Occluders, VisionModel, planes_in, transform, visible_edges
 from work_site.vision.params import RecognizerParams
 from work_site.vision.verification import Surroundings, Verification, verify
 
@@ -46,6 +46,8 @@ class Candidate:
     # that object's outline (k, 2) px, a convex polygon
     resting: bool = True  # found resting on the table; if not, it must be held up by what
     # else is found (see select)
+    verified_on: np.ndarray | None = field(default=None, repr=False)  # the image lines its
+    # verification was made against, with the frame's fixed occluders alone (None: not known)
 
     @property
     def grown(self) -> bool:
@@ -192,6 +194,36 @@ def select(
     raise AssertionError("unreachable: every round bans a candidate")
 
 
+def _verified_among(
+    c: Candidate,
+    segs: np.ndarray,
+    K: np.ndarray,
+    gx: np.ndarray,
+    gy: np.ndarray,
+    occluders_C: Occluders,
+    others: Occluders,
+    params: RecognizerParams,
+) -> Verification:
+    """``c`` verified against ``segs`` with ``others`` (other candidates' parts) hiding it too.
+    Its own verification is that result when it was made against the same lines (and with no
+    grown part's test) and ``others`` hide none of the edges it weighed: it is not redone."""
+    own = c.verification
+    same_lines = (
+        c.verified_on is not None
+        and c.part_px is None
+        and own.edges_px is not None
+        and (c.verified_on is segs or np.array_equal(c.verified_on, segs))
+    )
+    edges_C = transform(c.X_CO, c.model.edges_O)
+    if same_lines and not others.relevant(edges_C.reshape(-1, 3), K):
+        return own
+    occluders = occluders_C + others
+    _, proj, _ = visible_edges(c.model, c.X_CO, K, occluders)
+    if same_lines and np.array_equal(proj, own.edges_px):
+        return own
+    return verify(c.model, c.X_CO, K, segs, gx, gy, occluders, params, proj, part_px=c.part_px)
+
+
 def _select_once(
     candidates: list[Candidate],
     segs: np.ndarray,
@@ -212,8 +244,16 @@ def _select_once(
     taken: set[int] = set()  # indices in order of the accepted
     per_model: dict[str, int] = {}
     order = sorted(candidates, key=lambda c: -c.verification.covered_px)
-    # Each candidate's parts as occluders and its matched lines, once for all the others
-    planes = [[planes_in(o.X_CO, P) for P in o.model.planes_O] for o in order]
+    # Each candidate's parts as occluders (with their images' boxes, so that each other
+    # candidate tests only those that can hide it) and its matched lines, once for all
+    parts = [
+        Occluders.of_parts(
+            [transform(o.X_CO, V) for V in o.model.parts_vertices_O],
+            [planes_in(o.X_CO, P) for P in o.model.planes_O],
+            K,
+        )
+        for o in order
+    ]
     lines = [set(o.verification.matched) for o in order]
     for i, c in enumerate(order):
         rec = c.verification
@@ -225,13 +265,14 @@ def _select_once(
         mine = lines[i]
         # Objects accepted already hide what is behind them; another candidate does so only
         # if it explains other lines (one that shares mine may be another guess at my object).
-        others = [
-            P
-            for j in range(len(order))
-            if j != i and (j in taken or mine.isdisjoint(lines[j]))
-            for P in planes[j]
-        ]
-        v = verify(c.model, c.X_CO, K, segs, gx, gy, occluders_C + others, p, part_px=c.part_px)
+        others = Occluders.joined(
+            [
+                parts[j]
+                for j in range(len(order))
+                if j != i and (j in taken or mine.isdisjoint(lines[j]))
+            ]
+        )
+        v = _verified_among(c, segs, K, gx, gy, occluders_C, others, p)
         # A bigger model grown around a smaller object found in the image must show its
         # outline clearly: a phantom part over empty table is the usual false object.
         sil_min = p.grown_min_silhouette_fraction if c.grown else p.min_silhouette_fraction

@@ -721,7 +721,9 @@ class Recognizer:
         height = 0.0 if resting else self.max_height_m
         if not self.surroundings.plausible(parts_W, [], p, max_height_m=height):
             return
-        s.candidates.append(Candidate(model, X_CO, X_WO, rms_px, v, parts_W, part_px, resting))
+        s.candidates.append(
+            Candidate(model, X_CO, X_WO, rms_px, v, parts_W, part_px, resting, f.strong)
+        )
         if v.silhouette_fraction >= p.min_silhouette_fraction:
             s.claimed[v.matched] = True  # only confident candidates block others
             if p.max_per_model == 1 and v.score >= p.confident_score:

@@ -66,6 +66,8 @@ class Verification:
     matched: list[int]
     covered_px: float
     extra_fraction: float = 1.0  # gradient agreement outside the part it was grown around
+    edges_px: np.ndarray | None = field(default=None, compare=False, repr=False)
+    """The visible projected edges it weighed (e, 4), when it was made in full."""
 
     @property
     def score(self) -> float:
@@ -222,6 +224,7 @@ def verify(
     p = params
     if proj is None:
         _, proj, _ = visible_edges(model, X_CO, K, occluders_C)
+    edges_px = proj
     h, w = gx.shape
     # Clip to the image: an edge beyond the border is unseen, not missing.
     proj = _clip_segments(proj, w, h)
@@ -272,7 +275,9 @@ def verify(
         # it can be seen at all.
         extra = _outside_convex(P.astype(np.float64), part_px, PART_MARGIN_PX)
         frac_extra = float(np.mean(good[extra])) if extra.any() else 1.0
-    return Verification(frac_len, frac_grad, frac_sil, mj.tolist(), float(covered), frac_extra)
+    return Verification(
+        frac_len, frac_grad, frac_sil, mj.tolist(), float(covered), frac_extra, edges_px
+    )
 
 
 @dataclass(frozen=True, eq=False)
