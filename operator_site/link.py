@@ -83,6 +83,13 @@ STATE_ARRIVALS = 64
 is read (0.64 s of a 100 Hz arm: a page's poll comes sooner)."""
 FRAME_ARRIVALS = 8
 """The same for camera frames (1.6 s of a 5 Hz camera)."""
+HEARTBEAT_ARRIVALS = 64
+"""Heartbeats kept between two polls, with when each arrived: the round trips the work site's
+measure, and the time ours say we held its latest, run from their arrival, so that neither
+includes this reader's poll period or a stall of its thread (a dead-man waiting for round trips
+that long would stop a cut-off robot that much later). Every operator's beats share the key
+(ours ten a second while a program runs): room for a few seconds of them between two polls,
+lest the work site's own be pushed out."""
 FINAL_STATUSES = ("done", "failed", "refused", "stopped")
 
 
@@ -236,6 +243,7 @@ class _Wire:
     sub_report: zenoh.Subscriber
     sub_recognitions: zenoh.Subscriber
     sub_heartbeat: zenoh.Subscriber
+    heartbeat_arrivals: ArrivalRing
     sub_alive: zenoh.Subscriber
     sub_sites: zenoh.Subscriber
     pub_program: zenoh.Publisher
@@ -254,6 +262,7 @@ class _Wire:
         # for a stop, the beating thread's own for a beat), and go at once.
         block = zenoh.CongestionControl.BLOCK
         state_arrivals, frame_arrivals = ArrivalRing(STATE_ARRIVALS), ArrivalRing(FRAME_ARRIVALS)
+        heartbeat_arrivals = ArrivalRing(HEARTBEAT_ARRIVALS)
         return cls(
             session=session,
             sub_state=session.declare_subscriber(key(site_id, "robot_state"), state_arrivals),
@@ -262,7 +271,8 @@ class _Wire:
             frame_arrivals=frame_arrivals,
             sub_report=session.declare_subscriber(key(site_id, "report"), ring(256)),
             sub_recognitions=session.declare_subscriber(key(site_id, "recognitions"), ring(1)),
-            sub_heartbeat=session.declare_subscriber(key(site_id, "heartbeat"), ring(4)),
+            sub_heartbeat=session.declare_subscriber(key(site_id, "heartbeat"), heartbeat_arrivals),
+            heartbeat_arrivals=heartbeat_arrivals,
             sub_alive=session.liveliness().declare_subscriber(
                 alive_key(site_id, "work_site"), ring(16), history=True
             ),
@@ -306,7 +316,7 @@ class WorkSiteLink:
         self._work_site = PeerWatch()
         self._heartbeat_seq = 0
         self._work_site_beat: tuple[float, float] | None = None
-        """The work site's latest heartbeat: its stamp (its clock) and when we read it
+        """The work site's latest heartbeat: its stamp (its clock) and when it arrived
         (monotonic s), echoed by ours."""
         self._round_trips = RoundTrips()
         self._sites: set[str] = set()
@@ -458,13 +468,13 @@ class WorkSiteLink:
         while (sample := wire.sub_recognitions.try_recv()) is not None:
             if (msg := self._decode(sample, Recognitions, "recognitions")) is not None:
                 self.recognitions = msg
-        while (sample := wire.sub_heartbeat.try_recv()) is not None:
+        for arrived_s, sample in wire.heartbeat_arrivals.drain():
             beat = self._decode(sample, Heartbeat, "heartbeat")
             if beat is not None and beat.role == "work_site" and beat.site_id == self.site_id:
                 self.status.holder = beat.operator
-                self._work_site_beat = (beat.stamp_s, now)
+                self._work_site_beat = (beat.stamp_s, arrived_s)
                 if beat.echo_operator == self.operator_id:
-                    self._round_trips.add_beat(beat, time.time())
+                    self._round_trips.add_beat(beat, time.time() - (now - arrived_s))
                     self.status.round_trip_s = self._round_trips.median_s()
         if self.status.work_site_alive:
             for pid, (payload, first_s, sent_s) in list(self._unanswered.items()):

@@ -22,7 +22,7 @@ from models.scene import load_scene
 from operator_site.heartbeats import OPERATOR_FROZEN_S
 from operator_site.link import FINAL_STATUSES, WorkSiteLink
 from protocol import make_config
-from tests.conftest import REPO, wait_until
+from tests.conftest import REPO, one_move_program, wait_until
 from work_site.control.controller import CONTROL_PERIOD_S, EASE_S
 from work_site.server import DEADMAN_ROUND_TRIPS
 
@@ -199,3 +199,35 @@ def test_a_stalled_operator_keeps_its_program_and_a_frozen_one_loses_it(work_sit
                 proc.wait()
         observer.close()
     print(f"frozen operator: stopped {frozen_for_s:.2f} s after the freeze")
+
+
+SLOW_POLL_S = 1.0
+"""How often the slow reader below reads its link (a page stalled, or polling seldom)."""
+
+
+def test_a_slow_reader_lengthens_neither_the_round_trip_nor_the_dead_man(work_site) -> None:
+    """The round trip the heartbeats measure runs from the work site's beat arriving, not from
+    when the operator's side next reads its link: one that reads once a second over loopback
+    measures loopback's round trip, and the work site's dead-man, which waits a few round trips
+    more than its timeout, does not wait for the reader's poll period."""
+    ws = work_site("--no-camera", "--deadman-s", str(DEADMAN_S))
+    observer = Observer(ws)
+    link = WorkSiteLink(make_config(connect=[ws.endpoint]), ws.site_id, heartbeat_process=False)
+    try:
+        assert wait_until(lambda: (link.poll(), link.status.work_site_alive)[1], 30)
+        link.send_program(one_move_program("slow-reader", speed_mps=0.01))
+        observer.wait_report("slow-reader", 0, "started", 60)
+        measured = []
+        for _ in range(5):
+            time.sleep(SLOW_POLL_S)
+            link.poll()
+            measured.append(link.status.round_trip_s)
+        assert None not in measured[1:], measured
+        assert max(measured[1:]) < LOOPBACK_ROUND_TRIP_S, measured
+    finally:
+        link.close()  # its beats stop: the dead-man stops the program
+    try:
+        stopped = observer.wait_report("slow-reader", -1, "stopped", 5 + 4 * DEADMAN_S)
+        check_deadman_message(stopped.message)
+    finally:
+        observer.close()
