@@ -56,9 +56,11 @@ def test_the_summary_counts_trials_failures_and_dead_man_stops_out_of_bounds() -
         *(row("stop", v, still_ms=v + 10) for v in (1.0, 2.0, 3.0)),
         row("stop", float("nan"), "no stopped report"),
         *(row("stop_flood", v, flood_hz=11_000) for v in (1.0, 60.0)),
-        row("deadman_kill", 450.0),
-        row("deadman_kill", 900.0),  # late
-        row("deadman_cut", 300.0),  # early
+        row("deadman_kill", 450.0, timeout_ms=500.0),
+        row("deadman_kill", 900.0, timeout_ms=500.0),  # late
+        # Within its work site's timeout, 0.5 s and three round trips of 10 ms:
+        row("deadman_kill", 540.0, timeout_ms=530.0),
+        row("deadman_cut", 300.0, timeout_ms=500.0),  # early
         row("check", "", state_hz_min=97.5, state_gap_ms_max=14.0, check_s=0.5),
         row("check", "", state_hz_min=99.0, state_gap_ms_max=12.0, check_s=0.7),
         row("stop_during_check", 1.5),
@@ -69,6 +71,7 @@ def test_the_summary_counts_trials_failures_and_dead_man_stops_out_of_bounds() -
     assert s["stop_still_ms_max"] == 13.0
     assert s["stop_flood_ms_max"] == 60.0 and s["flood_hz_per_key"] == 11_000
     assert (s["deadman_kill_outside_bounds"], s["deadman_cut_outside_bounds"]) == (1, 1)
-    assert s["deadman_kill_ms_max"] == 900.0 and s["deadman_kill_ms_median"] == 675.0
+    assert (s["deadman_kill_timeout_ms_max"], s["deadman_cut_timeout_ms_max"]) == (530.0, 500.0)
+    assert s["deadman_kill_ms_max"] == 900.0 and s["deadman_kill_ms_median"] == 540.0
     assert s["state_hz_min_during_check"] == 97.5 and s["state_gap_ms_max_during_check"] == 14.0
     assert s["check_trials"] == 2 and s["check_s_median"] == pytest.approx(0.6)
