@@ -214,8 +214,7 @@ def _verified_among(
         and own.edges_px is not None
         and (c.verified_on is segs or np.array_equal(c.verified_on, segs))
     )
-    edges_C = transform(c.X_CO, c.model.edges_O)
-    if same_lines and not others.relevant(edges_C.reshape(-1, 3), K):
+    if same_lines and not others.relevant(transform(c.X_CO, c.model.edges_O).reshape(-1, 3), K):
         return own
     occluders = occluders_C + others
     _, proj, _ = visible_edges(c.model, c.X_CO, K, occluders)
