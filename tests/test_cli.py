@@ -116,3 +116,29 @@ def test_make_demo_serves_the_page_and_ctrl_c_stops_both(tmp_path: Path) -> None
     time.sleep(0.5)
     assert not _port_in_use(8080) and not _port_in_use(7447)
     assert free_port()  # the loopback stack is still usable
+
+
+@pytest.mark.parametrize(
+    ("script", "said"),
+    [
+        # Ignores Ctrl-C: asked for its stacks, killed, the test failed saying so.
+        ("import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); time.sleep(60)",
+         "did not end"),
+        # Ends, but leaves a child in a session of its own holding its output (for longer than
+        # the helper waits: 1 s, its stacks' 1 s, 1 s more; then it ends by itself).
+        ("import subprocess, sys; subprocess.Popen(['sleep', '6'], start_new_session=True)",
+         "ended, but a child of its held its output open"),
+    ],
+)  # fmt: skip
+def test_a_process_that_lingers_after_ctrl_c_fails_the_test_saying_how(script, said) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    time.sleep(0.5)  # past its start
+    with pytest.raises(pytest.fail.Exception, match=said):
+        stop_like_ctrl_c(proc, timeout_s=1.0)
+    assert proc.returncode is not None
