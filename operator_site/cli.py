@@ -28,6 +28,7 @@ from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError,
 from protocol.keys import check_site_id
 from protocol.messages import NAME_PATTERN
 from protocol.session import TlsFiles, link_endpoints
+from protocol.signals import install_stop_signals
 
 WORK_SITE_STOP_TIMEOUT_S = 10.0
 
@@ -297,14 +298,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _install_stop_signals(stop: threading.Event) -> None:
-    def on_signal(signum: int, _frame: object) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-
-
 def _page_token(args: argparse.Namespace) -> str | None:
     """The page's access token from ``--token``/``--no-token`` and ``--host``; warns on stderr
     when the page is reachable from other machines."""
@@ -434,7 +427,7 @@ def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         return 2
     if stop is None:
         stop = threading.Event()
-        _install_stop_signals(stop)
+        install_stop_signals(stop, "operator-site")
     link = WorkSiteLink(config, args.site_id)
     try:
         page = OperatorPage(
@@ -464,7 +457,7 @@ def serve(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
 def demo(args: argparse.Namespace) -> int:
     """Start a work site as a child process, serve the page, stop both on Ctrl-C."""
     stop = threading.Event()
-    _install_stop_signals(stop)
+    install_stop_signals(stop, "operator-site")
     cmd = [
         sys.executable,
         "-m",

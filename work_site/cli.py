@@ -31,6 +31,7 @@ from protocol.session import (
     link_endpoints,
     operator_only_access_control,
 )
+from protocol.signals import install_stop_signals
 from work_site.control.controller import DEFAULT_SURFACE_STIFFNESS_N_PER_M
 from work_site.options import DEFAULT_CAMERA_SENSOR
 from work_site.vision import cli as vision_cli
@@ -348,13 +349,7 @@ def serve(args: argparse.Namespace) -> int:
         print(f"work-site: {e}", file=sys.stderr)
         return 2
     stop = threading.Event()
-
-    def on_signal(signum: int, _frame: object) -> None:
-        logging.getLogger("work-site").info("%s received, stopping", signal.Signals(signum).name)
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    install_stop_signals(stop, "work-site")
     print(
         f"work-site: serving site {args.site_id!r} on {', '.join(listen) or 'no listener'}"
         + (f", connecting to {', '.join(connect)}" if connect else "")
