@@ -69,6 +69,7 @@ from protocol import (
     parse_image_encoding,
 )
 from protocol.session import free_port_pair, link_endpoints, split_endpoints
+from protocol.signals import install_stop_signals
 
 REPO = Path(__file__).resolve().parents[1]
 RAW_PING, RAW_PONG, CONTROL = "bench/raw/ping", "bench/raw/pong", "bench/control"
@@ -209,9 +210,9 @@ def serve_echo(zenoh_listen: list[str], tcp_port: int) -> int:
 
         for loop in (raw_loop, stop_loop, control_loop):
             threading.Thread(target=_quietly, args=(loop,), daemon=True).start()
-        signal.signal(signal.SIGTERM, lambda *_: done.set())
+        install_stop_signals(done, "netbench")
         print("netbench: ready", flush=True)
-        # The main thread only waits (with a timeout, so that SIGTERM's handler gets to run).
+        # The main thread only waits (with a timeout, so that a signal's handler gets to run).
         while not done.wait(0.2):
             pass
         camera_stop.set()
