@@ -12,7 +12,6 @@ operator-site recover resume --program program.msgpack         # go on after a s
 from __future__ import annotations
 
 import argparse
-import faulthandler
 import logging
 import re
 import signal
@@ -28,7 +27,7 @@ from protocol import DEFAULT_SITE_ID, DEFAULT_WORK_SITE_ENDPOINT, ProtocolError,
 from protocol.keys import check_site_id
 from protocol.messages import NAME_PATTERN
 from protocol.session import TlsFiles, link_endpoints
-from protocol.signals import install_stop_signals
+from protocol.signals import dump_stacks_on_sigusr1, install_stop_signals
 
 WORK_SITE_STOP_TIMEOUT_S = 10.0
 
@@ -588,7 +587,5 @@ def run_task_file(args: argparse.Namespace) -> int:
 
 def run() -> None:
     """Console-script entry point."""
-    # `kill -USR1 <pid>` prints every thread's stack to stderr: what a site that does not stop
-    # or answer is doing, without a debugger.
-    faulthandler.register(signal.SIGUSR1, all_threads=True)
+    dump_stacks_on_sigusr1()
     sys.exit(main(sys.argv[1:]))

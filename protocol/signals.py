@@ -1,7 +1,9 @@
-"""Ctrl-C and SIGTERM for a site's process: they ask it to stop, and never deadlock it."""
+"""Signals for a site's process: Ctrl-C and SIGTERM ask it to stop, and never deadlock it;
+SIGUSR1 prints its stacks."""
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import queue
 import signal
@@ -30,3 +32,9 @@ def install_stop_signals(stop: threading.Event, who: str) -> None:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+
+
+def dump_stacks_on_sigusr1() -> None:
+    """`kill -USR1 <pid>` prints every thread's stack to stderr: what a site that does not stop
+    or answer is doing, without a debugger."""
+    faulthandler.register(signal.SIGUSR1, all_threads=True)

@@ -9,10 +9,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import faulthandler
 import logging
 import os
-import signal
 import sys
 import threading
 from pathlib import Path
@@ -31,7 +29,7 @@ from protocol.session import (
     link_endpoints,
     operator_only_access_control,
 )
-from protocol.signals import install_stop_signals
+from protocol.signals import dump_stacks_on_sigusr1, install_stop_signals
 from work_site.control.controller import DEFAULT_SURFACE_STIFFNESS_N_PER_M
 from work_site.options import DEFAULT_CAMERA_SENSOR
 from work_site.vision import cli as vision_cli
@@ -388,7 +386,5 @@ def main(argv: list[str]) -> int:
 
 def run() -> None:
     """Console-script entry point."""
-    # `kill -USR1 <pid>` prints every thread's stack to stderr: what a site that does not stop
-    # or answer is doing, without a debugger.
-    faulthandler.register(signal.SIGUSR1, all_threads=True)
+    dump_stacks_on_sigusr1()
     sys.exit(main(sys.argv[1:]))
