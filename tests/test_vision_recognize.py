@@ -13,7 +13,7 @@ from bench.vision_evaluate import score_scene
 from models.scene import load_scene
 from models.transforms import invert_pose, make_pose
 from work_site.vision.model import Occluders, planes_in, transform
-from work_site.vision.pose_sets import Candidate, _verified_among
+from work_site.vision.pose_sets import Candidate, _verified_among, select
 from work_site.vision.recognizer import Recognizer
 from work_site.vision.verification import verify
 
@@ -229,3 +229,48 @@ def test_the_selection_reuses_a_verification_only_where_nothing_changed(recogniz
     # More lines (the faint pass's): verified again.
     more = np.vstack([f.strong, f.strong[:1] + 0.5])
     assert _verified_among(c, more, f.K, f.gx, f.gy, f.occluders_C, far, p) is not v
+
+
+def test_a_block_is_held_up_by_something_hidden_only_when_the_table_cannot_hold_it(
+    recognizer, scenes
+) -> None:
+    """A confidently verified block that nothing found holds up is kept (what holds it is
+    hidden), unless another pose of it, sharing its lines, rests on the table: then that one."""
+    data, _, camera = scenes
+    p = recognizer.params
+    models = {m.name: m for m in recognizer.models}
+
+    def confident():  # a block found on the table, confidently verified alone
+        for image, _ in data:
+            f = recognizer._frame(image, camera)
+            for r in recognizer.recognize(image, camera):
+                X_CO = invert_pose(f.X_WC) @ r.X_WO
+                m = models[r.model]
+                v = verify(m, X_CO, f.K, f.segs, f.gx, f.gy, f.occluders_C, p)  # as selected
+                if r.resting and v.score >= p.confident_score:
+                    return f, m, X_CO, v
+        raise AssertionError("no block found confidently on the table")
+
+    f, model, X_CO, v = confident()
+
+    def candidate(X_CO: np.ndarray, v, resting: bool) -> Candidate:
+        X_WO = f.X_WC @ X_CO
+        parts_W = [
+            (transform(X_WO, V), P[:, :3] @ X_WO[:3, :3].T)
+            for V, P in zip(model.parts_vertices_O, model.planes_O, strict=True)
+        ]
+        return Candidate(model, X_CO, X_WO, 0.0, v, parts_W, None, resting, f.segs)
+
+    on_table = candidate(X_CO, v, True)
+    # The same lines explained 15 mm nearer the camera, along the block's ray: in the air, and
+    # (as given here) a little more of the image explained.
+    X_up = X_CO.copy()
+    X_up[:3, 3] *= 1 - 0.015 / np.linalg.norm(X_CO[:3, 3])
+    assert (f.X_WC @ X_up)[2, 3] > (f.X_WC @ X_CO)[2, 3] + 0.005
+    in_air = candidate(X_up, dataclasses.replace(v, covered_px=v.covered_px + 1.0), False)
+    args = (f.segs, f.K, f.gx, f.gy, f.occluders_C, p, recognizer.surroundings,
+            recognizer.max_height_m)  # fmt: skip
+    alone = select([in_air], *args)
+    assert [r.X_WO[2, 3] for r in alone] == [in_air.X_WO[2, 3]]
+    both = select([in_air, on_table], *args)
+    assert [r.X_WO[2, 3] for r in both] == [on_table.X_WO[2, 3]]

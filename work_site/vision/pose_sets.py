@@ -161,7 +161,52 @@ def select(
     candidate not found resting on the table must be held up by the table, the fixed
     environment or another accepted object; one that is not is dropped and the selection made
     again without it (an object floating in the air is not there), unless it is verified
-    with a confident score: then what holds it up is hidden (a block under a block)."""
+    with a confident score: then what holds it up is hidden (a block under a block). That is
+    the last explanation: where another pose of the same object rests on the table (a
+    candidate of its model that shares its lines), the selection made without the floating
+    one stands if it takes that pose."""
+    args = (segs, K, gx, gy, occluders_C, params, surroundings, max_height_m)
+    pool = list(candidates)
+    accepted, held = _select_held(pool, *args)
+    for _ in range(len(candidates)):  # each round takes one candidate out of the pool
+        for (c, _), h in zip(accepted, held, strict=True):
+            if h or not any(_other_pose_resting(o, c, params) for o in pool):
+                continue
+            without = [o for o in pool if o is not c]
+            again, held_again = _select_held(without, *args)
+            if any(
+                h2 and _other_pose_resting(o, c, params)
+                for (o, _), h2 in zip(again, held_again, strict=True)
+            ):
+                pool, accepted, held = without, again, held_again
+                break
+        else:
+            break
+    return sorted((d for _, d in accepted), key=lambda r: -r.score)
+
+
+def _other_pose_resting(o: Candidate, c: Candidate, params: RecognizerParams) -> bool:
+    """Whether ``o`` is another pose of ``c``'s object, found resting on the table: the same
+    model, sharing more of ``c``'s image lines than two objects side by side do."""
+    if o is c or o.model is not c.model or not o.resting:
+        return False
+    shared = len(set(o.verification.matched).intersection(c.verification.matched))
+    return shared > params.max_shared_fraction * max(len(c.verification.matched), 1)
+
+
+def _select_held(
+    candidates: list[Candidate],
+    segs: np.ndarray,
+    K: np.ndarray,
+    gx: np.ndarray,
+    gy: np.ndarray,
+    occluders_C,
+    params: RecognizerParams,
+    surroundings: Surroundings,
+    max_height_m: float = 0.0,
+) -> tuple[list[tuple[Candidate, Detection]], list[bool]]:
+    """:func:`select` but for its last resort: the accepted candidates with their detections,
+    and for each whether what is found holds it up (if not, it is confidently verified)."""
     banned: set[int] = set()
     for _ in range(len(candidates) + 1):
         kept = [c for k, c in enumerate(candidates) if k not in banned]
@@ -189,7 +234,7 @@ def select(
             if not h and d.score < params.confident_score
         ]
         if not floating:
-            return sorted((d for _, d in accepted), key=lambda r: -r.score)
+            return accepted, held
         banned.update(k for k, c in enumerate(candidates) if any(c is f for f in floating))
     raise AssertionError("unreachable: every round bans a candidate")
 
