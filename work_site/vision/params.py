@@ -63,6 +63,9 @@ class RecognizerParams:
     kernel_prior: float = 0.05
     time_budget_s: float | None = None
     confident_score: float = 0.85
+    hidden_support_min_score: float = 0.7  # a block that nothing found holds up is kept
+    # at this score (what holds it is hidden: a block under a block), when no pose of it
+    # rests on the table (see pose_sets.select); below it, it is taken for a phantom
     quick_support_min: float = 0.5
     grown_quick_support_min: float = 0.6  # the same for a bigger model grown around a found
     # part: it is nearly in place already, so a true one is well supported

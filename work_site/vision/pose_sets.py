@@ -160,11 +160,11 @@ def select(
     verified again with the other candidates as occluders, and its outline must show. A
     candidate not found resting on the table must be held up by the table, the fixed
     environment or another accepted object; one that is not is dropped and the selection made
-    again without it (an object floating in the air is not there), unless it is verified
-    with a confident score: then what holds it up is hidden (a block under a block). That is
-    the last explanation: where another pose of the same object rests on the table (a
-    candidate of its model that shares its lines), the selection made without the floating
-    one stands if it takes that pose."""
+    again without it (an object floating in the air is not there), unless its score
+    reaches ``hidden_support_min_score``: then what holds it up is hidden (a block under a
+    block). That is the last explanation: where another pose of the same object rests on the
+    table (a candidate of its model that shares its lines), the selection made without the
+    floating one stands if it takes that pose."""
     args = (segs, K, gx, gy, occluders_C, params, surroundings, max_height_m)
     pool = list(candidates)
     accepted, held = _select_held(pool, *args)
@@ -231,7 +231,7 @@ def _select_held(
         floating = [
             c
             for (c, d), h in zip(accepted, held, strict=True)
-            if not h and d.score < params.confident_score
+            if not h and d.score < params.hidden_support_min_score
         ]
         if not floating:
             return accepted, held
