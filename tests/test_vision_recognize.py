@@ -234,24 +234,25 @@ def test_the_selection_reuses_a_verification_only_where_nothing_changed(recogniz
 def test_a_block_is_held_up_by_something_hidden_only_when_the_table_cannot_hold_it(
     recognizer, scenes
 ) -> None:
-    """A confidently verified block that nothing found holds up is kept (what holds it is
-    hidden), unless another pose of it, sharing its lines, rests on the table: then that one."""
+    """A block that nothing found holds up, verified at ``hidden_support_min_score``, is kept
+    (what holds it is hidden), unless another pose of it, sharing its lines, rests on the
+    table: then that one."""
     data, _, camera = scenes
     p = recognizer.params
     models = {m.name: m for m in recognizer.models}
 
-    def confident():  # a block found on the table, confidently verified alone
+    def well_verified():  # a block found on the table, verified alone at the score
         for image, _ in data:
             f = recognizer._frame(image, camera)
             for r in recognizer.recognize(image, camera):
                 X_CO = invert_pose(f.X_WC) @ r.X_WO
                 m = models[r.model]
                 v = verify(m, X_CO, f.K, f.segs, f.gx, f.gy, f.occluders_C, p)  # as selected
-                if r.resting and v.score >= p.confident_score:
+                if r.resting and v.score >= p.hidden_support_min_score:
                     return f, m, X_CO, v
-        raise AssertionError("no block found confidently on the table")
+        raise AssertionError("no block on the table verified at hidden_support_min_score")
 
-    f, model, X_CO, v = confident()
+    f, model, X_CO, v = well_verified()
 
     def candidate(X_CO: np.ndarray, v, resting: bool) -> Candidate:
         X_WO = f.X_WC @ X_CO

@@ -5,6 +5,7 @@ between candidates that share image lines or interpenetrate.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -165,15 +166,18 @@ def select(
     block). That is the last explanation: where another pose of the same object rests on the
     table (a candidate of its model that shares its lines), the selection made without the
     floating one stands if it takes that pose."""
-    args = (segs, K, gx, gy, occluders_C, params, surroundings, max_height_m)
+
+    def once(kept: list[Candidate]) -> list[tuple[Candidate, Detection]]:
+        return _select_once(kept, segs, K, gx, gy, occluders_C, params, surroundings, max_height_m)
+
     pool = list(candidates)
-    accepted, held = _select_held(pool, *args)
+    accepted, held = _select_held(pool, once, surroundings, params)
     for _ in range(len(candidates)):  # each round takes one candidate out of the pool
         for (c, _), h in zip(accepted, held, strict=True):
             if h or not any(_other_pose_resting(o, c, params) for o in pool):
                 continue
             without = [o for o in pool if o is not c]
-            again, held_again = _select_held(without, *args)
+            again, held_again = _select_held(without, once, surroundings, params)
             if any(
                 h2 and _other_pose_resting(o, c, params)
                 for (o, _), h2 in zip(again, held_again, strict=True)
@@ -196,23 +200,17 @@ def _other_pose_resting(o: Candidate, c: Candidate, params: RecognizerParams) ->
 
 def _select_held(
     candidates: list[Candidate],
-    segs: np.ndarray,
-    K: np.ndarray,
-    gx: np.ndarray,
-    gy: np.ndarray,
-    occluders_C,
-    params: RecognizerParams,
+    once: Callable[[list[Candidate]], list[tuple[Candidate, Detection]]],
     surroundings: Surroundings,
-    max_height_m: float = 0.0,
+    params: RecognizerParams,
 ) -> tuple[list[tuple[Candidate, Detection]], list[bool]]:
-    """:func:`select` but for its last resort: the accepted candidates with their detections,
-    and for each whether what is found holds it up (if not, it is confidently verified)."""
+    """:func:`select` but for its last resort, each round made by ``once`` (a
+    :func:`_select_once` on the image): the accepted candidates with their detections, and
+    for each whether what is found holds it up (if not, its score kept it)."""
     banned: set[int] = set()
     for _ in range(len(candidates) + 1):
         kept = [c for k, c in enumerate(candidates) if k not in banned]
-        accepted = _select_once(
-            kept, segs, K, gx, gy, occluders_C, params, surroundings, max_height_m
-        )
+        accepted = once(kept)
         parts = [c.parts_W for c, _ in accepted]
         held = [c.resting for c, _ in accepted]
         for _ in range(len(accepted)):  # held up by what is held up, level by level
