@@ -190,6 +190,32 @@ def test_a_ghost_moves_only_when_vision_moves_it_visibly(page: OperatorPage) -> 
     assert np.allclose(seen(3, 2 * GHOST_REDRAW_M), X[:3, 3] + [2 * GHOST_REDRAW_M, 0, 0])
 
 
+def test_a_ghost_lost_for_a_frame_is_hidden_and_shown_again_not_sent_again(
+    page: OperatorPage,
+) -> None:
+    """Vision misses a block in some frames: its ghost is hidden meanwhile and shown again
+    where it is seen next, the same scene nodes (its meshes are not sent again)."""
+    X = page.scene.object("cube").X_WO.copy()
+
+    def seen(seq: int, objects: tuple) -> None:
+        page.link.recognitions = Recognitions(
+            seq=seq, stamp_s=0.0, elapsed_s=0.01, objects=objects
+        )  # fmt: skip
+        page.update()
+
+    cube = (Recognition(model="cube", X_WO=X, score=0.9),)
+    seen(1, cube)
+    frame, meshes = page.ghosts["cube"]
+    assert frame.visible
+    seen(2, ())
+    assert "cube" not in page.ghosts and not frame.visible
+    X_now = X.copy()
+    X_now[0, 3] += 0.01
+    seen(3, (Recognition(model="cube", X_WO=X_now, score=0.9),))
+    assert page.ghosts["cube"] == (frame, meshes) and frame.visible
+    assert np.allclose(frame.position, X_now[:3, 3])
+
+
 def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) -> None:
 
     page.on_select(NO_WORKPIECE)

@@ -181,7 +181,8 @@ class SceneView:
         # Sized in pixels, drawn over everything: visible at any zoom, never inside the
         # block or behind the fingers.
         self.vision_root = scene.add_frame("/vision", show_axes=False)
-        self.ghosts: dict[str, tuple] = {}
+        self.ghosts: dict[str, tuple] = {}  # (frame, meshes) of each ghost shown
+        self._lost_ghosts: dict[str, tuple] = {}  # hidden, kept to be shown again
         self._ghost_shown: dict[str, tuple[np.ndarray, str]] = {}  # each ghost's pose and kind
         self.dragger = scene.add_transform_controls(
             "/dragger", scale=GIZMO_PX, fixed=True, depth_test=False, visible=False
@@ -328,7 +329,12 @@ class SceneView:
         seen: dict[str, str] = {}
         for tag, (r, kind) in self._ghost_kinds(recognitions).items():
             seen[tag] = kind
-            if tag not in self.ghosts:
+            # A block vision lost for a frame or two comes back: its ghost is shown again, not
+            # sent again (its meshes are most of what a ghost costs the browsers).
+            lost = self._lost_ghosts.pop(tag, None)
+            if lost is not None:
+                self.ghosts[tag] = lost
+            elif tag not in self.ghosts:
                 frame = self.server.scene.add_frame(f"/vision/{tag}", show_axes=False)
                 meshes = [
                     self.server.scene.add_mesh_simple(
@@ -354,10 +360,11 @@ class SceneView:
                 for mesh in meshes:
                     mesh.color = GHOST_RGBS[kind]
             self._ghost_shown[tag] = (shown[0], kind)
+            if lost is not None:
+                frame.visible = True  # where it is now, in its colour now
         for tag in [t for t in self.ghosts if t not in seen]:
-            frame, _ = self.ghosts.pop(tag)
-            self._ghost_shown.pop(tag, None)
-            frame.remove()
+            self._lost_ghosts[tag] = self.ghosts.pop(tag)
+            self._lost_ghosts[tag][0].visible = False
         return seen
 
 
