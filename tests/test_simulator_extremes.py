@@ -58,9 +58,9 @@ PROPERTY = settings(
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
 CORNER_PROPERTY = settings(PROPERTY, max_examples=examples(100))
-"""The corner cases run hundreds of steps an example, and the suite runs them derandomized
-(hypothesis's CI profile): the same examples every run, so half as many is half the suite's
-cost for them; the extremes tier draws 2,500 each."""
+"""The corner cases run hundreds of steps an example and are the suite's slowest; it runs them
+derandomized (hypothesis's CI profile), the same examples every run, so fewer of them cost
+the suite less every time; the extremes tier draws 2,500 each."""
 
 
 class _Scenes(dict):

@@ -12,7 +12,7 @@ from bench.vision_dataset import SceneRenderer
 from bench.vision_evaluate import score_scene
 from models.scene import load_scene
 from models.transforms import invert_pose, make_pose
-from work_site.vision.model import Occluders, planes_in, transform
+from work_site.vision.model import Occluders, parts_in, planes_in, transform
 from work_site.vision.pose_sets import Candidate, _verified_among, select
 from work_site.vision.recognizer import Recognizer
 from work_site.vision.verification import verify
@@ -256,11 +256,7 @@ def test_a_block_is_held_up_by_something_hidden_only_when_the_table_cannot_hold_
 
     def candidate(X_CO: np.ndarray, v, resting: bool) -> Candidate:
         X_WO = f.X_WC @ X_CO
-        parts_W = [
-            (transform(X_WO, V), P[:, :3] @ X_WO[:3, :3].T)
-            for V, P in zip(model.parts_vertices_O, model.planes_O, strict=True)
-        ]
-        return Candidate(model, X_CO, X_WO, 0.0, v, parts_W, None, resting, f.segs)
+        return Candidate(model, X_CO, X_WO, 0.0, v, parts_in(X_WO, model), None, resting, f.segs)
 
     on_table = candidate(X_CO, v, True)
     # The same lines explained 15 mm nearer the camera, along the block's ray: in the air, and

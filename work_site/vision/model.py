@@ -89,6 +89,15 @@ def planes_in(X_CO: np.ndarray, planes_O: np.ndarray) -> np.ndarray:
     return np.column_stack([n_C, d_C])
 
 
+def parts_in(X_AO: np.ndarray, model: VisionModel) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``model``'s convex parts at pose ``X_AO``: (vertices (n, 3), face normals (k, 3)) in A,
+    the form :class:`~work_site.vision.verification.Surroundings` weighs."""
+    return [
+        (transform(X_AO, V), P[:, :3] @ X_AO[:3, :3].T)
+        for V, P in zip(model.parts_vertices_O, model.planes_O, strict=True)
+    ]
+
+
 def occluded(points_C: np.ndarray, occluders_C: list[np.ndarray]) -> np.ndarray:
     """For points (n, 3) in C: is the ray from the camera centre to the point blocked by any of
     the convex parts (each (k, 4) half-spaces in C) before it gets there? (n,) bool.

@@ -56,6 +56,7 @@ from work_site.vision.model import (
     VisionModel,
     containments,
     hull_facets,
+    parts_in,
     planes_in,
     project,
     transform,
@@ -714,10 +715,7 @@ class Recognizer:
         is there once)."""
         p = self.params
         X_WO = f.X_WC @ X_CO
-        parts_W = [
-            (transform(X_WO, q), P[:, :3] @ X_WO[:3, :3].T)
-            for q, P in zip(model.parts_vertices_O, model.planes_O, strict=True)
-        ]
+        parts_W = parts_in(X_WO, model)
         height = 0.0 if resting else self.max_height_m
         if not self.surroundings.plausible(parts_W, [], p, max_height_m=height):
             return
