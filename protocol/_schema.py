@@ -466,6 +466,15 @@ def _field_problem(field: FieldInfo, value: Any) -> str | None:
         return _float_problem(meta, value)
     if base is str:
         return _str_problem(meta, value)
+    if typing.get_origin(base) is tuple:  # a tuple of scalars (names), msgspec's to check
+        if not isinstance(value, list | tuple):
+            return f"expected array, got {type_name(value)}"
+        if meta.max_length is not None and len(value) > meta.max_length:
+            return f"must have at most {meta.max_length} items, got {len(value)}"
+        item = FieldInfo(field.name, typing.get_args(base)[0], SCALAR)
+        for k, v in enumerate(value):
+            if (problem := _field_problem(item, v)) is not None:
+                return f"item {k}: {problem}"
     return None
 
 

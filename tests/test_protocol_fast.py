@@ -598,3 +598,16 @@ def test_text_fields_are_plain_str_whatever_str_subclass_came() -> None:
         report = ExecutionReport(**values)
         assert type(report.status) is str and type(report.message) is str
         assert report.status == report.message == "done"
+
+
+@pytest.mark.parametrize(
+    "cancels, said",
+    [
+        ("\udc80", "Stop.cancels: expected array, got str"),  # msgspec's refusal names no field
+        (("ok", 3), "Stop.cancels"),
+    ],
+)
+def test_a_constructor_names_a_tuple_field_it_refuses(cancels: Any, said: str) -> None:
+    with pytest.raises(ProtocolError) as info:
+        Stop(reason="x", stamp_s=1.0, cancels=cancels)
+    assert str(info.value).startswith(said), str(info.value)
