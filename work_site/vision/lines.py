@@ -6,7 +6,9 @@ OpenCV 5 headless has a line segment detector (``cv2.createLineSegmentDetector``
 
 - a refit of each segment to the sub-pixel maxima of the image gradient across it (total least
   squares, weighted by edge strength), which is what the paper's line fit does;
-- merging of collinear fragments that LSD splits at noise or junctions.
+- merging of collinear fragments that LSD splits at noise or junctions;
+- splitting of a segment LSD grew across a shallow corner (two edges a few degrees apart, as
+  a block's side seen nearly edge-on makes): one line fitted to both misplaces each.
 
 Segments are (n, 4) float64 rows ``(x0, y0, x1, y1)`` in pixels, pixel centres at integers.
 """
@@ -37,6 +39,10 @@ class LineParams:
     lsd_smooth_px: float = 0.0
     """Standard deviation (px) of a Gaussian the image is smoothed with before LSD (0: none;
     LSD's own smoothing is off at ``lsd_scale`` 1)."""
+    kink_px: float = 0.35
+    """A refined segment whose sub-pixel edge points stray further than this from its line is
+    split in two where two lines fit them best, if those fit at least twice as closely and
+    bend by more than noise explains (a corner LSD grew across; 0: never split)."""
 
 
 FAINT_LINE_PARAMS = LineParams(lsd_quant=1.0, lsd_smooth_px=0.75)
@@ -181,7 +187,84 @@ def refine_segments(
     out = segs.copy()
     new = np.column_stack([c + ta[:, None] * v, c + tb[:, None] * v])
     out[good] = new[good]
-    return out
+    if params.kink_px <= 0.0:
+        return out
+    normal = np.column_stack([-v[:, 1], v[:, 0]])
+    res = np.einsum("mk,mk->m", P - c[sid], normal[sid])
+    stray = np.bincount(sid[keep], np.abs(res[keep]) > params.kink_px, n_seg) > 0
+    pieces = [out]
+    for k in np.flatnonzero(stray & good):
+        split = _split_at_corner(P[(sid == k) & keep], out[k])
+        if split is not None:
+            out[k], second = split
+            pieces.append(second[None])
+    return np.vstack(pieces)
+
+
+KINK_MIN_SAMPLES = 5
+"""Edge points on each side of a split, at least: a shorter piece is no line."""
+KINK_SIGNIFICANCE = 3.0
+"""A corner's bend must exceed this many standard errors of the two pieces' directions."""
+
+
+def _split_at_corner(points: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The segment ``seg`` (4,) as two pieces meeting at a corner, if its edge points (n, 2),
+    in order along it, are fitted by two lines (split where their summed squared distances
+    are least) at least twice as closely as by one (the farthest point from them); None if
+    not, or too few points for two lines."""
+    n = len(points)
+    if n < 2 * KINK_MIN_SAMPLES:
+        return None
+    # Scatter of every prefix and suffix from running sums: each split's two total least
+    # squares fits at once (the smaller eigenvalue of a 2×2 scatter is its squared residual).
+    x, y = points[:, 0] - points[:, 0].mean(), points[:, 1] - points[:, 1].mean()
+    cols = np.column_stack([np.ones(n), x, y, x * x, y * y, x * y])
+    running = np.cumsum(cols, axis=0)
+    head = running[KINK_MIN_SAMPLES - 1 : n - KINK_MIN_SAMPLES]  # the first k points
+    tail = running[-1] - head  # the others
+    ks = np.arange(KINK_MIN_SAMPLES, n - KINK_MIN_SAMPLES + 1)
+    sse = _tls_sse(head) + _tls_sse(tail)
+    k = int(ks[np.argmin(sse)])
+    (c1, d1, r1), (c2, d2, r2) = _tls(points[:k]), _tls(points[k:])
+    _, _, r = _tls(points)
+    if max(np.abs(r1).max(), np.abs(r2).max()) > 0.5 * np.abs(r).max():
+        return None
+    # The bend must stand out of what noise makes of two short lines' directions: each
+    # direction's standard error is its points' spread across over their spread along.
+    bend = np.arccos(min(abs(float(d1 @ d2)), 1.0))
+    se = [
+        np.sqrt(np.mean(res**2) / max(float(np.sum(((pts - cen) @ d) ** 2)), 1e-12))
+        for pts, cen, d, res in ((points[:k], c1, d1, r1), (points[k:], c2, d2, r2))
+    ]
+    if bend < KINK_SIGNIFICANCE * np.hypot(*se):
+        return None
+    corner = 0.5 * (points[k - 1] + points[k])
+    first = np.concatenate([_on_line(c1, d1, seg[:2]), _on_line(c1, d1, corner)])
+    second = np.concatenate([_on_line(c2, d2, corner), _on_line(c2, d2, seg[2:])])
+    return first, second
+
+
+def _tls_sse(m: np.ndarray) -> np.ndarray:
+    """Squared residual of the total least squares line of points given by their running
+    sums (k, 6): count, Σx, Σy, Σx², Σy², Σxy."""
+    cnt, sx, sy, sxx, syy, sxy = m.T
+    vxx, vyy, vxy = sxx - sx * sx / cnt, syy - sy * sy / cnt, sxy - sx * sy / cnt
+    return 0.5 * (vxx + vyy) - np.sqrt(0.25 * (vxx - vyy) ** 2 + vxy * vxy)
+
+
+def _tls(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Total least squares line through ``points`` (n, 2): a point on it, its direction, and
+    the points' signed distances from it."""
+    centre = points.mean(axis=0)
+    d = points - centre
+    theta = 0.5 * np.arctan2(2 * np.sum(d[:, 0] * d[:, 1]), np.sum(d[:, 0] ** 2 - d[:, 1] ** 2))
+    direction = np.array([np.cos(theta), np.sin(theta)])
+    return centre, direction, d @ np.array([-direction[1], direction[0]])
+
+
+def _on_line(centre: np.ndarray, direction: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """The foot of ``p`` on the line through ``centre`` along unit ``direction``."""
+    return centre + np.dot(p - centre, direction) * direction
 
 
 def _mergeable(segs: np.ndarray, params: LineParams) -> np.ndarray:
