@@ -22,8 +22,13 @@ from operator_site.chain import ChainTask, Judgement, ProgramMaker, run_chain
 from operator_site.failures import RunError
 from operator_site.model_editor import WorkSiteModel
 from operator_site.session import generated_program
-from operator_site.taskdrag import TaskDemonstration, drag_task, goal_on_reference_W
-from operator_site.taskfile import Task, pose_error
+from operator_site.taskdrag import (
+    TaskDemonstration,
+    drag_task,
+    goal_on_reference_W,
+    reference_pose_W,
+)
+from operator_site.taskfile import Task, pose_error, symmetric_nearest
 
 
 def _needs_in_model(task: Task) -> Callable[[WorkSiteModel], bool]:
@@ -88,8 +93,14 @@ def judge_on_truth(
     task: Task, demo: TaskDemonstration, model: WorkSiteModel, truth: dict[str, np.ndarray]
 ) -> Judgement:
     """The block's true final pose against the goal placed on the reference's true final pose
-    (both from the work site's ground truth ``truth``), up to the block's symmetries."""
-    X_WR, X_WO = truth[task.reference], truth[task.workpiece]
+    (both from the work site's ground truth ``truth``), up to the block's symmetries.
+
+    A symmetric reference's frame is any of its symmetric frames: the program placed the goal
+    on the one vision gave the model (which end of a plank is its +x end), so the true pose is
+    taken in the symmetric frame nearest that one."""
+    X_WR, X_WO = truth[task.reference].copy(), truth[task.workpiece]
+    R_model = reference_pose_W(model, task.reference)[:3, :3]
+    X_WR[:3, :3] = symmetric_nearest(X_WR[:3, :3], R_model, model.symmetries(task.reference))
     goal = goal_on_reference_W(task, X_WR, demo.S_O)
     error_m, error_rad = pose_error(goal, X_WO, model.symmetries(task.workpiece))
     return Judgement(

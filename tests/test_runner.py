@@ -373,6 +373,37 @@ def test_the_end_is_judged_on_the_references_true_pose(scene) -> None:
     assert not off.within and off.error_m > 0.009
 
 
+def test_a_goal_on_a_symmetric_reference_is_judged_in_the_frame_vision_gave_it(
+    scene, tmp_path
+) -> None:
+    """A plank's two ends look the same: "the plank's +x end" is the end vision's frame calls
+    so, and the program puts the cube there. The work site's true frame may be the plank's
+    other symmetric one (a half turn): the cube is still judged at the end it was put on."""
+    doc = {
+        "task": 1,
+        "name": "cube on one end of the plank",
+        "workpiece": "cube",
+        "reference": "plank",
+        "steps": [{"xyz_m": [0.025, 0.0, 0.0335], "rpy_deg": [0, 0, 0]}],
+        "goal": {"xyz_m": [0.025, 0.0, 0.0375], "rpy_deg": [0, 0, 0], "contacts": ["plank"]},
+    }
+    path = tmp_path / "cube-on-plank-end.json"
+    path.write_text(json.dumps(doc))
+    task = load_task(path)
+    model = _layout_model(scene, 0)
+    demo = drag_task(task, model)
+    X_WP = model.poses["plank"]
+    half = make_pose(rpy_to_R(np.radians([0.0, 0.0, 180.0])))
+    assert any(np.allclose(S, half[:3, :3], atol=1e-9) for S in model.symmetries("plank"))
+    X_WO_placed = X_WP @ task.goal.X_RO @ make_pose(demo.S_O)
+    judged = judge_on_truth(task, demo, model, {"plank": X_WP @ half, "cube": X_WO_placed})
+    assert judged.within and judged.error_m < 1e-9, (judged.error_m, judged.error_rad)
+    # The other end is still a miss.
+    X_WO_other = X_WP @ half @ task.goal.X_RO @ make_pose(demo.S_O)
+    other = judge_on_truth(task, demo, model, {"plank": X_WP @ half, "cube": X_WO_other})
+    assert not other.within and other.error_m > 0.04
+
+
 @pytest.mark.integration
 def test_a_bad_scene_or_option_is_refused_in_one_line() -> None:
     corner = str(TASKS_DIR / "cube-corner.json")
