@@ -229,7 +229,7 @@ def ik_nearest(
                 ):
                     q[i] = candidate
         outside = [
-            f"{robot.arm_joints[i]} {q[i]:+.3f} not in [{lo[i]:+.2f}, {hi[i]:+.2f}]"
+            f"{robot.arm_joints[i]} {q[i]:+.3f} not in [{lo[i]:+.3f}, {hi[i]:+.3f}]"
             for i in range(6)
             if not lo[i] <= q[i] <= hi[i]
         ]
@@ -314,11 +314,15 @@ def follow_line_tcp(
     q = np.asarray(q_from, dtype=np.float64)
     lo, hi = robot.q_lower, robot.q_upper
     margin = float(np.min(np.minimum(q - lo, hi - q)))
+    # A move that is mostly a turn of the gripper fails where its end point looks like its
+    # start: say the turn.
+    turn_deg = math.degrees(float(np.linalg.norm(w)))
+    turning = f", turning the gripper {turn_deg:.0f}°" if turn_deg >= 1.0 else ""
     for i in range(1, n + 1):
         s = i / n
         X = make_pose(R0 @ so3_exp(s * w), p0 + s * (p1 - p0))
         result = ik_tcp(X, q, robot, X_WB, g)
-        where = f"{s * 100:.0f} % of the way to {np.round(p1, 3).tolist()} m"
+        where = f"{s * 100:.0f} % of the way to {np.round(p1, 3).tolist()} m{turning}"
         if not result.ok:
             return PathFollow(False, None, margin, f"{where}: {result.reason}")
         jump = np.abs(result.q - q)

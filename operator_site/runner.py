@@ -48,13 +48,15 @@ def check_reaches_goal(task: Task, demo: TaskDemonstration, model: WorkSiteModel
     tolerances and touching every goal contact: a block in the way, the goal place occupied."""
     X = demo.session.X_WO[demo.workpiece]
     error_m, error_rad = pose_error(demo.ideal_X_WO, X, model.symmetries(demo.workpiece))
+    touching = {c.object for c in demo.session.sim.state.contacts}
     if error_m > task.goal.tolerance_m or error_rad > task.goal.tolerance_rad:
+        against = f", the {demo.workpiece} touching the {' and the '.join(sorted(touching))}"
         raise RunError(
             "infeasible",
             f"the simulated drag ends {error_m * 1e3:.1f} mm, {math.degrees(error_rad):.1f}° "
-            "from the goal: something is in the way or the goal place is occupied",
+            f"from the goal{against if touching else ''}: something is in the way or the "
+            "goal place is occupied",
         )
-    touching = {c.object for c in demo.session.sim.state.contacts}
     missing = sorted(set(task.goal.contacts) - touching)
     if missing:
         raise RunError(
