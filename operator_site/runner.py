@@ -98,12 +98,13 @@ def judge_on_truth(
     (both from the work site's ground truth ``truth``), up to the block's symmetries.
 
     A symmetric reference's frame is any of its symmetric frames: the program placed the goal
-    on the one vision gave the model (which end of a plank is its +x end), so the true pose is
-    taken in the symmetric frame nearest that one."""
+    on the one vision gave the model, turned by the frame the drag chose (``demo.S_R``: which
+    end of a plank is its +x end), so the true pose is taken in the symmetric frame nearest
+    the model's and turned the same."""
     X_WR, X_WO = truth[task.reference].copy(), truth[task.workpiece]
     R_model = reference_pose_W(model, task.reference)[:3, :3]
     X_WR[:3, :3] = symmetric_nearest(X_WR[:3, :3], R_model, model.symmetries(task.reference))
-    goal = goal_on_reference_W(task, X_WR, demo.S_O)
+    goal = goal_on_reference_W(task, X_WR, demo.S_O, demo.S_R)
     error_m, error_rad = pose_error(goal, X_WO, model.symmetries(task.workpiece))
     return Judgement(
         error_m=error_m,
@@ -140,7 +141,10 @@ def run_task(
         demonstrate=lambda model: drag_task(task, model),
         check=lambda demo, model: check_reaches_goal(task, demo, model),
         judge=lambda demo, model, truth: judge_on_truth(task, demo, model, truth),
-        describe=lambda demo: {"symmetry_O": np.round(demo.S_O, 6).tolist()},
+        describe=lambda demo: {
+            "symmetry_O": np.round(demo.S_O, 6).tolist(),
+            "symmetry_R": np.round(demo.S_R, 6).tolist(),
+        },
     )
     # With a scene file the layout is the file's: the seed draws only the camera's error.
     extra = (

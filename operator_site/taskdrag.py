@@ -48,7 +48,8 @@ within :data:`WAYPOINT_REACHED_M`."""
 @dataclass(frozen=True, eq=False)
 class TaskDemonstration:
     """A task file dragged in a task session: the session (its history is the demonstration),
-    the workpiece, the goal ``ideal_X_WO`` in W with the symmetry ``S_O`` (3×3, in O) applied,
+    the workpiece, the goal ``ideal_X_WO`` in W with the symmetry ``S_O`` (3×3, in O) applied
+    on the reference's frame ``S_R``,
     the dragger targets in W (the transit's, then the steps'), and, for each of the task's
     steps, the simulator's captured set and the history's length once that step was reached."""
 
@@ -56,6 +57,7 @@ class TaskDemonstration:
     workpiece: str
     ideal_X_WO: np.ndarray
     S_O: np.ndarray
+    S_R: np.ndarray  # the reference's frame chosen (:func:`reference_frame`), 3×3 in R
     transit_X_WD: tuple[np.ndarray, ...]
     steps_X_WD: tuple[np.ndarray, ...]
     captured_after_step: tuple[frozenset[str], ...]
@@ -151,19 +153,49 @@ def already_there(X_WO: np.ndarray, X_WD: np.ndarray) -> bool:
 
 def task_targets_W(
     task: Task, model: WorkSiteModel, X_WO_start: np.ndarray
-) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
     """The task's dragger targets and goal in W, with the symmetry S (3×3) chosen for the
-    workpiece lying at ``X_WO_start`` applied to all: ``(steps_X_WD, goal_X_WO, S_O)``."""
-    X_WR = reference_pose_W(model, task.reference)
+    workpiece lying at ``X_WO_start`` applied to all, on the reference's frame chosen by
+    :func:`reference_frame`: ``(steps_X_WD, goal_X_WO, S_O, S_R)``."""
+    S_R = reference_frame(task, model, X_WO_start)
+    X_WR = reference_pose_W(model, task.reference) @ make_pose(S_R)
     steps = [X_WR @ step.X_RD for step in task.steps]
     S_O = nearest_symmetry(steps[0][:3, :3], X_WO_start[:3, :3], model.symmetries(task.workpiece))
     steps = [_with_symmetry(X, S_O) for X in steps]
-    return steps, _with_symmetry(X_WR @ task.goal.X_RO, S_O), S_O
+    return steps, _with_symmetry(X_WR @ task.goal.X_RO, S_O), S_O, S_R
 
 
-def goal_on_reference_W(task: Task, X_WR: np.ndarray, S_O: np.ndarray) -> np.ndarray:
-    """The goal ``X_WO`` with the reference at ``X_WR`` (the work site's true one, say) and the
-    symmetry ``S_O`` the drag chose."""
+def reference_frame(task: Task, model: WorkSiteModel, X_WO_start: np.ndarray) -> np.ndarray:
+    """Of the frames a symmetric block used as the reference looks the same in, upright as the
+    model has it (turned about its own z), the one (a symmetry S_R in R, 3×3) whose first
+    step lies nearest the workpiece: "the plank's +x end" is then the nearer end, whichever
+    end vision called +x. The identity for a fixed reference: its frame is the scene's."""
+    if task.reference not in model.poses:
+        return np.eye(3)
+    X_WR = model.poses[task.reference]
+    p_first_R = task.steps[0].X_RD[:3, 3]
+    best, best_m = np.eye(3), math.inf
+    for S in model.symmetries(task.reference):
+        if not np.isclose(S[2, 2], 1.0):  # turns the reference's z away: not upright
+            continue
+        p_first_W = X_WR[:3, :3] @ (S @ p_first_R) + X_WR[:3, 3]
+        d_m = float(np.linalg.norm(p_first_W - X_WO_start[:3, 3]))
+        if d_m < best_m - SAME_DISTANCE_M:
+            best, best_m = S, d_m
+    return best
+
+
+SAME_DISTANCE_M = 1e-6
+"""Two frames whose first steps lie this close to the same distance from the workpiece tie:
+the first (the identity, the model's own frame) is kept."""
+
+
+def goal_on_reference_W(
+    task: Task, X_WR: np.ndarray, S_O: np.ndarray, S_R: np.ndarray | None = None
+) -> np.ndarray:
+    """The goal ``X_WO`` with the reference at ``X_WR`` (the work site's true one, say), in its
+    frame ``S_R`` the drag chose (identity if None), and the symmetry ``S_O`` the drag chose."""
+    X_WR = X_WR if S_R is None else X_WR @ make_pose(S_R)
     return _with_symmetry(X_WR @ task.goal.X_RO, S_O)
 
 
@@ -179,7 +211,7 @@ def _play(
     except ValueError as e:
         raise RunError("no_grasp", f"{task.workpiece!r} cannot be held: {e}") from None
     X_start = session.X_WO[task.workpiece].copy()
-    steps, goal, S_O = task_targets_W(task, model, X_start)
+    steps, goal, S_O, S_R = task_targets_W(task, model, X_start)
     transit = (
         []
         if already_there(X_start, steps[0])
@@ -202,6 +234,7 @@ def _play(
         workpiece=task.workpiece,
         ideal_X_WO=goal,
         S_O=S_O,
+        S_R=S_R,
         transit_X_WD=tuple(transit),
         steps_X_WD=tuple(steps),
         captured_after_step=tuple(captured),

@@ -25,6 +25,7 @@ from operator_site.task import TaskSession
 from operator_site.taskdrag import (
     TRANSIT_CLEARANCE_M,
     drag_task,
+    goal_on_reference_W,
     nearest_symmetry,
     transit_height_m,
 )
@@ -377,9 +378,10 @@ def test_the_end_is_judged_on_the_references_true_pose(scene) -> None:
 def test_a_goal_on_a_symmetric_reference_is_judged_in_the_frame_vision_gave_it(
     scene, tmp_path
 ) -> None:
-    """A plank's two ends look the same: "the plank's +x end" is the end vision's frame calls
-    so, and the program puts the cube there. The work site's true frame may be the plank's
-    other symmetric one (a half turn): the cube is still judged at the end it was put on."""
+    """A plank's two ends look the same: "the plank's +x end" is the end nearer the cube,
+    whichever end vision's frame calls +x, and the program puts the cube there. The work
+    site's true frame may be the plank's other symmetric one (a half turn): the cube is still
+    judged at the end it was put on."""
     doc = {
         "task": 1,
         "name": "cube on one end of the plank",
@@ -396,13 +398,15 @@ def test_a_goal_on_a_symmetric_reference_is_judged_in_the_frame_vision_gave_it(
     X_WP = model.poses["plank"]
     half = make_pose(rpy_to_R(np.radians([0.0, 0.0, 180.0])))
     assert any(np.allclose(S, half[:3, :3], atol=1e-9) for S in model.symmetries("plank"))
-    X_WO_placed = X_WP @ task.goal.X_RO @ make_pose(demo.S_O)
+    X_WO_placed = goal_on_reference_W(task, X_WP, demo.S_O, demo.S_R)
+    X_WO_other = goal_on_reference_W(task, X_WP @ half, demo.S_O, demo.S_R)
+    p_cube = model.poses["cube"][:3, 3]
+    assert np.linalg.norm(X_WO_placed[:3, 3] - p_cube) < np.linalg.norm(X_WO_other[:3, 3] - p_cube)
+    np.testing.assert_allclose(demo.ideal_X_WO, X_WO_placed, atol=1e-12)
     judged = judge_on_truth(task, demo, model, {"plank": X_WP @ half, "cube": X_WO_placed})
     assert judged.within and judged.error_m < 1e-9, (judged.error_m, judged.error_rad)
-    # The other end is still a miss.
-    X_WO_other = X_WP @ half @ task.goal.X_RO @ make_pose(demo.S_O)
     other = judge_on_truth(task, demo, model, {"plank": X_WP @ half, "cube": X_WO_other})
-    assert not other.within and other.error_m > 0.04
+    assert not other.within and other.error_m > 0.04  # the other end is still a miss
 
 
 @pytest.mark.integration
