@@ -210,8 +210,9 @@ KINK_SIGNIFICANCE = 3.0
 def _split_at_corner(points: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The segment ``seg`` (4,) as two pieces meeting at a corner, if its edge points (n, 2),
     in order along it, are fitted by two lines (split where their summed squared distances
-    are least) at least twice as closely as by one (the farthest point from them); None if
-    not, or too few points for two lines."""
+    are least) at least twice as closely as by one (the farthest point from them) and the two
+    bend by more than :data:`KINK_SIGNIFICANCE` standard errors; None if not, or too few
+    points for two lines."""
     n = len(points)
     if n < 2 * KINK_MIN_SAMPLES:
         return None
