@@ -55,10 +55,13 @@ def test_camera_pose_from_the_frame(scene) -> None:
     guess = dataclasses.replace(camera, X_WC=camera.X_WC @ X_err)
     result = calibrate_extrinsics(image, guess, frame_object(scene))
     assert result.edges >= 8
-    assert result.rms_px < 0.3 and result.corner_rms_px < 1.5
-    assert np.linalg.norm(result.X_WC[:3, 3] - camera.X_WC[:3, 3]) < 0.003
+    # Lines split at the frame's shallow corners are shorter and their ends noisier: the line
+    # residual rises as the pose gets better, so it is held only well inside the work site's
+    # trust bound; the pose itself is what is checked.
+    assert result.rms_px < 0.5 and result.corner_rms_px < 1.5
+    assert np.linalg.norm(result.X_WC[:3, 3] - camera.X_WC[:3, 3]) < 0.0015
     R = result.X_WC[:3, :3].T @ camera.X_WC[:3, :3]
-    assert np.rad2deg(np.linalg.norm(so3_log(R))) < 0.3
+    assert np.rad2deg(np.linalg.norm(so3_log(R))) < 0.15
 
 
 @pytest.mark.slow

@@ -201,7 +201,7 @@ def refine_segments(
     return np.vstack(pieces)
 
 
-KINK_MIN_SAMPLES = 5
+KINK_MIN_SAMPLES = 8
 """Edge points on each side of a split, at least: a shorter piece is no line."""
 KINK_SIGNIFICANCE = 3.0
 """A corner's bend must exceed this many standard errors of the two pieces' directions."""
