@@ -158,11 +158,11 @@ def task_targets_W(
     workpiece lying at ``X_WO_start`` applied to all, on the reference's frame chosen by
     :func:`reference_frame`: ``(steps_X_WD, goal_X_WO, S_O, S_R)``."""
     S_R = reference_frame(task, model, X_WO_start)
-    X_WR = reference_pose_W(model, task.reference) @ make_pose(S_R)
-    steps = [X_WR @ step.X_RD for step in task.steps]
+    X_WR = reference_pose_W(model, task.reference)
+    steps = [X_WR @ make_pose(S_R) @ step.X_RD for step in task.steps]
     S_O = nearest_symmetry(steps[0][:3, :3], X_WO_start[:3, :3], model.symmetries(task.workpiece))
     steps = [_with_symmetry(X, S_O) for X in steps]
-    return steps, _with_symmetry(X_WR @ task.goal.X_RO, S_O), S_O, S_R
+    return steps, goal_on_reference_W(task, X_WR, S_O, S_R), S_O, S_R
 
 
 def reference_frame(task: Task, model: WorkSiteModel, X_WO_start: np.ndarray) -> np.ndarray:
@@ -191,12 +191,11 @@ the first (the identity, the model's own frame) is kept."""
 
 
 def goal_on_reference_W(
-    task: Task, X_WR: np.ndarray, S_O: np.ndarray, S_R: np.ndarray | None = None
+    task: Task, X_WR: np.ndarray, S_O: np.ndarray, S_R: np.ndarray
 ) -> np.ndarray:
-    """The goal ``X_WO`` with the reference at ``X_WR`` (the work site's true one, say), in its
-    frame ``S_R`` the drag chose (identity if None), and the symmetry ``S_O`` the drag chose."""
-    X_WR = X_WR if S_R is None else X_WR @ make_pose(S_R)
-    return _with_symmetry(X_WR @ task.goal.X_RO, S_O)
+    """The goal ``X_WO`` with the reference at ``X_WR`` (the work site's true one, say), in the
+    frame ``S_R`` and with the symmetry ``S_O`` the drag chose."""
+    return _with_symmetry(X_WR @ make_pose(S_R) @ task.goal.X_RO, S_O)
 
 
 def _play(

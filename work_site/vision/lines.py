@@ -194,7 +194,8 @@ def refine_segments(
     stray = np.bincount(sid[keep], np.abs(res[keep]) > params.kink_px, n_seg) > 0
     pieces = [out]
     for k in np.flatnonzero(stray & good):
-        split = _split_at_corner(P[(sid == k) & keep], out[k])
+        run = slice(first[k], first[k] + counts[k])  # segment k's samples, in order along it
+        split = _split_at_corner(P[run][keep[run]], out[k])
         if split is not None:
             out[k], second = split
             pieces.append(second[None])
