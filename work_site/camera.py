@@ -24,7 +24,7 @@ from models.scene import CameraModel, load_scene
 from models.transforms import invert_pose
 from protocol import CameraFrame, encode
 from protocol.images import DEFAULT_JPEG_QUALITY
-from work_site.child import stop_child
+from work_site.child import stop_child, yield_to_control
 from work_site.sensor import Lighting, Sensor
 
 CAMERA_NEAR_M = 0.05
@@ -267,6 +267,7 @@ def _render_worker(
     wire: FrameEncoding,
     conn: Connection,
 ) -> None:
+    yield_to_control()
     from work_site.world import World  # imported in the child: it owns its own client
 
     scene = load_scene(Path(scene_path))

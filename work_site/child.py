@@ -1,8 +1,10 @@
-"""The work site's child processes (the camera renderer, vision): their threads, their stop."""
+"""The work site's child processes (the camera renderer, vision): their threads, their
+priority, their stop."""
 
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 from multiprocessing.connection import Connection
 
 TERMINATE_WAIT_S = 5.0
@@ -11,6 +13,17 @@ TERMINATE_WAIT_S = 5.0
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 """The environment variables that set numpy's BLAS threads, read when numpy is imported: a
 child doing one core's work is started with them at 1."""
+
+CHILD_NICENESS = 10
+"""How much less CPU priority the camera renderer and vision take than the control loop: on a
+loaded machine the loop, its stops and the operator's heartbeats come first, and a frame or a
+recognition waits (a starved loop hears the dead-man's heartbeats late and stops the robot)."""
+
+
+def yield_to_control() -> None:
+    """Lower this child process's CPU priority by :data:`CHILD_NICENESS` (called first thing
+    in the child)."""
+    os.nice(CHILD_NICENESS)
 
 
 def stop_child(proc: mp.process.BaseProcess, conn: Connection, ask: bool, grace_s: float) -> None:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from work_site.child import BLAS_THREAD_VARIABLES, stop_child
+from work_site.child import BLAS_THREAD_VARIABLES, stop_child, yield_to_control
 
 if TYPE_CHECKING:
     from work_site.camera import RenderedFrame
@@ -72,6 +72,7 @@ def _calibrated(image: np.ndarray, scene):
 
 
 def _vision_worker(scene_path: str, scale: float, index_views: int | None, conn) -> None:
+    yield_to_control()
     import cv2
 
     from models.scene import load_scene
