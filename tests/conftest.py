@@ -140,6 +140,37 @@ PROCESS_FIXTURES = frozenset({"work_site", "link_factory", "certs"})
 test whether or not its module says so (``make test-fast`` leaves them out)."""
 
 
+ONE_AT_A_TIME = frozenset(
+    {
+        "tests/test_browser.py",
+        "tests/test_browser_injection.py",
+        "tests/test_browser_ui.py",
+        "tests/test_e2e.py",
+        "tests/test_runner.py",
+    }
+)
+"""Test files that run a whole chain (work site, vision, operator) beside a heavy load of their
+own: Chromium drawing the page in software, or the simulation at three times real time. Two of
+them at once overload a two-core machine: the work site's network threads then wait for a CPU
+so long that its dead-man stops the robot for heartbeats that were sent on time (a right stop
+on a machine that slow, and a wrong test result). ``make test`` runs these files one after
+another on one worker, the rest on the other meanwhile."""
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """``--dist loadfile``, with the :data:`ONE_AT_A_TIME` files one unit of work."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class OneAtATime(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = super()._split_scope(nodeid)
+            return "one-at-a-time" if path in ONE_AT_A_TIME else path
+
+    return OneAtATime(config, log)
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if PROCESS_FIXTURES & set(getattr(item, "fixturenames", ())):
