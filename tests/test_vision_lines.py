@@ -6,7 +6,15 @@ import cv2
 import numpy as np
 import pytest
 
-from work_site.vision.lines import FAINT_LINE_PARAMS, LineParams, check_grey_image, detect_lines
+from work_site.vision.lines import (
+    FAINT_LINE_PARAMS,
+    KINK_MIN_SAMPLES,
+    KINK_SIGNIFICANCE,
+    LineParams,
+    _split_at_corners,
+    check_grey_image,
+    detect_lines,
+)
 
 SCALE = 8
 
@@ -212,3 +220,63 @@ def test_straight_edges_in_noise_are_not_split() -> None:
         image = _polygon_image(corners)
         noisy = np.clip(image + rng.normal(0, 2.0, image.shape), 0, 255).astype(np.uint8)
         assert len(detect_lines(noisy)) == len(detect_lines(noisy, LineParams(kink_px=0.0)))
+
+
+def _split_one_by_one(points: np.ndarray, seg: np.ndarray):
+    """The corner split of one segment written plainly (every split point tried, each line
+    fitted by SVD): the reference for the batched :func:`_split_at_corners`."""
+    n, least = len(points), KINK_MIN_SAMPLES
+
+    def fit(p: np.ndarray):
+        c = p.mean(axis=0)
+        d = np.linalg.svd(p - c)[2][0]
+        r = (p - c) @ np.array([-d[1], d[0]])
+        return c, d, r, (p - c) @ d
+
+    if n < 2 * least:
+        return None
+    k = min(range(least, n - least + 1), key=lambda k: sum(
+        float(np.sum(fit(part)[2] ** 2)) for part in (points[:k], points[k:])
+    ))  # fmt: skip
+    (c1, d1, r1, a1), (c2, d2, r2, a2) = fit(points[:k]), fit(points[k:])
+    if max(np.abs(r1).max(), np.abs(r2).max()) > 0.5 * np.abs(fit(points)[2]).max():
+        return None
+    se = np.hypot(*(np.sqrt(np.mean(r**2) / np.sum(a**2)) for r, a in ((r1, a1), (r2, a2))))
+    if np.arccos(min(abs(float(d1 @ d2)), 1.0)) < KINK_SIGNIFICANCE * se:
+        return None
+
+    def foot(c, d, p):
+        return c + ((p - c) @ d) * d
+
+    corner = 0.5 * (points[k - 1] + points[k])
+    return (
+        np.concatenate([foot(c1, d1, seg[:2]), foot(c1, d1, corner)]),
+        np.concatenate([foot(c2, d2, corner), foot(c2, d2, seg[2:])]),
+    )
+
+
+def test_the_batched_corner_split_matches_the_split_done_one_segment_at_a_time() -> None:
+    rng = np.random.default_rng(3)
+    runs, segs = [], []
+    for i in range(60):
+        n = int(rng.integers(5, 60))  # some too short for two pieces
+        t = np.sort(rng.uniform(0, 40, n))
+        corner = rng.uniform(5, 35)
+        bend = rng.choice([0.0, rng.uniform(0.01, 0.2)])  # straight or bent (rad)
+        d1 = np.array([np.cos(i), np.sin(i)])
+        d2 = np.array([np.cos(i + bend), np.sin(i + bend)])
+        p = np.where(
+            (t < corner)[:, None], t[:, None] * d1, corner * d1 + (t - corner)[:, None] * d2
+        )
+        p += rng.normal(0, 0.05, p.shape) + rng.uniform(-300, 300, 2)
+        runs.append(p)
+        segs.append(np.concatenate([p[0], p[-1]]))
+    points = np.vstack(runs)
+    owner = np.repeat(np.arange(len(runs)), [len(r) for r in runs])
+    first, second, split = _split_at_corners(points, owner, np.array(segs))
+    expected = {i: _split_one_by_one(r, s) for i, (r, s) in enumerate(zip(runs, segs, strict=True))}
+    assert list(split) == [i for i, e in expected.items() if e is not None]
+    assert 5 <= len(split) < len(runs)  # both outcomes were tried
+    for a, b, i in zip(first, second, split, strict=True):
+        np.testing.assert_allclose(a, expected[i][0], atol=1e-9)
+        np.testing.assert_allclose(b, expected[i][1], atol=1e-9)

@@ -192,14 +192,16 @@ def refine_segments(
     normal = np.column_stack([-v[:, 1], v[:, 0]])
     res = np.einsum("mk,mk->m", P - c[sid], normal[sid])
     stray = np.bincount(sid[keep], np.abs(res[keep]) > params.kink_px, n_seg) > 0
-    pieces = [out]
-    for k in np.flatnonzero(stray & good):
-        run = slice(first[k], first[k] + counts[k])  # segment k's samples, in order along it
-        split = _split_at_corner(P[run][keep[run]], out[k])
-        if split is not None:
-            out[k], second = split
-            pieces.append(second[None])
-    return np.vstack(pieces)
+    tested = np.flatnonzero(stray & good)
+    if len(tested) == 0:
+        return out
+    # Each tested segment's kept edge points, in order along it, one run after another.
+    member = np.zeros(n_seg, bool)
+    member[tested] = True
+    take = keep & member[sid]
+    first_piece, second_piece, split = _split_at_corners(P[take], sid[take], out)
+    out[split] = first_piece
+    return np.vstack([out, second_piece])
 
 
 KINK_MIN_SAMPLES = 8
@@ -208,65 +210,108 @@ KINK_SIGNIFICANCE = 3.0
 """A corner's bend must exceed this many standard errors of the two pieces' directions."""
 
 
-def _split_at_corner(points: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The segment ``seg`` (4,) as two pieces meeting at a corner, if its edge points (n, 2),
-    in order along it, are fitted by two lines (split where their summed squared distances
-    are least) at least twice as closely as by one (the farthest point from them) and the two
-    bend by more than :data:`KINK_SIGNIFICANCE` standard errors; None if not, or too few
-    points for two lines."""
-    n = len(points)
-    if n < 2 * KINK_MIN_SAMPLES:
-        return None
-    # Scatter of every prefix and suffix from running sums: each split's two total least
-    # squares fits at once (the smaller eigenvalue of a 2×2 scatter is its squared residual).
-    x, y = points[:, 0] - points[:, 0].mean(), points[:, 1] - points[:, 1].mean()
-    cols = np.column_stack([np.ones(n), x, y, x * x, y * y, x * y])
-    running = np.cumsum(cols, axis=0)
-    head = running[KINK_MIN_SAMPLES - 1 : n - KINK_MIN_SAMPLES]  # the first k points
-    tail = running[-1] - head  # the others
-    ks = np.arange(KINK_MIN_SAMPLES, n - KINK_MIN_SAMPLES + 1)
-    sse = _tls_sse(head) + _tls_sse(tail)
-    k = int(ks[np.argmin(sse)])
-    (c1, d1, r1), (c2, d2, r2) = _tls(points[:k]), _tls(points[k:])
-    _, _, r = _tls(points)
-    if max(np.abs(r1).max(), np.abs(r2).max()) > 0.5 * np.abs(r).max():
-        return None
-    # The bend must stand out of what noise makes of two short lines' directions: each
-    # direction's standard error is its points' spread across over their spread along.
-    bend = np.arccos(min(abs(float(d1 @ d2)), 1.0))
-    se = [
-        np.sqrt(np.mean(res**2) / max(float(np.sum(((pts - cen) @ d) ** 2)), 1e-12))
-        for pts, cen, d, res in ((points[:k], c1, d1, r1), (points[k:], c2, d2, r2))
-    ]
-    if bend < KINK_SIGNIFICANCE * np.hypot(*se):
-        return None
-    corner = 0.5 * (points[k - 1] + points[k])
-    first = np.concatenate([_on_line(c1, d1, seg[:2]), _on_line(c1, d1, corner)])
-    second = np.concatenate([_on_line(c2, d2, corner), _on_line(c2, d2, seg[2:])])
-    return first, second
+def _split_at_corners(
+    points: np.ndarray, owner: np.ndarray, segs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Segments of ``segs`` (n, 4) split in two where they turn a corner, all at once.
+
+    ``points`` (m, 2) are edge points, ``owner`` (m,) the segment of each, each segment's in a
+    run, in order along it. A segment is split where two total least squares lines fit its
+    points best (least summed squared distances), if they fit at least twice as closely as
+    one line (the farthest point from them), each piece has :data:`KINK_MIN_SAMPLES` points,
+    and the two bend by more than :data:`KINK_SIGNIFICANCE` standard errors of their
+    directions. Returns the first pieces (s, 4), the second pieces (s, 4), and the indices
+    (s,) of the segments split."""
+    none = np.zeros((0, 4)), np.zeros((0, 4)), np.zeros(0, int)
+    segments, start, count = np.unique(owner, return_index=True, return_counts=True)
+    enough = count >= 2 * KINK_MIN_SAMPLES
+    if not enough.any():
+        return none
+    if not enough.all():  # the others drop out: fewer points than two lines need
+        kept = np.repeat(enough, count)
+        points, owner = points[kept], owner[kept]
+        segments, start, count = segments[enough], start[enough], count[enough]
+        start = np.cumsum(count) - count
+    g = np.repeat(np.arange(len(segments)), count)  # each point's run
+    j = np.arange(len(points)) - start[g]  # its place in its run
+    # Scatter of every prefix of each run from running sums (about the run's mean, for
+    # conditioning): every split's two fits at once.
+    mean = np.stack([np.bincount(g, points[:, i]) / count for i in (0, 1)], axis=1)
+    x, y = (points - mean[g]).T
+    running = np.cumsum(np.column_stack([np.ones_like(x), x, y, x * x, y * y, x * y]), axis=0)
+    before = np.vstack([np.zeros((1, 6)), running])[start]  # sums of the earlier runs
+    head = running - before[g]  # sums of points j' <= j of the run
+    total = head[start + count - 1]
+    tail = total[g] - head
+    splittable = (j >= KINK_MIN_SAMPLES - 1) & (j <= count[g] - KINK_MIN_SAMPLES - 1)
+    sse = np.where(splittable, _tls_sse(head) + _tls_sse(tail), np.inf)
+    # The least per run, the first of equals: sort by run, then sse, then place.
+    order = np.lexsort((j, sse, g))
+    best = order[start]  # the last point of each run's first piece
+    k = j[best] + 1  # points in the first piece
+    c1, d1 = _tls_from_sums(head[best])
+    c2, d2 = _tls_from_sums(tail[best])
+    c0, d0 = _tls_from_sums(total)
+    in_second = j >= k[g]
+    c_piece = np.where(in_second[:, None], c2[g], c1[g])
+    d_piece = np.where(in_second[:, None], d2[g], d1[g])
+    q = np.column_stack([x, y])
+    r = _cross(d_piece, q - c_piece)
+    r0 = _cross(d0[g], q - c0[g])
+    along = np.einsum("mi,mi->m", q - c_piece, d_piece)
+    far = np.zeros(len(segments))
+    np.maximum.at(far, g, np.abs(r))
+    far0 = np.zeros(len(segments))
+    np.maximum.at(far0, g, np.abs(r0))
+    piece = 2 * g + in_second  # each piece's statistics: (run, first or second)
+    n_piece = np.bincount(piece, minlength=2 * len(segments)).reshape(-1, 2)
+    across2 = np.bincount(piece, r * r, 2 * len(segments)).reshape(-1, 2)
+    along2 = np.bincount(piece, along * along, 2 * len(segments)).reshape(-1, 2)
+    # Each direction's standard error: its points' spread across over their spread along.
+    se = np.sqrt(across2 / n_piece / np.maximum(along2, 1e-12))
+    bend = np.arccos(np.minimum(np.abs(np.einsum("si,si->s", d1, d2)), 1.0))
+    split = (far <= 0.5 * far0) & (bend >= KINK_SIGNIFICANCE * np.hypot(se[:, 0], se[:, 1]))
+    if not split.any():
+        return none
+    s = np.flatnonzero(split)
+    corner = 0.5 * (q[best[s]] + q[best[s] + 1])
+    shift = np.tile(mean[s], 2)  # back from about each run's mean
+    seg = segs[segments[s]] - shift
+    c1, d1, c2, d2 = c1[s], d1[s], c2[s], d2[s]
+    first = np.hstack([_on_line(c1, d1, seg[:, :2]), _on_line(c1, d1, corner)])
+    second = np.hstack([_on_line(c2, d2, corner), _on_line(c2, d2, seg[:, 2:])])
+    return first + shift, second + shift, segments[s]
 
 
 def _tls_sse(m: np.ndarray) -> np.ndarray:
     """Squared residual of the total least squares line of points given by their running
-    sums (k, 6): count, Σx, Σy, Σx², Σy², Σxy."""
+    sums (k, 6): count, Σx, Σy, Σx², Σy², Σxy (no points: 0)."""
     cnt, sx, sy, sxx, syy, sxy = m.T
+    cnt = np.maximum(cnt, 1.0)
     vxx, vyy, vxy = sxx - sx * sx / cnt, syy - sy * sy / cnt, sxy - sx * sy / cnt
     return 0.5 * (vxx + vyy) - np.sqrt(0.25 * (vxx - vyy) ** 2 + vxy * vxy)
 
 
-def _tls(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Total least squares line through ``points`` (n, 2): a point on it, its direction, and
-    the points' signed distances from it."""
-    centre = points.mean(axis=0)
-    d = points - centre
-    theta = 0.5 * np.arctan2(2 * np.sum(d[:, 0] * d[:, 1]), np.sum(d[:, 0] ** 2 - d[:, 1] ** 2))
-    direction = np.array([np.cos(theta), np.sin(theta)])
-    return centre, direction, d @ np.array([-direction[1], direction[0]])
+def _tls_from_sums(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Total least squares lines of point sets given by their sums (k, 6) as in
+    :func:`_tls_sse`: a point on each (k, 2) and its unit direction (k, 2)."""
+    cnt, sx, sy, sxx, syy, sxy = m.T
+    vxx, vyy, vxy = sxx - sx * sx / cnt, syy - sy * sy / cnt, sxy - sx * sy / cnt
+    theta = 0.5 * np.arctan2(2 * vxy, vxx - vyy)
+    return np.column_stack([sx / cnt, sy / cnt]), np.column_stack([np.cos(theta), np.sin(theta)])
+
+
+def _cross(d: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Signed distances of points ``p`` (m, 2) from lines through the origin along unit
+    ``d`` (m, 2)."""
+    return d[:, 0] * p[:, 1] - d[:, 1] * p[:, 0]
 
 
 def _on_line(centre: np.ndarray, direction: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """The foot of ``p`` on the line through ``centre`` along unit ``direction``."""
-    return centre + np.dot(p - centre, direction) * direction
+    """The feet of points ``p`` (k, 2) on the lines through ``centre`` (k, 2) along unit
+    ``direction`` (k, 2)."""
+    t = np.einsum("ki,ki->k", p - centre, direction)
+    return centre + t[:, None] * direction
 
 
 def _mergeable(segs: np.ndarray, params: LineParams) -> np.ndarray:
