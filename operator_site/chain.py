@@ -443,9 +443,14 @@ def run_chain(
         if reports[-1].status == "done" and not oracle:
             # What the operator can know without the truth: where vision sees the block now.
             t0 = time.monotonic()
+            others = {
+                name: (X_WO, model.symmetries(name))
+                for name, X_WO in model.poses.items()
+                if name != workpiece
+            }
             check = check_placement(
                 workpiece, goal, model.symmetries(workpiece),
-                _frames_after(link, reports[-1].stamp_s),
+                _frames_after(link, reports[-1].stamp_s), others=others,
             )  # fmt: skip
             stage_s["vision_check"] = time.monotonic() - t0
             out["vision_check"] = check.to_json()

@@ -5,13 +5,15 @@ what happens after: a block can tip or turn as the fingers open, or be dragged a
 Vision then tells, as far as it can: a block seen where the program put it (within the bounds
 by which vision's fusion calls two sightings one placement) is there; a block found
 elsewhere by more than one search has moved, and the run did not do its task, whatever the
-program's report says. A block vision does not find again proves nothing either way.
+program's report says. A block vision does not find again proves nothing either way. The
+other blocks are looked at in the same frames: one found away from where the model had it
+was disturbed (pushed, dragged, knocked over), and the model no longer says where it is.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,25 +40,33 @@ class PlacementCheck:
     """What vision saw of ``block`` after the program: ``verdict`` one of :data:`VERDICTS`
     (placed: where the program put it; moved: found elsewhere by :data:`MOVED_SEARCHES`
     searches; unsure: found elsewhere by fewer; unseen: not found), the pose seen against the
-    goal (m, rad; None if unseen) and the searched frames looked at."""
+    goal (m, rad; None if unseen), the searched frames looked at, and the other blocks found
+    away from where the model had them by :data:`MOVED_SEARCHES` searches in those frames:
+    ``(name, m, rad)`` each."""
 
     block: str
     verdict: str
     error_m: float | None
     error_rad: float | None
     frames: int
+    disturbed: tuple[tuple[str, float, float], ...] = ()
 
     def sentence(self) -> str:
         """The check in words, for the operator."""
+        also = "".join(
+            f"; it also sees the {name} {_off(error_m, error_rad)} from where the model had it"
+            for name, error_m, error_rad in self.disturbed
+        )
         if self.error_m is None or self.error_rad is None:
             return (
-                f"vision did not find the {self.block} after the program ({self.frames} searches)"
+                f"vision did not find the {self.block} after the program ({self.frames} "
+                f"searches){also}"
             )
-        off = f"{self.error_m * 1e3:.1f} mm, {math.degrees(self.error_rad):.1f}°"
+        off = _off(self.error_m, self.error_rad)
         if self.verdict == "placed":
-            return f"vision sees the {self.block} where the program put it ({off} off)"
+            return f"vision sees the {self.block} where the program put it ({off} off){also}"
         sure = "" if self.verdict == "moved" else ", not confirmed by another search"
-        return f"vision sees the {self.block} {off} from where the program put it{sure}"
+        return f"vision sees the {self.block} {off} from where the program put it{sure}{also}"
 
     def to_json(self) -> dict:
         """The check as a run's result carries it (``vision_check``: mm and degrees)."""
@@ -66,7 +76,19 @@ class PlacementCheck:
             "error_mm": None if self.error_m is None else round(self.error_m * 1e3, 2),
             "error_deg": None if self.error_rad is None else round(math.degrees(self.error_rad), 2),
             "frames": self.frames,
+            "disturbed": [
+                {
+                    "block": name,
+                    "error_mm": round(error_m * 1e3, 2),
+                    "error_deg": round(math.degrees(error_rad), 2),
+                }
+                for name, error_m, error_rad in self.disturbed
+            ],
         }
+
+
+def _off(error_m: float, error_rad: float) -> str:
+    return f"{error_m * 1e3:.1f} mm, {math.degrees(error_rad):.1f}°"
 
 
 def check_placement(
@@ -75,17 +97,36 @@ def check_placement(
     symmetries: Sequence[np.ndarray],
     frames: Iterable[Recognitions],
     max_frames: int = CHECK_FRAMES,
+    others: Mapping[str, tuple[np.ndarray, Sequence[np.ndarray]]] | None = None,
 ) -> PlacementCheck:
     """Read vision's frames taken after the program (searched ones; tracked ones are passed
     over) until ``block`` is seen within vision's same-placement bounds of ``X_goal_WO``
     (placed), or seen away from it by :data:`MOVED_SEARCHES` searches (moved), or
-    ``max_frames`` searched frames have come (unsure if it was seen away, else unseen)."""
+    ``max_frames`` searched frames have come (unsure if it was seen away, else unseen).
+
+    ``others``: the blocks the program was not to move, each's pose in the model and its
+    symmetries; in the frames read, one seen last away from that pose by
+    :data:`MOVED_SEARCHES` searches is :attr:`PlacementCheck.disturbed`."""
     n = 0
     away: tuple[float, float] | None = None
+    disturbed: dict[str, tuple[float, float]] = {}
+
+    def check(verdict: str, error_m: float | None, error_rad: float | None) -> PlacementCheck:
+        moved = tuple((name, *disturbed[name]) for name in sorted(disturbed))
+        return PlacementCheck(block, verdict, error_m, error_rad, n, moved)
+
     for recs in frames:
         if recs.tracked:
             continue
         n += 1
+        for r in recs.objects:
+            if others and r.model in others and r.model != block:
+                X_WO, symmetries = others[r.model]
+                error_m, error_rad = pose_error(X_WO, r.X_WO, symmetries)
+                if error_m <= PLACED_M and error_rad <= PLACED_RAD:
+                    disturbed.pop(r.model, None)
+                elif r.searches >= MOVED_SEARCHES:
+                    disturbed[r.model] = (error_m, error_rad)
         errors = sorted(
             (pose_error(X_goal_WO, r.X_WO, symmetries), r.searches)
             for r in recs.objects
@@ -93,13 +134,13 @@ def check_placement(
         )
         for (error_m, error_rad), searches in errors:
             if error_m <= PLACED_M and error_rad <= PLACED_RAD:
-                return PlacementCheck(block, "placed", error_m, error_rad, n)
+                return check("placed", error_m, error_rad)
             if searches >= MOVED_SEARCHES:
-                return PlacementCheck(block, "moved", error_m, error_rad, n)
+                return check("moved", error_m, error_rad)
         if errors:
             away = errors[0][0]
         if n >= max_frames:
             break
     if away is not None:
-        return PlacementCheck(block, "unsure", *away, n)
-    return PlacementCheck(block, "unseen", None, None, n)
+        return check("unsure", *away)
+    return check("unseen", None, None)

@@ -81,3 +81,29 @@ def test_a_symmetric_turn_is_no_error() -> None:
                      objects=(Recognition("cube", _turned(GOAL, 90.0), 0.9),)),
     ])  # fmt: skip
     assert check.verdict == "placed" and check.error_rad < 1e-9
+
+
+def test_another_block_seen_away_from_the_model_by_two_searches_was_disturbed() -> None:
+    cube = load_scene().object("cube").model.symmetries
+    X_cube = make_pose(None, [0.4, 0.1, 0.02])
+    pushed = _turned(X_cube, 0.0, 0.012)
+
+    def frame(X: np.ndarray, searches: int) -> Recognitions:
+        return Recognitions(seq=0, stamp_s=1.0, elapsed_s=0.1, objects=(
+            Recognition("wedge", GOAL, 0.9, searches=3),
+            Recognition("cube", X, 0.9, searches=searches),
+        ))  # fmt: skip
+
+    others = {"cube": (X_cube, cube), "wedge": (GOAL, WEDGE)}  # the workpiece is not "other"
+    check = check_placement("wedge", GOAL, WEDGE, [frame(pushed, MOVED_SEARCHES)], others=others)
+    assert check.verdict == "placed" and len(check.disturbed) == 1
+    name, error_m, error_rad = check.disturbed[0]
+    assert name == "cube" and math.isclose(error_m, 0.012) and error_rad < 1e-9
+    assert check.sentence().endswith(
+        "; it also sees the cube 12.0 mm, 0.0° from where the model had it"
+    )
+    assert check.to_json()["disturbed"] == [{"block": "cube", "error_mm": 12.0, "error_deg": 0.0}]
+    # One search away proves nothing; a block where the model has it is not disturbed.
+    for X, searches in ((pushed, 1), (_turned(X_cube, 90.0, 0.001), 5)):
+        check = check_placement("wedge", GOAL, WEDGE, [frame(X, searches)], others=others)
+        assert check.disturbed == () and check.to_json()["disturbed"] == []
