@@ -121,8 +121,8 @@ def check_placement(
         n += 1
         for r in recs.objects:
             if others and r.model in others and r.model != block:
-                X_WO, symmetries = others[r.model]
-                error_m, error_rad = pose_error(X_WO, r.X_WO, symmetries)
+                X_model_WO, its_symmetries = others[r.model]
+                error_m, error_rad = pose_error(X_model_WO, r.X_WO, its_symmetries)
                 if error_m <= PLACED_M and error_rad <= PLACED_RAD:
                     disturbed.pop(r.model, None)
                 elif r.searches >= MOVED_SEARCHES:

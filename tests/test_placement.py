@@ -103,6 +103,14 @@ def test_another_block_seen_away_from_the_model_by_two_searches_was_disturbed() 
         "; it also sees the cube 12.0 mm, 0.0° from where the model had it"
     )
     assert check.to_json()["disturbed"] == [{"block": "cube", "error_mm": 12.0, "error_deg": 0.0}]
+    # The workpiece's own symmetries judge it, whatever the other blocks' are: a cube seen a
+    # quarter turn from its goal, beside a wedge (whose symmetries have no quarter turn).
+    seen = Recognitions(seq=0, stamp_s=1.0, elapsed_s=0.1, objects=(
+        Recognition("wedge", GOAL, 0.9, searches=3),
+        Recognition("cube", _turned(X_cube, 90.0), 0.9, searches=3),
+    ))  # fmt: skip
+    check = check_placement("cube", X_cube, cube, [seen], others={"wedge": (GOAL, WEDGE)})
+    assert check.verdict == "placed" and check.error_rad < 1e-9 and check.disturbed == ()
     # One search away proves nothing; a block where the model has it is not disturbed.
     for X, searches in ((pushed, 1), (_turned(X_cube, 90.0, 0.001), 5)):
         check = check_placement("wedge", GOAL, WEDGE, [frame(X, searches)], others=others)
