@@ -6,8 +6,8 @@ Vision then tells, as far as it can: a block seen where the program put it (with
 by which vision's fusion calls two sightings one placement) is there; a block found
 elsewhere by more than one search has moved, and the run did not do its task, whatever the
 program's report says. A block vision does not find again proves nothing either way. The
-other blocks are looked at in the same frames: one found away from where the model had it
-was disturbed (pushed, dragged, knocked over), and the model no longer says where it is.
+other blocks are looked at in the same frames: one found with its centre away from where
+the model had it was disturbed (pushed, dragged, knocked over).
 """
 
 from __future__ import annotations
@@ -41,8 +41,8 @@ class PlacementCheck:
     (placed: where the program put it; moved: found elsewhere by :data:`MOVED_SEARCHES`
     searches; unsure: found elsewhere by fewer; unseen: not found), the pose seen against the
     goal (m, rad; None if unseen), the searched frames looked at, and the other blocks found
-    away from where the model had them by :data:`MOVED_SEARCHES` searches in those frames:
-    ``(name, m, rad)`` each."""
+    with their centres away from where the model had them by :data:`MOVED_SEARCHES` searches
+    in those frames: ``(name, m, rad)`` each."""
 
     block: str
     verdict: str
@@ -105,8 +105,8 @@ def check_placement(
     ``max_frames`` searched frames have come (unsure if it was seen away, else unseen).
 
     ``others``: the blocks the program was not to move, each's pose in the model and its
-    symmetries; in the frames read, one seen last away from that pose by
-    :data:`MOVED_SEARCHES` searches is :attr:`PlacementCheck.disturbed`."""
+    symmetries; in the frames read, one seen last with its centre more than :data:`PLACED_M`
+    from that pose's by :data:`MOVED_SEARCHES` searches is :attr:`PlacementCheck.disturbed`."""
     n = 0
     away: tuple[float, float] | None = None
     disturbed: dict[str, tuple[float, float]] = {}
@@ -121,9 +121,11 @@ def check_placement(
         n += 1
         for r in recs.objects:
             if others and r.model in others and r.model != block:
+                # By where its centre is: a block pushed or knocked over moves it, while a
+                # block partly hidden by the one put on it can be seen turned in place.
                 X_model_WO, its_symmetries = others[r.model]
                 error_m, error_rad = pose_error(X_model_WO, r.X_WO, its_symmetries)
-                if error_m <= PLACED_M and error_rad <= PLACED_RAD:
+                if error_m <= PLACED_M:
                     disturbed.pop(r.model, None)
                 elif r.searches >= MOVED_SEARCHES:
                     disturbed[r.model] = (error_m, error_rad)
