@@ -147,6 +147,7 @@ ONE_AT_A_TIME = frozenset(
         "tests/test_browser_ui.py",
         "tests/test_e2e.py",
         "tests/test_runner.py",
+        "tests/test_session.py",
     }
 )
 """Test files that run a whole chain (work site, vision, operator) beside a heavy load of their
