@@ -135,6 +135,14 @@ def one_move_program(
     return MotionProgram(program_id=program_id, X_GP=np.eye(4), commands=(command,))
 
 
+def yielded_niceness() -> int:
+    """The niceness a work-site child that yields to the control loop has, started from this
+    process (capped at Linux's least priority)."""
+    from work_site.child import CHILD_NICENESS
+
+    return min(os.getpriority(os.PRIO_PROCESS, 0) + CHILD_NICENESS, 19)
+
+
 PROCESS_FIXTURES = frozenset({"work_site", "link_factory", "certs"})
 """Fixtures that start OS processes or network namespaces: a test using one is an integration
 test whether or not its module says so (``make test-fast`` leaves them out)."""

@@ -11,8 +11,8 @@ import pytest
 
 from bench.vision_dataset import SceneRenderer
 from models.scene import load_scene
+from tests.conftest import yielded_niceness
 from work_site.camera import RenderedFrame
-from work_site.child import CHILD_NICENESS
 from work_site.recognition import VisionProcess, VisionResult
 
 pytestmark = pytest.mark.slow  # a child process that loads vision's index: seconds
@@ -51,7 +51,8 @@ def test_the_vision_process_searches_then_tracks_what_it_found() -> None:
             assert vision.poll() is None and not vision.failed, vision.failed
             time.sleep(0.05)
         assert vision.ready
-        assert _niceness(vision._proc.pid) == _yielded_niceness()  # control comes first
+        niceness = os.getpriority(os.PRIO_PROCESS, vision._proc.pid)
+        assert niceness == yielded_niceness()  # the control loop comes first
         assert vision.request(frame(1), track=True)  # nothing searched yet: nothing to track
         first = _result(vision)
         assert first.tracked and first.objects == () and not first.error
@@ -68,15 +69,6 @@ def test_the_vision_process_searches_then_tracks_what_it_found() -> None:
             assert np.linalg.norm(X_WO[:3, 3] - found[name][:3, 3]) < 0.001, name
     finally:
         vision.close()
-
-
-def _niceness(pid: int) -> int:
-    return os.getpriority(os.PRIO_PROCESS, pid)
-
-
-def _yielded_niceness() -> int:
-    """What a child that yields to the control loop has (capped at Linux's least priority)."""
-    return min(_niceness(0) + CHILD_NICENESS, 19)
 
 
 class _Vision:

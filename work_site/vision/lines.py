@@ -236,7 +236,7 @@ def _split_at_corners(
     j = np.arange(len(points)) - start[g]  # its place in its run
     # Scatter of every prefix of each run from running sums (about the run's mean, for
     # conditioning): every split's two fits at once.
-    mean = np.stack([np.bincount(g, points[:, i]) / count for i in (0, 1)], axis=1)
+    mean = np.add.reduceat(points, start) / count[:, None]
     x, y = (points - mean[g]).T
     running = np.cumsum(np.column_stack([np.ones_like(x), x, y, x * x, y * y, x * y]), axis=0)
     before = np.vstack([np.zeros((1, 6)), running])[start]  # sums of the earlier runs
@@ -259,10 +259,7 @@ def _split_at_corners(
     r = _cross(d_piece, q - c_piece)
     r0 = _cross(d0[g], q - c0[g])
     along = np.einsum("mi,mi->m", q - c_piece, d_piece)
-    far = np.zeros(len(segments))
-    np.maximum.at(far, g, np.abs(r))
-    far0 = np.zeros(len(segments))
-    np.maximum.at(far0, g, np.abs(r0))
+    far, far0 = (np.maximum.reduceat(np.abs(d), start) for d in (r, r0))
     piece = 2 * g + in_second  # each piece's statistics: (run, first or second)
     n_piece = np.bincount(piece, minlength=2 * len(segments)).reshape(-1, 2)
     across2 = np.bincount(piece, r * r, 2 * len(segments)).reshape(-1, 2)
@@ -283,20 +280,25 @@ def _split_at_corners(
     return first + shift, second + shift, segments[s]
 
 
-def _tls_sse(m: np.ndarray) -> np.ndarray:
-    """Squared residual of the total least squares line of points given by their running
-    sums (k, 6): count, Σx, Σy, Σx², Σy², Σxy (no points: 0)."""
+def _scatter(m: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Count (at least 1), Σx, Σy and the centred second moments vxx, vyy, vxy of point sets
+    given by their sums (k, 6): count, Σx, Σy, Σx², Σy², Σxy."""
     cnt, sx, sy, sxx, syy, sxy = m.T
     cnt = np.maximum(cnt, 1.0)
-    vxx, vyy, vxy = sxx - sx * sx / cnt, syy - sy * sy / cnt, sxy - sx * sy / cnt
+    return cnt, sx, sy, sxx - sx * sx / cnt, syy - sy * sy / cnt, sxy - sx * sy / cnt
+
+
+def _tls_sse(m: np.ndarray) -> np.ndarray:
+    """Squared residual of the total least squares line of point sets given by their sums
+    (k, 6) as in :func:`_scatter` (no points: 0)."""
+    _, _, _, vxx, vyy, vxy = _scatter(m)
     return 0.5 * (vxx + vyy) - np.sqrt(0.25 * (vxx - vyy) ** 2 + vxy * vxy)
 
 
 def _tls_from_sums(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Total least squares lines of point sets given by their sums (k, 6) as in
-    :func:`_tls_sse`: a point on each (k, 2) and its unit direction (k, 2)."""
-    cnt, sx, sy, sxx, syy, sxy = m.T
-    vxx, vyy, vxy = sxx - sx * sx / cnt, syy - sy * sy / cnt, sxy - sx * sy / cnt
+    :func:`_scatter`: a point on each (k, 2) and its unit direction (k, 2)."""
+    cnt, sx, sy, vxx, vyy, vxy = _scatter(m)
     theta = 0.5 * np.arctan2(2 * vxy, vxx - vyy)
     return np.column_stack([sx / cnt, sy / cnt]), np.column_stack([np.cos(theta), np.sin(theta)])
 
