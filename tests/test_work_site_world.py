@@ -191,3 +191,49 @@ def test_camera_process_encodes_frames_with_the_calibration_not_the_real_pose() 
     np.testing.assert_array_equal(frame.X_WC, scene.camera.X_WC)
     np.testing.assert_array_equal(frame.image, done.image)  # PNG is lossless
     assert done.image.std() > 10
+
+
+def test_camera_process_renders_again_only_when_something_moved() -> None:
+    """A frame of a world at rest reuses the last render with its own sensor noise; a block
+    moved, or a joint turned, beyond the reuse tolerances is rendered anew."""
+    import time
+
+    from work_site.camera import RENDER_REUSE_M, RENDER_REUSE_RAD, CameraProcess, RenderRequest
+    from work_site.sensor import Sensor
+
+    scene = load_scene()
+    camera = CameraProcess(scene.path, sensor=Sensor(read_noise_grey=2.0))
+    poses = {o.name: o.X_WO.copy() for o in scene.objects}
+    q = np.array(HOME_Q, dtype=np.float64)
+
+    def frame(seq: int, poses: dict, q: np.ndarray):
+        assert camera.request(RenderRequest(seq, float(seq), poses, q, np.zeros(2)))
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline:
+            if (done := camera.poll()) is not None:
+                return done
+            time.sleep(0.01)
+        raise AssertionError(f"frame {seq}: none within 60 s")
+
+    cube = next(o.name for o in scene.objects if not o.fixed)
+    nudged = {**poses, cube: poses[cube].copy()}
+    nudged[cube][0, 3] += 0.5 * RENDER_REUSE_M
+    moved = {**poses, cube: poses[cube].copy()}
+    moved[cube][0, 3] += 0.01
+    turned = q.copy()
+    turned[0] += 2 * RENDER_REUSE_RAD
+    try:
+        first = frame(0, poses, q)
+        rest = frame(1, nudged, q)
+        after_move = frame(2, moved, q)
+        after_turn = frame(3, moved, turned)
+        back = frame(4, poses, q)
+    finally:
+        camera.close()
+    assert first.rendered and not rest.rendered
+    # The reused render carries its own frame's noise: the two differ by noise alone.
+    difference = rest.image.astype(np.float64) - first.image
+    assert 0 < np.abs(difference).mean() < 5.0
+    assert after_move.rendered and after_turn.rendered and back.rendered
+    # The block's move shows: the frames differ beyond the noise where it was and is.
+    assert np.count_nonzero(np.abs(after_move.image.astype(int) - first.image) > 20) > 50

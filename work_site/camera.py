@@ -10,6 +10,7 @@ loop only publishes bytes.
 from __future__ import annotations
 
 import dataclasses
+import math
 import multiprocessing as mp
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -244,6 +245,9 @@ class RenderedFrame:
     payload: bytes
     q: np.ndarray  # the arm's joint angles (6,) and the finger opening (m) in the image:
     finger_opening_m: float  # vision sets the arm's lines aside
+    rendered: bool = True
+    """Whether the world was rendered for this frame (False: the last render was reused,
+    nothing having moved; its noise is this frame's own)."""
 
 
 @dataclass(frozen=True)
@@ -257,6 +261,39 @@ class RenderRequest:
     fingers_m: np.ndarray
     quality: int | None = None
     """This frame's JPEG quality (None: the wire's :class:`FrameEncoding`)."""
+
+
+RENDER_REUSE_M = 1e-6
+"""A render is reused while no object and no finger has moved more than this (m) since it
+was made: a hundredth of a pixel and less at the camera's range (its focal length is under a
+thousand pixels a metre away), far below the sensor's noise, which every frame draws anew.
+A scene at rest (the operator dragging in the model, vision looking) then costs the renderer
+nothing: a frame of the 2× supersampled world costs it about a quarter of a second."""
+RENDER_REUSE_RAD = 1e-6
+"""The same for rotations: an object's, and each joint's (rad; a link a metre long moves its
+far end 1 µm)."""
+
+
+def same_view(a: RenderRequest, b: RenderRequest) -> bool:
+    """Whether ``a`` and ``b`` show the world alike, within :data:`RENDER_REUSE_M` and
+    :data:`RENDER_REUSE_RAD`: the same objects at the same poses, the arm at the same joint
+    angles and finger openings."""
+    if a.X_WO.keys() != b.X_WO.keys():
+        return False
+    if np.max(np.abs(np.asarray(a.q) - np.asarray(b.q)), initial=0.0) > RENDER_REUSE_RAD:
+        return False
+    fingers_m = np.abs(np.asarray(a.fingers_m) - np.asarray(b.fingers_m))
+    if np.max(fingers_m, initial=0.0) > RENDER_REUSE_M:
+        return False
+    for name, X_a in a.X_WO.items():
+        X_b = b.X_WO[name]
+        if np.linalg.norm(X_a[:3, 3] - X_b[:3, 3]) > RENDER_REUSE_M:
+            return False
+        # The angle of R_a R_bᵀ, from its trace (accurate enough near zero for a threshold).
+        cos = (np.trace(X_a[:3, :3] @ X_b[:3, :3].T) - 1.0) / 2.0
+        if cos < math.cos(RENDER_REUSE_RAD):
+            return False
+    return True
 
 
 def _render_worker(
@@ -277,17 +314,20 @@ def _render_worker(
             scene, camera=dataclasses.replace(scene.camera, X_WC=np.asarray(X_WC))
         )
     world = World(scene)
+    rendered: tuple[RenderRequest, np.ndarray] | None = None  # the last render, of what
     try:
         while True:
             request = conn.recv()
             if request is None:
                 return
-            for name, X_WO in request.X_WO.items():
-                world.set_object_pose(name, X_WO)
-            world.set_robot_joint_positions(request.q, request.fingers_m)
-            image = render_grey(world.cid, world.scene.camera, supersample)
+            fresh = rendered is None or not same_view(rendered[0], request)
+            if fresh:
+                for name, X_WO in request.X_WO.items():
+                    world.set_object_pose(name, X_WO)
+                world.set_robot_joint_positions(request.q, request.fingers_m)
+                rendered = (request, render_grey(world.cid, world.scene.camera, supersample))
             # The sensor's noise, seeded by the frame: a frame renders the same every time.
-            image = sensor.apply(image, np.random.default_rng(request.seq))
+            image = sensor.apply(rendered[1], np.random.default_rng(request.seq))
             payload = encode(
                 CameraFrame(
                     seq=request.seq,
@@ -302,7 +342,9 @@ def _render_worker(
             )
             opening = float(np.sum(request.fingers_m))
             conn.send(
-                RenderedFrame(request.seq, request.stamp_s, image, payload, request.q, opening)
+                RenderedFrame(
+                    request.seq, request.stamp_s, image, payload, request.q, opening, fresh
+                )
             )
     except (EOFError, KeyboardInterrupt):
         return

@@ -119,6 +119,7 @@ class WorkSiteServer(ProgramIntake):
         self.stats = {
             "states": 0,
             "frames": 0,
+            "renders": 0,
             "recognitions": 0,
             "tracked": 0,
             "refused": 0,
@@ -385,6 +386,7 @@ class WorkSiteServer(ProgramIntake):
         done = camera.poll()
         if done is None:
             return
+        self.stats["renders"] += done.rendered
         # Paced on the wire only: vision sees every frame, whatever the operator's link.
         self._frame_credit, due = self._paced(self._frame_credit)
         if due:
