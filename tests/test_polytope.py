@@ -155,3 +155,17 @@ def test_the_last_query_s_faces_give_the_exact_distance_or_decline(seed: int) ->
                 for got, ref in zip(d, refs, strict=True):
                     assert abs(got - ref) <= ROUNDING_M, (moving.name, got, ref, step)
     assert answered >= 0.5 * tried, (answered, tried)
+
+
+def test_a_part_s_features_are_found_once_and_cannot_be_changed() -> None:
+    """Every simulator world is built from the same parts: their features are found once,
+    read-only, and the part's own arrays stay writable."""
+    part = load_scene().object("cube").model.parts[0]
+    first, again = Polytope.of(part), Polytope.of(part)
+    assert first is again
+    fresh = Polytope._features(part)
+    for name in ("vertices", "edges", "normals", "planes", "face_sides", "face_side_offsets"):
+        np.testing.assert_array_equal(getattr(first, name), getattr(fresh, name))
+        with pytest.raises(ValueError, match="read-only"):
+            getattr(first, name)[...] = 0
+    assert part.vertices_O.flags.writeable

@@ -13,7 +13,8 @@ convex polytopes also give the exact penetration depth and its direction.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import weakref
+from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy.spatial import ConvexHull
@@ -55,7 +56,17 @@ class Polytope:
 
     @classmethod
     def of(cls, part: ConvexPart) -> Polytope:
-        """``part``'s features in its own frame."""
+        """``part``'s features in its own frame, found once per part (parts do not change: a
+        simulator world is built for every drag and every program, from the same parts); the
+        arrays are read-only."""
+        known = _OF_PART.get(part)
+        if known is None:
+            found = cls._features(part)
+            known = _OF_PART[part] = cls(*(_read_only(getattr(found, f.name)) for f in fields(cls)))
+        return known
+
+    @classmethod
+    def _features(cls, part: ConvexPart) -> Polytope:
         V = part.vertices_O
         ring = [(a, b) for f in part.faces for a, b in zip(f, f[1:] + f[:1], strict=True)]
         edges = sorted({(min(a, b), max(a, b)) for a, b in ring})
@@ -107,6 +118,16 @@ class Polytope:
             sides,
             self.face_side_offsets + sides @ t,
         )
+
+
+_OF_PART: weakref.WeakKeyDictionary[ConvexPart, Polytope] = weakref.WeakKeyDictionary()
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """A copy of ``a`` that cannot be written (the part's own arrays stay as they are)."""
+    a = a.copy()
+    a.setflags(write=False)
+    return a
 
 
 def _padded(sides: list[np.ndarray], offsets: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
