@@ -346,7 +346,7 @@ def _render_worker(
                     request.seq, request.stamp_s, image, payload, request.q, opening, fresh
                 )
             )
-    except (EOFError, KeyboardInterrupt):
+    except (EOFError, BrokenPipeError, KeyboardInterrupt):  # the parent is gone
         return
     finally:
         world.close()

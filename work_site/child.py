@@ -6,6 +6,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 from multiprocessing.connection import Connection
+from pathlib import Path
 
 TERMINATE_WAIT_S = 5.0
 """How long a terminated child is waited for before the parent goes on."""
@@ -18,12 +19,26 @@ CHILD_NICENESS = 10
 """How much less CPU priority the camera renderer and vision take than the control loop: on a
 loaded machine the loop, its stops and the operator's heartbeats come first, and a frame or a
 recognition waits (a starved loop hears the dead-man's heartbeats late and stops the robot)."""
+AUTOGROUP = Path("/proc/self/autogroup")
 
 
 def yield_to_control() -> None:
     """Lower this child process's CPU priority by :data:`CHILD_NICENESS` (called first thing
-    in the child)."""
+    in the child), and take it out of the work site's share of the machine.
+
+    Linux shares the CPU between sessions first (autogroups) and by niceness only within one:
+    a niced child in the work site's session still spends the session's share, and on a loaded
+    machine the loop's threads (the one that reads the heartbeats among them) then wait for
+    other sessions' turns. A session of its own, niced as a whole, spends only what the
+    others leave. The parent stops the child through its pipe, as before; a terminal's Ctrl-C
+    reaches the parent alone."""
     os.nice(CHILD_NICENESS)
+    if AUTOGROUP.exists():
+        os.setsid()
+        try:
+            AUTOGROUP.write_text(f"{CHILD_NICENESS}\n")
+        except OSError:  # a kernel that does not let a session lower its own priority
+            pass
 
 
 def stop_child(proc: mp.process.BaseProcess, conn: Connection, ask: bool, grace_s: float) -> None:

@@ -117,7 +117,7 @@ def _vision_worker(scene_path: str, scale: float, index_views: int | None, conn)
             elapsed_s = time.perf_counter() - t0
             conn.send(VisionResult(seq, stamp_s, elapsed_s, objects, error, note, bool(track)))
             note = ""
-    except (EOFError, KeyboardInterrupt):
+    except (EOFError, BrokenPipeError, KeyboardInterrupt):  # the parent is gone
         return
 
 
