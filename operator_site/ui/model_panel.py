@@ -48,9 +48,8 @@ class ModelPanel:
     def _build_model_panel(self, gui: viser.GuiApi) -> None:
         """The panel's widgets, in the folder ``gui`` has open, and their callbacks."""
         gui.add_markdown(MODEL_HELP)
-        self.recognitions_md = gui.add_markdown("no recognitions yet")
-        self._rec_folder = gui.add_folder("recognised, not in the model: click to add")
-        self._rec_buttons: dict[str, object] = {}
+        # The buttons above what changes with every frame (the list of recognitions grows
+        # and shrinks as vision finds and loses blocks): a button stays where the mouse aims.
         self.accept_button = gui.add_button("accept the recognised blocks")
         self.scene_layout_button = gui.add_button("use the scene file's layout (no vision)")
         self.update_button = gui.add_button(
@@ -60,6 +59,9 @@ class ModelPanel:
         self.show_vision = gui.add_checkbox("show what vision sees in 3D", True)
         self.remove_mode = gui.add_checkbox("remove mode", False)
         self.model_md = gui.add_markdown("")
+        self.recognitions_md = gui.add_markdown("no recognitions yet")
+        self._rec_folder = gui.add_folder("recognised, not in the model: click to add")
+        self._rec_buttons: dict[str, object] = {}
         self.accept_button.on_click(lambda _: self.on_accept_recognitions())
         self.scene_layout_button.on_click(lambda _: self.on_use_scene_layout())
         self.update_button.on_click(lambda _: self.on_update_from_vision())
