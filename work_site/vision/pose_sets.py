@@ -172,6 +172,22 @@ def select(
 
     pool = list(candidates)
     accepted, held = _select_held(pool, once, surroundings, params)
+    # A candidate grown around a smaller object (an L around what is a tall block) can take
+    # that object's lines and its own model's place first, and leave the true object of that
+    # model to be explained as something else: the selection without it stands when it
+    # explains more of the image's lines.
+    length_px = np.hypot(segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1])
+    for _ in range(len(candidates)):  # each round takes one candidate out of the pool
+        for c, _ in accepted:
+            if not c.grown:
+                continue
+            without = [o for o in pool if o is not c]
+            again, held_again = _select_held(without, once, surroundings, params)
+            if _explained_px(again, length_px) > _explained_px(accepted, length_px):
+                pool, accepted, held = without, again, held_again
+                break
+        else:
+            break
     for _ in range(len(candidates)):  # each round takes one candidate out of the pool
         for (c, _), h in zip(accepted, held, strict=True):
             if h or not any(_other_pose_resting(o, c, params) for o in pool):
@@ -187,6 +203,12 @@ def select(
         else:
             break
     return sorted((d for _, d in accepted), key=lambda r: -r.score)
+
+
+def _explained_px(accepted: list[tuple[Candidate, Detection]], length_px: np.ndarray) -> float:
+    """The image lines' length (px) that the accepted objects explain together."""
+    matched = set().union(*(d.matched_segments for _, d in accepted)) if accepted else set()
+    return float(length_px[list(matched)].sum()) if matched else 0.0
 
 
 def _other_pose_resting(o: Candidate, c: Candidate, params: RecognizerParams) -> bool:
