@@ -273,6 +273,13 @@ def test_a_block_is_held_up_by_something_hidden_only_when_the_table_cannot_hold_
     assert [r.X_WO[2, 3] for r in both] == [on_table.X_WO[2, 3]]
 
 
+BLOCK_FOUND_M = 0.005
+"""A block found where it is: within this of its true centre."""
+SWAPPED_M = 0.1
+"""The L and the tall block of the task bench's layout 4 stand 16 cm apart: an L found within
+this of the tall block's centre took its place."""
+
+
 def test_a_model_grown_around_a_block_does_not_take_that_block_s_place(recognizer) -> None:
     """A tall block beside an L: an L grown around the tall block (its bar) explained the tall
     block's lines first, and the true L was then taken for a tall block (the two swapped,
@@ -303,10 +310,3 @@ def test_a_model_grown_around_a_block_does_not_take_that_block_s_place(recognize
             # (At the others the L itself is found about 2 cm off, outscoring its true pose:
             # another fault, not this one.)
             assert np.linalg.norm(ell - truth["l_block"]) < BLOCK_FOUND_M
-
-
-BLOCK_FOUND_M = 0.005
-"""A block found where it is: within this of its true centre."""
-SWAPPED_M = 0.1
-"""The L and the tall block of the task bench's layout 4 stand 16 cm apart: an L found within
-this of the tall block's centre took its place."""

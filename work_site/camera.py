@@ -268,7 +268,7 @@ RENDER_REUSE_M = 1e-6
 was made: a hundredth of a pixel and less at the camera's range (its focal length is under a
 thousand pixels a metre away), far below the sensor's noise, which every frame draws anew.
 A scene at rest (the operator dragging in the model, vision looking) then costs the renderer
-nothing: a frame of the 2× supersampled world costs it about a quarter of a second."""
+the sensor's stages alone, not a render of the supersampled world."""
 RENDER_REUSE_RAD = 1e-6
 """The same for rotations: an object's, and each joint's (rad; a link a metre long moves its
 far end 1 µm)."""

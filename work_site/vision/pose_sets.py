@@ -157,7 +157,9 @@ def select(
     max_height_m: float = 0.0,
 ) -> list[Detection]:
     """Candidates that explain the most image edge length first; a candidate sharing many
-    image lines with, or interpenetrating, one already accepted is dropped. Each is
+    image lines with, or interpenetrating, one already accepted is dropped; an accepted
+    candidate grown around a smaller object stands only if the selection without it explains
+    no more of the image's lines. Each is
     verified again with the other candidates as occluders, and its outline must show. A
     candidate not found resting on the table must be held up by the table, the fixed
     environment or another accepted object; one that is not is dropped and the selection made
