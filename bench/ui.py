@@ -254,18 +254,24 @@ on every change of the page's text (Playwright's own waits look every half secon
 first few looks fail: up to half a second of the harness counted as the page's)."""
 
 
-def wait_text(tab, pattern: str | re.Pattern, timeout_s: float) -> None:
-    """Wait until a line of ``tab``'s rendered text matches ``pattern`` (a string: contains
-    it); TimeoutError naming it after ``timeout_s``."""
+def _wait_in_page(tab, script: str, arg: str, timeout_s: float, what: str) -> None:
+    """Run one of the waits on the page's changes (``script`` given ``arg`` and the timeout in
+    ms); TimeoutError naming ``what`` after ``timeout_s``."""
     from playwright.sync_api import Error as PlaywrightError
 
-    source = pattern.pattern if isinstance(pattern, re.Pattern) else re.escape(pattern)
     try:
-        tab.evaluate(WAIT_TEXT_JS, [source, timeout_s * 1e3])
+        tab.evaluate(script, [arg, timeout_s * 1e3])
     except PlaywrightError as e:
         if "not within" not in str(e):
             raise
-        raise TimeoutError(f"the page's text {source!r}: not within {timeout_s:g} s") from None
+        raise TimeoutError(f"{what}: not within {timeout_s:g} s") from None
+
+
+def wait_text(tab, pattern: str | re.Pattern, timeout_s: float) -> None:
+    """Wait until a line of ``tab``'s rendered text matches ``pattern`` (a string: contains
+    it); TimeoutError naming it after ``timeout_s``."""
+    source = pattern.pattern if isinstance(pattern, re.Pattern) else re.escape(pattern)
+    _wait_in_page(tab, WAIT_TEXT_JS, source, timeout_s, f"the page's text {source!r}")
 
 
 BUTTON_READY_JS = """([label, timeoutMs]) => new Promise((resolve, reject) => {
@@ -293,14 +299,7 @@ def press(tab, label: str, timeout_s: float = 30.0) -> None:
     checks that the button stays where it is over two drawn frames, each a frame of the 3D
     view drawn in software here: harness time that a person's click does not take
     (docs/benchmarks.md); ``force`` leaves those checks out, the mouse's events are the same."""
-    from playwright.sync_api import Error as PlaywrightError
-
-    try:
-        tab.evaluate(BUTTON_READY_JS, [label, timeout_s * 1e3])
-    except PlaywrightError as e:
-        if "not within" not in str(e):
-            raise
-        raise TimeoutError(f"the page's button {label!r}: not within {timeout_s:g} s") from None
+    _wait_in_page(tab, BUTTON_READY_JS, label, timeout_s, f"the page's button {label!r}")
     tab.get_by_role("button", name=label, exact=True).click(force=True)
 
 
