@@ -10,7 +10,6 @@ loop only publishes bytes.
 from __future__ import annotations
 
 import dataclasses
-import math
 import multiprocessing as mp
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -22,7 +21,7 @@ import numpy as np
 import pybullet as p
 
 from models.scene import CameraModel, load_scene
-from models.transforms import invert_pose
+from models.transforms import invert_pose, so3_log
 from protocol import CameraFrame, encode
 from protocol.images import DEFAULT_JPEG_QUALITY
 from work_site.child import stop_child, yield_to_control
@@ -289,9 +288,7 @@ def same_view(a: RenderRequest, b: RenderRequest) -> bool:
         X_b = b.X_WO[name]
         if np.linalg.norm(X_a[:3, 3] - X_b[:3, 3]) > RENDER_REUSE_M:
             return False
-        # The angle of R_a R_bᵀ, from its trace (accurate enough near zero for a threshold).
-        cos = (np.trace(X_a[:3, :3] @ X_b[:3, :3].T) - 1.0) / 2.0
-        if cos < math.cos(RENDER_REUSE_RAD):
+        if np.linalg.norm(so3_log(X_a[:3, :3].T @ X_b[:3, :3])) > RENDER_REUSE_RAD:
             return False
     return True
 
@@ -314,20 +311,20 @@ def _render_worker(
             scene, camera=dataclasses.replace(scene.camera, X_WC=np.asarray(X_WC))
         )
     world = World(scene)
-    rendered: tuple[RenderRequest, np.ndarray] | None = None  # the last render, of what
+    last: tuple[RenderRequest, np.ndarray] | None = None  # the last render, and of what
     try:
         while True:
             request = conn.recv()
             if request is None:
                 return
-            fresh = rendered is None or not same_view(rendered[0], request)
+            fresh = last is None or not same_view(last[0], request)
             if fresh:
                 for name, X_WO in request.X_WO.items():
                     world.set_object_pose(name, X_WO)
                 world.set_robot_joint_positions(request.q, request.fingers_m)
-                rendered = (request, render_grey(world.cid, world.scene.camera, supersample))
+                last = (request, render_grey(world.cid, world.scene.camera, supersample))
             # The sensor's noise, seeded by the frame: a frame renders the same every time.
-            image = sensor.apply(rendered[1], np.random.default_rng(request.seq))
+            image = sensor.apply(last[1], np.random.default_rng(request.seq))
             payload = encode(
                 CameraFrame(
                     seq=request.seq,
