@@ -10,6 +10,7 @@ from models.transforms import invert_pose, so3_log
 from work_site.vision.model import visible_edges, vision_model
 from work_site.vision.pose import (
     apply_update,
+    constraint_p_value,
     fit_pose,
     line_residuals,
     residuals_and_jacobian,
@@ -141,3 +142,42 @@ def test_a_fit_at_its_minimum_evaluates_nothing_more(setup, monkeypatch) -> None
     again = fit_pose(fine.X_CO, edges, noisy, camera.K, iterations=50, tol=1e-7)
     assert len(calls) == 1 and again.converged
     np.testing.assert_array_equal(again.X_CO, fine.X_CO)
+
+
+def test_a_constraint_s_p_value_is_uniform_when_it_holds_and_tiny_when_it_does_not(setup):
+    """The F-test of a fit with a prior against the free fit, against Monte Carlo: with the
+    prior "the object is at this depth" (stiff, one residual) and end-point noise σ, its
+    p-values are uniform when the depth is right (each decile gets its tenth, within sampling
+    error), and tiny when the prior puts it 2 cm further."""
+    camera, models = setup
+    model, X_WO = models["tall_block"]
+    X_CO, edges, segs = _true_lines(camera, model, X_WO)
+    sigma_px, stiffness_px_per_m = 0.3, 1e6
+
+    def at_depth(z_m: float):
+        def prior(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            J = np.zeros((1, 6))
+            J[0, 5] = stiffness_px_per_m
+            return np.array([stiffness_px_per_m * (X[2, 3] - z_m)]), J
+
+        return prior
+
+    rng = np.random.default_rng(5)
+    trials = 400
+    p_right, p_wrong = [], []
+    for _ in range(trials):
+        noisy = segs + rng.normal(0.0, sigma_px, segs.shape)
+        p_right.append(
+            constraint_p_value(X_CO, X_CO, edges, noisy, camera.K, at_depth(X_CO[2, 3]), 30, 1e-10)
+        )
+        further = X_CO[2, 3] + 0.02
+        p_wrong.append(
+            constraint_p_value(X_CO, X_CO, edges, noisy, camera.K, at_depth(further), 30, 1e-10)
+        )
+    counts = np.histogram(p_right, bins=10, range=(0.0, 1.0))[0]
+    expected = trials / 10
+    assert np.all(np.abs(counts - expected) < 4 * np.sqrt(expected * 0.9)), counts
+    assert np.mean(np.array(p_wrong) < 1e-3) > 0.95
+    # No degree of freedom left to measure the noise: nothing can be rejected.
+    few = constraint_p_value(X_CO, X_CO, edges[:3], segs[:3], camera.K, at_depth(0.0), 30, 1e-10)
+    assert few == 1.0

@@ -15,7 +15,7 @@ from models.transforms import invert_pose, make_pose
 from work_site.vision.model import Occluders, parts_in, planes_in, transform
 from work_site.vision.pose_sets import Candidate, _verified_among, select
 from work_site.vision.recognizer import Recognizer
-from work_site.vision.verification import verify
+from work_site.vision.verification import fit_and_verify, verify
 
 N_SCENES = 6
 
@@ -236,7 +236,7 @@ def test_a_block_is_held_up_by_something_hidden_only_when_the_table_cannot_hold_
 ) -> None:
     """A block that nothing found holds up, verified at ``hidden_support_min_score``, is kept
     (what holds it is hidden), unless another pose of it, sharing its lines, rests on the
-    table: then that one."""
+    table: then that one, unless its lines reject the table."""
     data, _, camera = scenes
     p = recognizer.params
     models = {m.name: m for m in recognizer.models}
@@ -271,6 +271,40 @@ def test_a_block_is_held_up_by_something_hidden_only_when_the_table_cannot_hold_
     assert [r.X_WO[2, 3] for r in alone] == [in_air.X_WO[2, 3]]
     both = select([in_air, on_table], *args)
     assert [r.X_WO[2, 3] for r in both] == [on_table.X_WO[2, 3]]
+    rejected = dataclasses.replace(on_table, off_table=True)
+    assert [r.X_WO[2, 3] for r in select([rejected, in_air], *args)] == [in_air.X_WO[2, 3]]
+
+
+def test_the_lines_reject_the_table_under_a_stacked_block_and_not_under_the_one_below(
+    recognizer, stacks
+) -> None:
+    """The cube on the plank, put on the table along its ray by the fit with the table prior:
+    its lines reject that (the fit without the prior explains them far better than noise
+    allows); the plank, which does rest on the table, is not rejected there."""
+    image, poses, camera = stacks
+    f = recognizer._frame(image, camera)
+    p = recognizer.params
+    X_CW = invert_pose(f.X_WC)
+    models = {m.name: m for m in recognizer.models}
+    cube = models["cube"]
+    X_CO = X_CW @ poses["cube"]
+    down_m = 0.5 * np.ptp(models["plank"].vertices_O[:, 2])  # the plank's height, and more
+    X_far = X_CO.copy()
+    X_far[:3, 3] *= 1 + 2 * down_m / np.linalg.norm(X_CO[:3, 3])
+    table = fit_and_verify(
+        cube, X_far, f.strong, f.K, f.gx, f.gy, f.occluders_C, p,
+        recognizer._prior(cube, f.X_WC),
+    )  # fmt: skip
+    assert table is not None
+    X_table_CO = table[0]
+    lowest_m = transform(f.X_WC @ X_table_CO, cube.vertices_O)[:, 2].min()
+    assert abs(lowest_m - recognizer.table_z) < p.table_tol_m  # the prior's work
+    assert recognizer._table_rejected(cube, X_CO, X_table_CO, f)
+    plank = models["plank"]
+    X_plank_CO = X_CW @ poses["plank"]
+    free = fit_and_verify(plank, X_plank_CO, f.strong, f.K, f.gx, f.gy, f.occluders_C, p)
+    assert free is not None
+    assert not recognizer._table_rejected(plank, free[0], X_plank_CO, f)
 
 
 BLOCK_FOUND_M = 0.005

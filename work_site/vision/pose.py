@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import f as f_distribution
 
 from models.transforms import so3_exp
 from work_site.vision.model import project, transform
@@ -180,3 +181,34 @@ def fit_pose(
     raw = r[:n_lines] if w2 is None else r[:n_lines] / w2
     rms = float(np.sqrt(np.mean(raw**2))) if len(raw) else 0.0
     return PoseFit(X, rms, raw, it, converged)
+
+
+def constraint_p_value(
+    X_free_CO: np.ndarray,
+    X_held_CO: np.ndarray,
+    edges_O: np.ndarray,
+    segs_px: np.ndarray,
+    K: np.ndarray,
+    prior: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    iterations: int,
+    tol: float,
+) -> float:
+    """How likely the lines are if the pose meets ``prior``'s constraints (such as "rests on
+    the table"): the p-value of the F-test of nested least-squares models. Both fits are
+    refined on the same correspondences, free from ``X_free_CO`` and with the prior from
+    ``X_held_CO``; with ``m`` line residuals and ``k`` prior residuals,
+    ``((SSR_held − SSR_free) / k) / (SSR_free / (m − 6))`` follows F(k, m − 6) when the
+    constraints hold, the free fit's residuals being the noise's measure. 1.0 when the lines
+    leave no degree of freedom to measure it (fewer than 7 residuals)."""
+    m = 2 * len(edges_O)
+    if m <= 6:
+        return 1.0
+    free = fit_pose(X_free_CO, edges_O, segs_px, K, iterations=iterations, tol=tol)
+    held = fit_pose(X_held_CO, edges_O, segs_px, K, iterations=iterations, tol=tol, prior=prior)
+    k = len(prior(held.X_CO)[0])
+    ssr_free = float(free.residuals_px @ free.residuals_px)
+    ssr_held = float(held.residuals_px @ held.residuals_px)
+    if ssr_free <= 0.0:
+        return 0.0 if ssr_held > 0.0 else 1.0
+    statistic = (max(ssr_held - ssr_free, 0.0) / k) / (ssr_free / (m - 6))
+    return float(f_distribution.sf(statistic, k, m - 6))

@@ -49,6 +49,8 @@ class Candidate:
     # else is found (see select)
     verified_on: np.ndarray | None = field(default=None, repr=False)  # the image lines its
     # verification was made against, with the frame's fixed occluders alone (None: not known)
+    off_table: bool = False  # found resting on the table, but a pose of it above the table
+    # explains its lines significantly better: weighed after the candidates that are not
 
     @property
     def grown(self) -> bool:
@@ -214,9 +216,10 @@ def _explained_px(accepted: list[tuple[Candidate, Detection]], length_px: np.nda
 
 
 def _other_pose_resting(o: Candidate, c: Candidate, params: RecognizerParams) -> bool:
-    """Whether ``o`` is another pose of ``c``'s object, found resting on the table: the same
-    model, sharing more of ``c``'s image lines than two objects side by side do."""
-    if o is c or o.model is not c.model or not o.resting:
+    """Whether ``o`` is another pose of ``c``'s object, found resting on the table (and not
+    rejected there by its lines): the same model, sharing more of ``c``'s image lines than two
+    objects side by side do."""
+    if o is c or o.model is not c.model or not o.resting or o.off_table:
         return False
     shared = len(set(o.verification.matched).intersection(c.verification.matched))
     return shared > params.max_shared_fraction * max(len(c.verification.matched), 1)
@@ -309,7 +312,7 @@ def _select_once(
     used: set[int] = set()
     taken: set[int] = set()  # indices in order of the accepted
     per_model: dict[str, int] = {}
-    order = sorted(candidates, key=lambda c: -c.verification.covered_px)
+    order = sorted(candidates, key=lambda c: (c.off_table, -c.verification.covered_px))
     # Each candidate's parts as occluders (with their images' boxes, so that each other
     # candidate tests only those that can hide it) and its matched lines, once for all
     parts = [

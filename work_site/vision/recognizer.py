@@ -64,6 +64,7 @@ from work_site.vision.model import (
     vision_model,
 )
 from work_site.vision.params import ENV_MATCH_TOL_PX, RecognizerParams
+from work_site.vision.pose import constraint_p_value
 from work_site.vision.pose_sets import Candidate, Detection, PoseSet, select
 from work_site.vision.robot_parts import RobotParts
 from work_site.vision.table import rest_corners
@@ -81,6 +82,9 @@ FAINT_SAME_LINE_PX = 1.5
 FAINT_SAME_LINE_RAD = np.deg2rad(3.0)
 """A faint-pass line within these of a first-pass one, at both ends and in direction, is that
 line found again."""
+TEST_FIT_ITERATIONS = 30
+"""Levenberg–Marquardt iterations of each fit a statistical test compares: both fits converge
+(the fits of the search need not; their later rounds refit)."""
 SUPPORT_HEIGHT_MERGE_M = 1e-3
 """Found faces this close in height (blocks of one size side by side) share one set of stacked
 hypotheses: the fit without the prior settles the height."""
@@ -479,20 +483,46 @@ class Recognizer:
         """Each accepted object fitted again without the table prior: one view hardly tells
         depth, and the prior may have put a block that sits on a block onto the table further
         along its ray. Where the image alone holds it above the table, that pose becomes a
-        candidate too, for the selection to weigh."""
+        candidate too, for the selection to weigh; if the lines reject the table outright
+        (:attr:`RecognizerParams.table_rejection_p`), it is weighed before the object's
+        poses on the table (which stand if it is not held up)."""
         p = self.params
         X_CW = invert_pose(f.X_WC)
         for r in accepted:
             model = self._by_name[r.model]
-            result = fit_and_verify(
-                model, X_CW @ r.X_WO, f.strong, f.K, f.gx, f.gy, f.occluders_C, p, None
-            )
+            X_CO = X_CW @ r.X_WO
+            result = fit_and_verify(model, X_CO, f.strong, f.K, f.gx, f.gy, f.occluders_C, p, None)
             if result is None:
                 continue
             X_WO = f.X_WC @ result[0]
             if transform(X_WO, model.vertices_O)[:, 2].min() - self.table_z <= p.table_tol_m:
                 continue  # on the table after all: the prior's pose stands
+            if r.resting and self._table_rejected(model, result[0], X_CO, f):
+                matched = set(result[2].matched)
+                s.candidates = [
+                    replace(c, off_table=True)
+                    if c.resting and c.model is model and _shares(c, matched, p)
+                    else c
+                    for c in s.candidates
+                ]
             self._add_candidate(model, *result[:3], None, f, s, resting=False)
+
+    def _table_rejected(
+        self, model: VisionModel, X_free_CO: np.ndarray, X_table_CO: np.ndarray, f: _Frame
+    ) -> bool:
+        """Whether the lines matched at ``X_table_CO`` reject the hypothesis that ``model``
+        rests on the table (:func:`~.pose.constraint_p_value`, the free fit started from
+        ``X_free_CO``): the hypothesis's own correspondences, which are right if it is."""
+        p = self.params
+        if p.table_rejection_p <= 0.0:
+            return False
+        ids, proj, _ = visible_edges(model, X_table_CO, f.K, f.occluders_C)
+        mi, mj = match_segments(proj, f.strong, p.match_tol_px[-1], p.match_angle_rad)
+        p_table = constraint_p_value(
+            X_free_CO, X_table_CO, model.edges_O[ids[mi]], f.strong[mj], f.K,
+            self._prior(model, f.X_WC), TEST_FIT_ITERATIONS, p.fit_tol,
+        )  # fmt: skip
+        return p_table < p.table_rejection_p
 
     # -- steps --------------------------------------------------------------------------------
     def _claimed_by(self, accepted: list[Detection], s: _Search) -> None:
@@ -743,6 +773,13 @@ class Recognizer:
         if not resting:
             return None
         return resting_prior(model, self._facets[model.name][0], X_WC, self.table_z, self.params)
+
+
+def _shares(c: Candidate, lines: set[int], params: RecognizerParams) -> bool:
+    """Whether ``c`` shares more of its image lines with ``lines`` than two objects side by
+    side do (so it is a pose of the same object)."""
+    shared = len(lines.intersection(c.verification.matched))
+    return shared > params.max_shared_fraction * max(len(c.verification.matched), 1)
 
 
 def _merged_rects(
