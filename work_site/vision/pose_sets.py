@@ -221,7 +221,13 @@ def _other_pose_resting(o: Candidate, c: Candidate, params: RecognizerParams) ->
     objects side by side do."""
     if o is c or o.model is not c.model or not o.resting or o.off_table:
         return False
-    shared = len(set(o.verification.matched).intersection(c.verification.matched))
+    return shares_lines(c, set(o.verification.matched), params)
+
+
+def shares_lines(c: Candidate, lines: set[int], params: RecognizerParams) -> bool:
+    """Whether ``c`` shares more of its image lines with ``lines`` than two objects side by
+    side do (so the two are poses of one object)."""
+    shared = len(lines.intersection(c.verification.matched))
     return shared > params.max_shared_fraction * max(len(c.verification.matched), 1)
 
 

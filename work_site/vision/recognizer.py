@@ -65,7 +65,7 @@ from work_site.vision.model import (
 )
 from work_site.vision.params import ENV_MATCH_TOL_PX, RecognizerParams
 from work_site.vision.pose import constraint_p_value
-from work_site.vision.pose_sets import Candidate, Detection, PoseSet, select
+from work_site.vision.pose_sets import Candidate, Detection, PoseSet, select, shares_lines
 from work_site.vision.robot_parts import RobotParts
 from work_site.vision.table import rest_corners
 from work_site.vision.verification import (
@@ -501,7 +501,7 @@ class Recognizer:
                 matched = set(result[2].matched)
                 s.candidates = [
                     replace(c, off_table=True)
-                    if c.resting and c.model is model and _shares(c, matched, p)
+                    if c.resting and c.model is model and shares_lines(c, matched, p)
                     else c
                     for c in s.candidates
                 ]
@@ -773,13 +773,6 @@ class Recognizer:
         if not resting:
             return None
         return resting_prior(model, self._facets[model.name][0], X_WC, self.table_z, self.params)
-
-
-def _shares(c: Candidate, lines: set[int], params: RecognizerParams) -> bool:
-    """Whether ``c`` shares more of its image lines with ``lines`` than two objects side by
-    side do (so it is a pose of the same object)."""
-    shared = len(lines.intersection(c.verification.matched))
-    return shared > params.max_shared_fraction * max(len(c.verification.matched), 1)
 
 
 def _merged_rects(
