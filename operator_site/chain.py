@@ -74,8 +74,8 @@ than asked."""
 class RecognisedModel:
     """The model the scripted operator built from vision: the model, the model editor's
     corrections, the searched frames looked at, the vision time of every frame looked at
-    summed (s), the model editor's time for the last build (s) and the tracked frames looked
-    at."""
+    summed (s), the model editor's time for the last build (s), the tracked frames looked
+    at, and the blocks left out because the last frame saw them in more than one place."""
 
     model: WorkSiteModel
     corrections: list[Correction]
@@ -83,6 +83,7 @@ class RecognisedModel:
     vision_s: float
     model_s: float
     tracked_frames: int = 0
+    contested: tuple[str, ...] = ()
 
 
 def model_from_frames(
@@ -96,7 +97,8 @@ def model_from_frames(
 ) -> RecognisedModel:
     """The model built as a person builds it in the page (``operator``'s, or a new operator
     session's), who takes a block into the model once vision's searches have found it in the
-    same place :data:`MIN_SEARCHES` times: a recognition scoring at least
+    same place :data:`MIN_SEARCHES` times and in no other place lately: a recognition scoring
+    at least
     :data:`~operator_site.session.ACCEPT_SCORE` that says so is accepted, and the model made
     consistent. Each frame has its own sensor noise: one that mistakes a block for another, or
     turns it, is not taken at its word. Frames are read until ``ready`` says the model holds
@@ -106,6 +108,7 @@ def model_from_frames(
     corrections: dict[str, Correction] = {}
     n, vision_s, model_s = 0, 0.0, 0.0
     tracked = 0
+    contested: tuple[str, ...] = ()
     for recs in frames:
         n += not recs.tracked
         tracked += recs.tracked
@@ -118,8 +121,12 @@ def model_from_frames(
         steady = [
             r
             for name, r in seen.items()
-            if name not in op.model.poses and (trusted or r.searches >= MIN_SEARCHES)
+            if name not in op.model.poses
+            and (trusted or (r.searches >= MIN_SEARCHES and r.rivals == 0))
         ]
+        contested = tuple(
+            sorted(n for n, r in seen.items() if r.rivals and n not in op.model.poses)
+        )
         if steady:
             t0 = time.monotonic()
             try:
@@ -130,7 +137,9 @@ def model_from_frames(
             model_s += time.monotonic() - t0
         if ready(op.model) or (n >= max_frames and not recs.tracked):
             break
-    return RecognisedModel(op.model, list(corrections.values()), n, vision_s, model_s, tracked)
+    return RecognisedModel(
+        op.model, list(corrections.values()), n, vision_s, model_s, tracked, contested
+    )
 
 
 ProgramMaker = Callable[[TaskSession, str], Generated]
@@ -385,7 +394,15 @@ def run_chain(
             out["model_error"] = _model_error(model, X_before)
 
         t0 = time.monotonic()
-        demo = task.demonstrate(model)
+        try:
+            demo = task.demonstrate(model)
+        except ValueError as e:
+            if not rec.contested:
+                raise
+            raise RunError(
+                "not_recognised",
+                f"{e} (vision saw the {', '.join(rec.contested)} in more than one place)",
+            ) from None
         session, workpiece, ideal = demo.session, demo.workpiece, demo.ideal_X_WO
         out["workpiece"] = workpiece
         out |= task.describe(demo)

@@ -31,7 +31,7 @@ from ._schema import (
 )
 from .images import DEFAULT_JPEG_QUALITY, ImageEncoding
 
-SCHEMA_VERSION = 10
+SCHEMA_VERSION = 11
 """Version of the wire schema; bump on any incompatible change to a message.
 2: ``CameraFrame`` carries its image's ``encoding`` and ``quality``.
 3: ``ExecutionReport`` carries its number within its program (``seq``).
@@ -41,11 +41,12 @@ SCHEMA_VERSION = 10
 9: ``MotionProgram`` says what its grasp should hold (``holds``); a ``Recognition`` how many
 frames its pose fuses and how they spread.
 10: ``Recognitions`` says whether its frame was searched or ``tracked``; a ``Recognition`` how
-many full ``searches`` found its placement."""
+many full ``searches`` found its placement.
+11: a ``Recognition`` says how many other placements of its model searches found (``rivals``)."""
 OLDEST_READ_VERSION = 6
 """The oldest schema version read, for a message type whose body has not changed since (a
 program saved by the version before stays loadable)."""
-BODY_CHANGED_IN: dict[str, int] = {"heartbeat": 8, "motion_program": 9, "recognitions": 10}
+BODY_CHANGED_IN: dict[str, int] = {"heartbeat": 8, "motion_program": 9, "recognitions": 11}
 """The version in which a type's body last changed, where that is after
 :data:`OLDEST_READ_VERSION`: older envelopes of that type are refused (a saved file's are read
 where :data:`FIELDS_ADDED` says what the older body meant)."""
@@ -168,7 +169,8 @@ class Recognition(Record):
     pose fused over ``frames`` sightings of that placement, which spread about it by
     ``spread_m`` (RMS distance) and ``spread_rad`` (RMS angle): how sure vision is; and how
     many full ``searches`` have found that placement (sightings tracked from the frame before
-    refine a pose but do not confirm it)."""
+    refine a pose but do not confirm it); ``rivals``: how many other placements of the same
+    model recent searches have found (vision is not sure where this block is)."""
 
     model: Name
     X_WO: Pose
@@ -177,6 +179,7 @@ class Recognition(Record):
     spread_m: NonNegative = 0.0
     spread_rad: NonNegative = 0.0
     searches: Annotated[int, Meta(ge=0, le=MAX_SEARCHES)] = 1
+    rivals: Annotated[int, Meta(ge=0, le=MAX_SEARCHES)] = 0
 
 
 @dataclass(frozen=True, eq=False)

@@ -66,6 +66,7 @@ SCHEMA: dict[str, dict[str, tuple[Any, ...]]] = {
         "spread_m": NON_NEGATIVE,
         "spread_rad": NON_NEGATIVE,
         "searches": ("int", 0, 2**31),
+        "rivals": ("int", 0, 2**31),
     },
     "Recognitions": {
         "seq": SEQ,
@@ -270,11 +271,13 @@ def ref_decode(payload: bytes) -> tuple[str, dict[str, Any]]:
         raise RefusedError from None
     need(isinstance(env, dict) and sorted(env) == ["b", "t", "v"])
     need(isinstance(env["t"], str) and env["t"] in TAGS)
-    # Version 8 changed the heartbeat, 9 the program, 10 the recognitions; the other types
+    # Version 8 changed the heartbeat, 9 the program, 11 the recognitions; the other types
     # are read back to 6.
-    versions = {"heartbeat": (8, 9, 10), "motion_program": (9, 10), "recognitions": (10,)}.get(
-        env["t"], (6, 7, 8, 9, 10)
-    )
+    versions = {
+        "heartbeat": (8, 9, 10, 11),
+        "motion_program": (9, 10, 11),
+        "recognitions": (11,),
+    }.get(env["t"], (6, 7, 8, 9, 10, 11))
     need(type(env["v"]) is int and env["v"] in versions)
     name = TAGS[env["t"]]
     return name, ref_wire_record(name, env["b"])

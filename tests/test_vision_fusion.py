@@ -127,3 +127,27 @@ def test_tracked_sightings_refine_a_placement_but_only_searches_confirm_or_forge
         fusion.add([])
     (new,) = fusion.add([("cube", X_TRUE, 0.9)], searched=False)
     assert (new.frames, new.searches) == (1, 0)
+
+
+def test_a_placement_counts_the_other_placements_of_its_model_not_yet_forgotten() -> None:
+    """Vision putting one block in two places by turns: each placement says there is one other
+    (a second block of the model would too); once searches stop finding the other for
+    UNSEEN_FRAMES frames, none. Tracked frames neither make nor forget one."""
+    fusion = PoseFusion(SYMMETRIES)
+    far = X_TRUE.copy()
+    far[0, 3] += 0.05
+    (first,) = fusion.add([("cube", X_TRUE, 0.9)])
+    assert first.rivals == 0
+    (other,) = fusion.add([("cube", far, 0.9)])
+    assert other.rivals == 1
+    (again,) = fusion.add([("cube", X_TRUE, 0.9)])
+    assert (again.searches, again.rivals) == (2, 1)
+    (tracked,) = fusion.add([("cube", X_TRUE, 0.9)], searched=False)
+    assert tracked.rivals == 1
+    for _ in range(UNSEEN_FRAMES - 2):
+        (still,) = fusion.add([("cube", X_TRUE, 0.9)])
+        assert still.rivals == 1
+    (alone,) = fusion.add([("cube", X_TRUE, 0.9)])  # the other unseen UNSEEN_FRAMES searches
+    assert alone.rivals == 0
+    a, b = fusion.add([("wedge", X_TRUE, 0.9), ("wedge", far, 0.8)])
+    assert (a.rivals, b.rivals) == (1, 1)

@@ -503,6 +503,7 @@ class WorkSiteServer(ProgramIntake):
                 spread_m=f.spread_m,
                 spread_rad=f.spread_rad,
                 searches=f.searches,
+                rivals=f.rivals,
             )
             for f in self._fusion.add(result.objects, searched=not result.tracked)
         )

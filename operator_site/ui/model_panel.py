@@ -230,6 +230,8 @@ def _sureness(r: Recognition) -> str:
     """How sure vision is of a recognised pose, in words: one frame's, or the spread of the
     frames it fuses; and how many of vision's full searches found it there."""
     found = f"found by {r.searches} search{'' if r.searches == 1 else 'es'}"
+    if r.rivals:
+        found += f", also seen in {r.rivals} other place{'' if r.rivals == 1 else 's'}"
     if r.frames <= 1:
         return f"1 frame, {found}"
     return (

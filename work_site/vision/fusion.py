@@ -13,7 +13,10 @@ it, never averaged with what came before.
 
 A frame's sightings come from a full search or from tracking (refitted from the frame before).
 Tracked sightings refine a pose; they do not confirm it as another search does: a track counts
-the searches that found it (:attr:`Fused.searches`) apart from its sightings.
+the searches that found it (:attr:`Fused.searches`) apart from its sightings. Each fused pose
+also says how many other placements of its model searches have found and not yet forgotten
+(:attr:`Fused.rivals`): a block that vision puts in one place in some frames and in another in
+others (mistaken for another block, or another for it) is not sure in either.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -44,7 +47,8 @@ before had, so a placement it lost stays unseen until the next search, whatever 
 class Fused:
     """One block in one frame: the fused pose ``X_WO``, the sightings fused, and their spread
     about it (RMS distance, m, and RMS angle, rad; 0 for one sighting); ``searches``: how many
-    full searches have found this placement since its track began."""
+    full searches have found this placement since its track began; ``rivals``: how many other
+    placements of this model searches have found and not forgotten."""
 
     model: str
     X_WO: np.ndarray
@@ -53,6 +57,7 @@ class Fused:
     spread_m: float
     spread_rad: float
     searches: int
+    rivals: int = 0
 
 
 class _Track:
@@ -81,7 +86,7 @@ class PoseFusion:
     ) -> list[Fused]:
         """The frame's ``(model, X_WO, score)`` sightings, each fused with its track;
         ``searched``: they come from a full search (else from tracking)."""
-        out: list[Fused] = []
+        out: list[tuple[_Track, Fused]] = []
         matched: set[int] = set()
         for name, X_WO, score in objects:
             X_WO = np.asarray(X_WO, dtype=np.float64)
@@ -109,21 +114,31 @@ class PoseFusion:
             matched.add(id(track))
             spread_m, spread_rad = _spread(list(track.seen), track.fused, S)
             out.append(
-                Fused(
-                    name, track.fused.copy(), float(score), len(track.seen), spread_m, spread_rad,
-                    track.searches,
+                (
+                    track,
+                    Fused(
+                        name, track.fused.copy(), float(score), len(track.seen), spread_m,
+                        spread_rad, track.searches,
+                    ),
                 )
             )  # fmt: skip
-        if not searched:
-            return out
-        for name in list(self._tracks):
-            kept = []
-            for track in self._tracks[name]:
-                track.unseen += 1
-                if track.unseen < UNSEEN_FRAMES:
-                    kept.append(track)
-            self._tracks[name] = kept
-        return out
+        if searched:
+            for name in list(self._tracks):
+                kept = []
+                for track in self._tracks[name]:
+                    track.unseen += 1
+                    if track.unseen < UNSEEN_FRAMES:
+                        kept.append(track)
+                self._tracks[name] = kept
+        return [
+            replace(
+                f,
+                rivals=sum(
+                    1 for t in self._tracks.get(f.model, []) if t is not track and t.searches > 0
+                ),
+            )
+            for track, f in out
+        ]
 
 
 def _aligned(R_ref: np.ndarray, R: np.ndarray, S: np.ndarray) -> np.ndarray:
