@@ -239,7 +239,7 @@ def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) ->
             Recognition(
                 model="cube", X_WO=sunk, score=0.9, frames=4, spread_m=3e-4, spread_rad=0.002
             ),
-            Recognition(model="plank", X_WO=scene.object("plank").X_WO, score=0.8),
+            Recognition(model="plank", X_WO=scene.object("plank").X_WO, score=0.8, rivals=1),
             Recognition(model="wedge", X_WO=scene.object("wedge").X_WO, score=0.2),  # too weak
         ),
     )
@@ -250,8 +250,8 @@ def test_accepting_recognitions_builds_a_consistent_model(page: OperatorPage) ->
         in page.recognitions_md.content
     )
     assert (
-        "plank: score 0.80, 1 frame, found by 1 search (not in the model)"
-        in page.recognitions_md.content
+        "plank: score 0.80, 1 frame, found by 1 search, also seen in 1 other place "
+        "(not in the model)" in page.recognitions_md.content
     )
     assert set(page._rec_buttons) == {"cube", "plank", "wedge"}  # one "add" button each
     # What vision sees, see-through in the 3D view: blue, none of it is in the model yet.
