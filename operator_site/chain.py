@@ -75,7 +75,7 @@ class RecognisedModel:
     """The model the scripted operator built from vision: the model, the model editor's
     corrections, the searched frames looked at, the vision time of every frame looked at
     summed (s), the model editor's time for the last build (s), the tracked frames looked
-    at, and the blocks left out because the last frame saw them in more than one place."""
+    at, and the blocks left out of the model that some frame saw in more than one place."""
 
     model: WorkSiteModel
     corrections: list[Correction]
@@ -108,7 +108,7 @@ def model_from_frames(
     corrections: dict[str, Correction] = {}
     n, vision_s, model_s = 0, 0.0, 0.0
     tracked = 0
-    contested: tuple[str, ...] = ()
+    contested: set[str] = set()  # seen in more than one place by some frame
     for recs in frames:
         n += not recs.tracked
         tracked += recs.tracked
@@ -124,9 +124,7 @@ def model_from_frames(
             if name not in op.model.poses
             and (trusted or (r.searches >= MIN_SEARCHES and r.rivals == 0))
         ]
-        contested = tuple(
-            sorted(n for n, r in seen.items() if r.rivals and n not in op.model.poses)
-        )
+        contested |= {n for n, r in seen.items() if r.rivals}
         if steady:
             t0 = time.monotonic()
             try:
@@ -137,8 +135,9 @@ def model_from_frames(
             model_s += time.monotonic() - t0
         if ready(op.model) or (n >= max_frames and not recs.tracked):
             break
+    unsure = tuple(sorted(contested - set(op.model.poses)))
     return RecognisedModel(
-        op.model, list(corrections.values()), n, vision_s, model_s, tracked, contested
+        op.model, list(corrections.values()), n, vision_s, model_s, tracked, unsure
     )
 
 
@@ -396,11 +395,11 @@ def run_chain(
         t0 = time.monotonic()
         try:
             demo = task.demonstrate(model)
-        except ValueError as e:
+        except (RunError, ValueError) as e:
             if not rec.contested:
                 raise
             raise RunError(
-                "not_recognised",
+                e.kind if isinstance(e, RunError) else kind,
                 f"{e} (vision saw the {', '.join(rec.contested)} in more than one place)",
             ) from None
         session, workpiece, ideal = demo.session, demo.workpiece, demo.ideal_X_WO
