@@ -97,8 +97,8 @@ def model_from_frames(
 ) -> RecognisedModel:
     """The model built as a person builds it in the page (``operator``'s, or a new operator
     session's), who takes a block into the model once vision's searches have found it in the
-    same place :data:`MIN_SEARCHES` times and in no other place lately: a recognition scoring
-    at least
+    same place :data:`MIN_SEARCHES` times and in no other place lately (no
+    :attr:`~protocol.Recognition.rivals`): a recognition scoring at least
     :data:`~operator_site.session.ACCEPT_SCORE` that says so is accepted, and the model made
     consistent. Each frame has its own sensor noise: one that mistakes a block for another, or
     turns it, is not taken at its word. Frames are read until ``ready`` says the model holds
@@ -124,7 +124,7 @@ def model_from_frames(
             if name not in op.model.poses
             and (trusted or (r.searches >= MIN_SEARCHES and r.rivals == 0))
         ]
-        contested |= {n for n, r in seen.items() if r.rivals}
+        contested |= {name for name, r in seen.items() if r.rivals}
         if steady:
             t0 = time.monotonic()
             try:
