@@ -512,15 +512,17 @@ class Recognizer:
     ) -> bool:
         """Whether the lines matched at ``X_table_CO`` reject the hypothesis that ``model``
         rests on the table (:func:`~.pose.constraint_p_value`, the free fit started from
-        ``X_free_CO``): the hypothesis's own correspondences, which are right if it is."""
+        ``X_free_CO``): the hypothesis's own correspondences, which are right if it is. Never
+        with the table prior off: there is then no table hypothesis to test."""
         p = self.params
-        if p.table_rejection_p <= 0.0:
+        prior = self._prior(model, f.X_WC)
+        if p.table_rejection_p <= 0.0 or prior is None:
             return False
         ids, proj, _ = visible_edges(model, X_table_CO, f.K, f.occluders_C)
         mi, mj = match_segments(proj, f.strong, p.match_tol_px[-1], p.match_angle_rad)
         p_table = constraint_p_value(
-            X_free_CO, X_table_CO, model.edges_O[ids[mi]], f.strong[mj], f.K,
-            self._prior(model, f.X_WC), TEST_FIT_ITERATIONS, p.fit_tol,
+            X_free_CO, X_table_CO, model.edges_O[ids[mi]], f.strong[mj], f.K, prior,
+            TEST_FIT_ITERATIONS, p.fit_tol,
         )  # fmt: skip
         return p_table < p.table_rejection_p
 
