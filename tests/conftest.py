@@ -150,7 +150,6 @@ test whether or not its module says so (``make test-fast`` leaves them out)."""
 
 ONE_AT_A_TIME = frozenset(
     {
-        "tests/test_browser.py",
         "tests/test_browser_injection.py",
         "tests/test_browser_ui.py",
         "tests/test_e2e.py",

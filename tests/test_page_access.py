@@ -217,7 +217,7 @@ def test_serve_beyond_loopback_prints_a_url_with_a_new_token() -> None:
 @pytest.mark.integration
 @pytest.mark.browser
 def test_in_chromium_the_printed_url_or_the_typed_token_gives_control() -> None:
-    from tests.test_browser import CHROMIUM, chromium_flags
+    from bench.ui import CHROMIUM, chromium_flags
 
     if not os.access(CHROMIUM, os.X_OK):
         print(f"skipping: {CHROMIUM} is missing (`make test` installs Debian's chromium as root)")

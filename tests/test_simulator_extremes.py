@@ -61,6 +61,9 @@ CORNER_PROPERTY = settings(PROPERTY, max_examples=examples(100))
 """The corner cases run hundreds of steps an example and are the suite's slowest; it runs them
 derandomized (hypothesis's CI profile), the same examples every run, so fewer of them cost
 the suite less every time; the extremes tier draws 2,500 each."""
+CAPTURE_PROPERTY = settings(PROPERTY, max_examples=examples(30))
+"""Round the outside corner with two captures held, an example costs several times an inside
+corner's: fewer of them, the suite's longest unit test otherwise (the extremes tier draws 750)."""
 
 
 class _Scenes(dict):
@@ -468,7 +471,7 @@ def test_a_block_pushed_into_the_inside_corner_comes_to_rest_against_both_walls(
     _assert_rests_against_both_walls(sim, results)
 
 
-@CORNER_PROPERTY
+@CAPTURE_PROPERTY
 @given(
     block=st.sampled_from(BLOCKS),
     params=sim_params(min_step_gain=0.2, min_step_m=1e-2, char_length_m=CONTACT_CHAR_LENGTH_M),
