@@ -329,10 +329,13 @@ def run_chain(
     time_scale: float = 1.0,
     work_site_args: tuple[str, ...] = (),
     seeded_layout: bool = True,
+    dry_run: bool = False,
 ) -> dict:
     """The whole chain for ``task`` (see :func:`run_scripted`); ``seeded_layout``: the started
-    work site lays the blocks out by ``seed`` (else as its scene file has them, unseeded). The
-    result says ``failure`` (None, or its ``kind`` among :data:`FAILURES` and a ``message``)."""
+    work site lays the blocks out by ``seed`` (else as its scene file has them, unseeded);
+    ``dry_run``: stop once the program is made and checked, sending nothing (``success`` then
+    says there is a program). The result says ``failure`` (None, or its ``kind`` among
+    :data:`FAILURES` and a ``message``)."""
     scene = scene or load_scene()
     stage_s: dict[str, float] = {}
     out: dict = {"task": task.label, "seed": seed, "success": False, "failure": None}
@@ -422,6 +425,11 @@ def run_chain(
             raise RunError("infeasible", f"no program for the demonstration: {e}") from None
         stage_s["program"] = time.monotonic() - t0
         out["commands"] = len(program.commands)
+        out["sent"] = not dry_run
+        if dry_run:
+            out["success"] = True
+            stage_s["computation"] = sum(stage_s[k] for k in ("vision", "model", "program"))
+            return out
 
         t0 = time.monotonic()
         kind = "execution_failed"

@@ -286,6 +286,12 @@ def build_parser() -> argparse.ArgumentParser:
         "load it there to look at it or send it again)",
     )
     run.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="make and check the program (and --save-program it) but send nothing: the "
+        "robot does not move; exit code 0 when there is a program",
+    )
+    run.add_argument(
         "--oracle-vision",
         action="store_true",
         help="take the blocks' poses from the simulated work site's ground truth",
@@ -580,6 +586,7 @@ def run_task_file(args: argparse.Namespace) -> int:
         time_scale=args.time_scale,
         label=args.task_file.stem,
         make_program=make_program,
+        dry_run=args.dry_run,
     )
     result["task_file"] = str(args.task_file)
     return _print_result(result, args.json)

@@ -128,11 +128,13 @@ def run_task(
     time_scale: float = 1.0,
     work_site_args: tuple[str, ...] = (),
     label: str | None = None,
+    dry_run: bool = False,
 ) -> dict:
     """Run ``task`` end to end (the chain of :func:`~operator_site.chain.run_chain`, the
     operator's drag :func:`drag_task`); the result's JSON-ready dict. With ``scene_file`` the
     started work site lays the blocks out as that scene file does, else by ``seed``.
-    ``label``: the program id's prefix (default: the task's name)."""
+    ``label``: the program id's prefix (default: the task's name); ``dry_run``: make the
+    program and send nothing."""
     scene = scene or (load_scene(scene_file) if scene_file is not None else load_scene())
     chain = ChainTask(
         label=task.name,
@@ -162,4 +164,5 @@ def run_task(
         time_scale=time_scale,
         work_site_args=(*extra, *work_site_args),
         seeded_layout=scene_file is None,
+        dry_run=dry_run,
     )

@@ -206,7 +206,7 @@ def assert_same_motion(a, b) -> None:
 def test_a_task_saved_from_the_session_runs_with_the_same_program(tmp_path: Path) -> None:
     """``operator-site run`` on the scene file's layout (its vision the work site's ground
     truth, so both sides see one layout, to the micrometres the physics settles the blocks by)
-    makes the program the session made, to the fit's tolerances."""
+    makes the program the session made, to the fit's tolerances; ``--dry-run`` sends it not."""
     op = _corner_session()
     mine = op.make_program("mine").program
     task_path = tmp_path / "corner.json"
@@ -215,11 +215,12 @@ def test_a_task_saved_from_the_session_runs_with_the_same_program(tmp_path: Path
     scene_path = REPO / "models" / "scenes" / "puzzle.json"
     out = subprocess.run(
         [sys.executable, "-m", "operator_site", "run", str(task_path), "--scene",
-         str(scene_path), "--oracle-vision", "--time-scale", "3", "--json",
+         str(scene_path), "--oracle-vision", "--dry-run", "--json",
          "--save-program", str(program_path)],
         capture_output=True, text=True, timeout=600, cwd=REPO,
     )  # fmt: skip
     result = json.loads(out.stdout.strip().splitlines()[-1])
     assert program_path.exists(), (result, out.stderr[-3000:])
     assert_same_motion(mine, load_program(program_path))
-    assert result["success"], result
+    assert result["success"] and out.returncode == 0, result
+    assert result["sent"] is False and "execution" not in result, result
