@@ -253,3 +253,64 @@ def test_support_is_what_lies_under_a_block_not_beside_it() -> None:
     assert not s.supported_by(box((0.0, 0.0, 0.10)), [lower], p)  # 2.5 cm above it
     assert not s.supported_by(box((0.0501, 0.0, 0.04)), [lower], p)  # beside it, in the air
     assert not s.supported_by(box((0.0, 0.0, 0.0752)), [], p)  # nothing under it
+
+
+def test_a_block_sunk_into_what_is_under_it_is_settled_along_its_line_of_sight() -> None:
+    """A cube fitted 4 mm too far along its ray sinks into the slab under it: settled, it
+    moves back along that ray (translation scaled, rotation kept) to where it overlaps by at
+    most the allowed depth, its image a fraction of a pixel from where it was. Sunk by 5 cm, or
+    by 4 mm where its fit's residual is 0.05 px, it is not: its lines would tell."""
+    from models.transforms import look_at
+    from work_site.vision.model import convex_overlap_depth, parts_in
+    from work_site.vision.params import RecognizerParams
+    from work_site.vision.pose_sets import Candidate, _settled
+    from work_site.vision.verification import Surroundings, Verification
+
+    cube = vision_model(load_scene().object("cube").model)
+    p = RecognizerParams()
+    K = np.array([[900.0, 0.0, 320.0], [0.0, 900.0, 240.0], [0.0, 0.0, 1.0]])
+    X_WC = look_at(np.array([0.0, -0.55, 0.55]), np.array([0.0, 0.0, 0.0]))
+    X_CW = np.linalg.inv(X_WC)
+    s = Surroundings(0.0, (np.array([-1.0, -1.0]), np.array([1.0, 1.0])), [])
+    size = float(np.ptp(cube.vertices_O[:, 2]))
+    # Under it a slab wider than anything within reach along the ray: no way round it.
+    half = np.array([0.1, 0.1, size / 2])
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+    lower = [(corners * half + [0.0, 0.0, size / 2], np.vstack([np.eye(3), -np.eye(3)]))]
+    on_top = make_pose(p_AB=np.array([0.005, 0.0, size - cube.vertices_O[:, 2].min()]))
+
+    def candidate(sunk_m: float, rms_px: float = 0.3) -> Candidate:
+        """The cube on top moved ``sunk_m`` further along its line of sight, fitted to its
+        lines with an rms residual of ``rms_px``."""
+        X_CO = X_CW @ on_top
+        t = X_CO[:3, 3]
+        X_CO[:3, 3] = t * (1.0 + sunk_m / np.linalg.norm(t))
+        X_WO = X_WC @ X_CO
+        v = Verification(1.0, 1.0, 1.0, [], 0.0)
+        return Candidate(cube, X_CO, X_WO, rms_px, v, parts_in(X_WO, cube), resting=False)
+
+    def overlap(c: Candidate) -> float:
+        return max(convex_overlap_depth(a, b, na, nb) for a, na in c.parts_W for b, nb in lower)
+
+    c = candidate(0.004)
+    assert overlap(c) > p.max_penetration_m  # what the selection refuses as it is
+    settled = _settled(c, [lower], s, p, K, 1.0)
+    assert settled is not None and settled.settled_from is c and settled.origin is c
+    assert overlap(settled) <= p.max_penetration_m
+    np.testing.assert_allclose(settled.X_CO[:3, :3], c.X_CO[:3, :3])
+    t0, t1 = c.X_CO[:3, 3], settled.X_CO[:3, 3]
+    assert np.linalg.norm(np.cross(t0, t1)) <= 1e-12 * np.linalg.norm(t0) ** 2  # same ray
+    assert np.linalg.norm(t1) < np.linalg.norm(t0)  # towards the camera: up, off the slab
+    # Moved by less than the lines can tell: the cube's image by a fraction of a pixel.
+    uv0 = project_px(c.X_CO, cube, K)
+    assert np.max(np.linalg.norm(project_px(settled.X_CO, cube, K) - uv0, axis=1)) < 0.5
+    np.testing.assert_allclose(settled.X_WO, X_WC @ settled.X_CO, atol=1e-12)
+    assert _settled(candidate(0.05), [lower], s, p, K, 1.0) is None
+    assert _settled(candidate(0.004, rms_px=0.05), [lower], s, p, K, 1.0) is None
+
+
+def project_px(X_CO: np.ndarray, model, K: np.ndarray) -> np.ndarray:
+    """The model's vertices' images (n, 2) px at ``X_CO``."""
+    from work_site.vision.model import project, transform
+
+    return project(transform(X_CO, model.vertices_O), K)

@@ -97,7 +97,9 @@ class RecognizerParams:
     table_rejection_p: float = 1e-3  # an object found on the table is weighed after its pose
     # above it when its lines, were it on the table, would be this unlikely (pose.
     # constraint_p_value): one view hardly tells depth, and the table prior puts a block that
-    # sits on another further along its ray; 0 never weighs it after
+    # sits on another further along its ray; 0 never weighs it after. Also the significance
+    # at which a block's lines refuse its move along its ray out of one it sank into
+    # (pose_sets._settled); 0 never moves it
     track_margin_px: float = 12.0  # tracking looks for an object's lines this far around its
     # predicted outline: well beyond a still block's frame-to-frame error (a fraction of a
     # pixel) and the match's widest tolerance, so that a block nudged a few millimetres is

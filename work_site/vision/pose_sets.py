@@ -6,11 +6,20 @@ between candidates that share image lines or interpenetrate.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.stats import chi2
 
-from work_site.vision.model import Occluders, VisionModel, planes_in, transform, visible_edges
+from work_site.vision.model import (
+    Occluders,
+    VisionModel,
+    parts_in,
+    planes_in,
+    project,
+    transform,
+    visible_edges,
+)
 from work_site.vision.params import RecognizerParams
 from work_site.vision.verification import Surroundings, Verification, verify
 
@@ -51,11 +60,18 @@ class Candidate:
     # verification was made against, with the frame's fixed occluders alone (None: not known)
     off_table: bool = False  # found resting on the table, but a pose of it above the table
     # explains its lines significantly better: weighed after the candidates that are not
+    settled_from: Candidate | None = field(default=None, repr=False)  # the candidate this
+    # is, moved along its line of sight out of an accepted object (see _settled)
 
     @property
     def grown(self) -> bool:
         """Made by growing a smaller object found in the image into a bigger model."""
         return self.part_px is not None
+
+    @property
+    def origin(self) -> Candidate:
+        """The candidate as it was found (itself unless settled)."""
+        return self.settled_from if self.settled_from is not None else self
 
 
 class PoseSet:
@@ -185,7 +201,7 @@ def select(
         for c, _ in accepted:
             if not c.grown:
                 continue
-            without = [o for o in pool if o is not c]
+            without = [o for o in pool if o is not c.origin]
             again, held_again = _select_held(without, once, surroundings, params)
             if _explained_px(again, length_px) > _explained_px(accepted, length_px):
                 pool, accepted, held = without, again, held_again
@@ -196,7 +212,7 @@ def select(
         for (c, _), h in zip(accepted, held, strict=True):
             if h or not any(_other_pose_resting(o, c, params) for o in pool):
                 continue
-            without = [o for o in pool if o is not c]
+            without = [o for o in pool if o is not c.origin]
             again, held_again = _select_held(without, once, surroundings, params)
             if any(
                 h2 and _other_pose_resting(o, c, params)
@@ -219,7 +235,7 @@ def _other_pose_resting(o: Candidate, c: Candidate, params: RecognizerParams) ->
     """Whether ``o`` is another pose of ``c``'s object, found resting on the table (and not
     rejected there by its lines): the same model, sharing more of ``c``'s image lines than two
     objects side by side do."""
-    if o is c or o.model is not c.model or not o.resting or o.off_table:
+    if o.origin is c.origin or o.model is not c.model or not o.resting or o.off_table:
         return False
     return shares_lines(c, set(o.verification.matched), params)
 
@@ -260,7 +276,7 @@ def _select_held(
             for k in more:
                 held[k] = True
         floating = [
-            c
+            c.origin
             for (c, d), h in zip(accepted, held, strict=True)
             if not h and d.score < params.hidden_support_min_score
         ]
@@ -297,6 +313,79 @@ def _verified_among(
     if same_lines and np.array_equal(proj, own.edges_px):
         return own
     return verify(c.model, c.X_CO, K, segs, gx, gy, occluders, params, proj, part_px=c.part_px)
+
+
+def _shows(c: Candidate, v: Verification, p: RecognizerParams) -> bool:
+    """Whether the image shows ``c`` as verified in ``v`` well enough to accept it. A bigger
+    model grown around a smaller object found in the image must show its outline clearly: a
+    phantom part over empty table is the usual false object."""
+    sil_min = p.grown_min_silhouette_fraction if c.grown else p.min_silhouette_fraction
+    return (
+        v.silhouette_fraction >= sil_min
+        and v.score >= p.min_score
+        and v.length_fraction >= p.min_length_fraction
+        and v.extra_fraction >= p.grown_min_extra_fraction
+    )
+
+
+SETTLE_STEPS = 8
+"""Places tried on each side of a candidate along its line of sight when settling it."""
+
+
+def _settled(
+    c: Candidate,
+    accepted_parts: list[list[tuple]],
+    surroundings: Surroundings,
+    p: RecognizerParams,
+    K: np.ndarray,
+    height_m: float,
+) -> Candidate | None:
+    """``c`` (found above the table) moved along its line of sight, the direction one view
+    tells least (its pose's translation scaled), to the nearest place where it interpenetrates
+    nothing accepted (and lies at most ``height_m`` above the table); None if there is none
+    that its lines accept. Two blocks one on the other, each fitted a millimetre or so off
+    along its own ray, then touch instead of overlapping.
+
+    The lines accept a move if the squared distances its visible edges' ends move across them,
+    in units of the fit's rms residual, sum to no more than χ² with one degree of freedom (the
+    depth) exceeds with probability ``table_rejection_p``: the test of a contact hypothesis
+    that also weighs the table (:func:`~.pose.constraint_p_value`)."""
+    if not c.rms_px > 0.0 or p.table_rejection_p <= 0.0:
+        return None
+    ids, _, _ = visible_edges(c.model, c.X_CO, K)
+    ends_O = c.model.edges_O[ids].reshape(-1, 3)
+    uv0 = project(transform(c.X_CO, ends_O), K).reshape(-1, 2, 2)
+    along = uv0[:, 1] - uv0[:, 0]
+    normal = np.column_stack([-along[:, 1], along[:, 0]])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1), 1e-12)[:, None]
+    limit = float(chi2.isf(p.table_rejection_p, 1)) * c.rms_px**2
+
+    def moved(scale: float) -> tuple[np.ndarray, float]:
+        X = c.X_CO.copy()
+        X[:3, 3] *= scale
+        d = project(transform(X, ends_O), K).reshape(-1, 2, 2) - uv0
+        return X, float(np.sum(np.einsum("eki,ei->ek", d, normal) ** 2))
+
+    # The sum grows with the square of the scale's change: the change that reaches the limit,
+    # from a small one.
+    probe = 1e-4
+    per_change2 = moved(1.0 + probe)[1] / probe**2
+    if not per_change2 > 0.0:
+        return None
+    reach = np.sqrt(limit / per_change2)
+    X_WC = c.X_WO @ np.linalg.inv(c.X_CO)
+    for k in range(1, SETTLE_STEPS + 1):
+        for sign in (-1.0, 1.0):  # towards the camera first: up, off what it sits on
+            X_CO, moved_px2 = moved(1.0 + sign * reach * k / SETTLE_STEPS)
+            if moved_px2 > limit or np.any(transform(X_CO, c.model.vertices_O)[:, 2] <= 0.0):
+                continue
+            X_WO = X_WC @ X_CO
+            parts_W = parts_in(X_WO, c.model)
+            if surroundings.plausible(parts_W, accepted_parts, p, False, height_m):
+                return replace(
+                    c, X_CO=X_CO, X_WO=X_WO, parts_W=parts_W, verified_on=None, settled_from=c
+                )
+    return None
 
 
 def _select_once(
@@ -348,19 +437,18 @@ def _select_once(
             ]
         )
         v = _verified_among(c, segs, K, gx, gy, occluders_C, others, p)
-        # A bigger model grown around a smaller object found in the image must show its
-        # outline clearly: a phantom part over empty table is the usual false object.
-        sil_min = p.grown_min_silhouette_fraction if c.grown else p.min_silhouette_fraction
-        if (
-            v.silhouette_fraction < sil_min
-            or v.score < p.min_score
-            or v.length_fraction < p.min_length_fraction
-            or v.extra_fraction < p.grown_min_extra_fraction
-        ):
+        if not _shows(c, v, p):
             continue
         height = 0.0 if c.resting else max_height_m
         if not surroundings.plausible(c.parts_W, accepted_parts, p, False, height):
-            continue
+            settled = None if c.resting else _settled(c, accepted_parts, surroundings, p, K, height)
+            if settled is None:
+                continue
+            v = _verified_among(settled, segs, K, gx, gy, occluders_C, others, p)
+            if not _shows(settled, v, p):
+                continue
+            c = replace(settled, verification=v)
+            rec = v
         accepted.append(
             (
                 c,
