@@ -348,8 +348,8 @@ def _settled(
 
     The lines accept a move if the squared distances its visible edges' ends move across them,
     in units of the fit's rms residual, sum to no more than χ² with one degree of freedom (the
-    depth) exceeds with probability ``table_rejection_p``: the test of a contact hypothesis
-    that also weighs the table (:func:`~.pose.constraint_p_value`)."""
+    depth) exceeds with probability ``table_rejection_p``, the significance at which the
+    lines also reject the table (:func:`~.pose.constraint_p_value`)."""
     if not c.rms_px > 0.0 or p.table_rejection_p <= 0.0:
         return None
     ids, _, _ = visible_edges(c.model, c.X_CO, K)
