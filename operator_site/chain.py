@@ -425,10 +425,10 @@ def run_chain(
             raise RunError("infeasible", f"no program for the demonstration: {e}") from None
         stage_s["program"] = time.monotonic() - t0
         out["commands"] = len(program.commands)
+        stage_s["computation"] = sum(stage_s[k] for k in ("vision", "model", "program"))
         out["sent"] = not dry_run
         if dry_run:
             out["success"] = True
-            stage_s["computation"] = sum(stage_s[k] for k in ("vision", "model", "program"))
             return out
 
         t0 = time.monotonic()
@@ -506,7 +506,6 @@ def run_chain(
         elif not contacts_ok:
             why = ", ".join(missing) or f"{out['contacts_verified']} of the directions"
             out["failure"] = _failure("goal_missed", f"contacts not verified: {why}")
-        stage_s["computation"] = sum(stage_s.get(k, 0.0) for k in ("vision", "model", "program"))
     except RunError as e:
         out["error"] = str(e)
         out["failure"] = _failure(e.kind, str(e))

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.stats import chi2
 
+from models.transforms import invert_pose
 from work_site.vision.model import (
     Occluders,
     VisionModel,
@@ -373,7 +374,7 @@ def _settled(
     if not per_change2 > 0.0:
         return None
     reach = np.sqrt(limit / per_change2)
-    X_WC = c.X_WO @ np.linalg.inv(c.X_CO)
+    X_WC = c.X_WO @ invert_pose(c.X_CO)
     for k in range(1, SETTLE_STEPS + 1):
         for sign in (-1.0, 1.0):  # towards the camera first: up, off what it sits on
             X_CO, moved_px2 = moved(1.0 + sign * reach * k / SETTLE_STEPS)
